@@ -1,0 +1,6 @@
+"""Pure numerics of feedmon: covariance functions, the feed-drive model, least squares,
+PL-LSSVM and the KRLS-T tracker. No I/O, no networking."""
+
+from .covariance import Kernel, LocallyPeriodic, Periodic, Product, SquaredExponential
+
+__all__ = ["Kernel", "LocallyPeriodic", "Periodic", "Product", "SquaredExponential"]

@@ -1,0 +1,354 @@
+"""Covariance functions: one definition each, shared by the batch and online paths.
+
+Every kernel is a product of *factors*. A factor has a kind, up to three
+parameters and the slice of input columns it reads. The same factor table
+drives
+
+* the vectorised NumPy evaluation ``kernel(X1, X2)`` used by PL-LSSVM and tests,
+* the stationary lag function ``kernel.lag(d)`` used by the Toeplitz solver,
+* the ``@njit`` row evaluation :func:`kernel_row` used by the KRLS-T step,
+
+so there is exactly one formula per kernel (method §5).
+
+Conventions (method §5, thesis eq. 2.11 corrected), ``d = x - x'``:
+
+* squared exponential      ``k = exp(-||d||² / (2 ℓ²))``
+* periodic                 ``k = exp(-sin²(π d / ψ) / (2 σ2²))``   (thesis σ2;
+  scikit-learn's ExpSineSquared length scale is ``2 σ2``)
+* locally periodic         ``k = exp(-d² / (2 σ1²)) · exp(-sin²(π d / ψ) / (2 σ2²))``
+
+All kernels have ``k(x, x) = 1``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+__all__ = [
+    "Kernel",
+    "SquaredExponential",
+    "Periodic",
+    "LocallyPeriodic",
+    "Product",
+    "KIND_SE",
+    "KIND_PERIODIC",
+    "KIND_LOCALLY_PERIODIC",
+    "kernel_value",
+    "kernel_row",
+]
+
+KIND_SE = 0
+KIND_PERIODIC = 1
+KIND_LOCALLY_PERIODIC = 2
+
+
+@dataclass(frozen=True)
+class Factor:
+    """One factor of a product kernel: ``kind``, ``params`` (3 floats) and columns ``[start, stop)``.
+
+    ``stop = -1`` means "to the last column".
+    """
+
+    kind: int
+    params: tuple[float, float, float]
+    start: int = 0
+    stop: int = -1
+
+
+def _check_positive(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value) or value <= 0.0:
+        raise ValueError(f"kernel parameter {name} must be a positive finite number, got {value!r}")
+    return value
+
+
+def _dims_to_range(dims) -> tuple[int, int]:
+    if dims is None:
+        return 0, -1
+    if isinstance(dims, slice):
+        if dims.step not in (None, 1):
+            raise ValueError("kernel dims must be a contiguous slice (step 1)")
+        start = 0 if dims.start is None else int(dims.start)
+        stop = -1 if dims.stop is None else int(dims.stop)
+        if start < 0 or (stop != -1 and stop <= start):
+            raise ValueError(f"kernel dims {dims} select no columns")
+        return start, stop
+    index = int(dims)
+    if index < 0:
+        raise ValueError("kernel dims must be a non-negative column index or a slice")
+    return index, index + 1
+
+
+def _as_2d(X) -> np.ndarray:
+    X = np.asarray(X, dtype=np.float64)
+    if X.ndim == 0:
+        return X.reshape(1, 1)
+    if X.ndim == 1:
+        return X.reshape(-1, 1)
+    if X.ndim != 2:
+        raise ValueError(f"kernel inputs must be scalars, 1-D or 2-D arrays, got shape {X.shape}")
+    return X
+
+
+def _factor_matrix(f: Factor, X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
+    stop = X1.shape[1] if f.stop == -1 else f.stop
+    A = X1[:, f.start:stop]
+    B = X2[:, f.start:stop]
+    if A.shape[1] == 0:
+        raise ValueError(f"kernel factor reads columns [{f.start}, {stop}) but inputs have {X1.shape[1]}")
+    if f.kind == KIND_SE:
+        (ell, _, _) = f.params
+        sq = np.sum(A * A, 1)[:, None] + np.sum(B * B, 1)[None, :] - 2.0 * (A @ B.T)
+        np.maximum(sq, 0.0, out=sq)
+        return np.exp(-sq / (2.0 * ell * ell))
+    if A.shape[1] != 1:
+        raise ValueError("periodic and locally periodic factors act on one scalar column (time)")
+    d = A[:, 0][:, None] - B[:, 0][None, :]
+    return _lag_values(f, d)
+
+
+def _lag_values(f: Factor, d: np.ndarray) -> np.ndarray:
+    """k(d) of one stationary scalar factor (eq. of method §5)."""
+    if f.kind == KIND_SE:
+        ell = f.params[0]
+        return np.exp(-(d * d) / (2.0 * ell * ell))
+    if f.kind == KIND_PERIODIC:
+        sigma2, period, _ = f.params
+        s = np.sin(np.pi * d / period)
+        return np.exp(-(s * s) / (2.0 * sigma2 * sigma2))
+    if f.kind == KIND_LOCALLY_PERIODIC:
+        sigma1, sigma2, period = f.params
+        s = np.sin(np.pi * d / period)
+        return np.exp(-(d * d) / (2.0 * sigma1 * sigma1) - (s * s) / (2.0 * sigma2 * sigma2))
+    raise ValueError(f"unknown kernel kind {f.kind}")
+
+
+class Kernel:
+    """Base class: a product of :class:`Factor` s. Subclasses only build the factor table."""
+
+    factors: tuple[Factor, ...] = ()
+
+    # -- evaluation -----------------------------------------------------------
+    def __call__(self, X1, X2=None) -> np.ndarray:
+        """Kernel matrix ``K[i, j] = k(X1[i], X2[j])`` (``X2 = X1`` when omitted)."""
+        A = _as_2d(X1)
+        B = A if X2 is None else _as_2d(X2)
+        if A.shape[1] != B.shape[1]:
+            raise ValueError(f"kernel inputs disagree in dimension: {A.shape[1]} vs {B.shape[1]}")
+        K = np.ones((A.shape[0], B.shape[0]))
+        for f in self.factors:
+            K *= _factor_matrix(f, A, B)
+        return K
+
+    def diag(self, X) -> np.ndarray:
+        """``k(x, x)`` for each row: all kernels here are normalised to 1."""
+        return np.ones(_as_2d(X).shape[0])
+
+    @property
+    def is_stationary_1d(self) -> bool:
+        """True when ``k`` is a function of the lag of one scalar input (a time kernel)."""
+        return all(f.start == 0 and f.stop in (-1, 1) for f in self.factors)
+
+    def lag(self, d) -> np.ndarray:
+        """``k(d)`` for a scalar time kernel, ``d = t - t'`` (first column of a Toeplitz matrix)."""
+        if not self.is_stationary_1d:
+            raise ValueError(f"{self!r} is not a function of a scalar lag; use kernel(X1, X2)")
+        d = np.asarray(d, dtype=np.float64)
+        out = np.ones_like(d)
+        for f in self.factors:
+            out = out * _lag_values(f, d)
+        return out
+
+    # -- numba table ------------------------------------------------------------
+    def spec(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arrays ``(kinds int64[F], params float64[F,3], cols int64[F,2])`` for :func:`kernel_row`."""
+        kinds = np.array([f.kind for f in self.factors], dtype=np.int64)
+        params = np.array([f.params for f in self.factors], dtype=np.float64).reshape(-1, 3)
+        cols = np.array([(f.start, f.stop) for f in self.factors], dtype=np.int64).reshape(-1, 2)
+        return kinds, params, cols
+
+    # -- composition and description ------------------------------------------------
+    def __mul__(self, other: "Kernel") -> "Product":
+        if not isinstance(other, Kernel):
+            return NotImplemented
+        return Product(self, other)
+
+    def to_dict(self) -> dict:
+        """Plain description, for model files and snapshots."""
+        raise NotImplementedError
+
+    @staticmethod
+    def from_dict(d: dict) -> "Kernel":
+        """Inverse of :meth:`to_dict`; raises ``ValueError`` naming the bad key."""
+        if not isinstance(d, dict) or "type" not in d:
+            raise ValueError("kernel description needs a 'type' key")
+        kind = d["type"]
+        dims = d.get("dims")
+        if isinstance(dims, list):
+            dims = slice(int(dims[0]), None if int(dims[1]) == -1 else int(dims[1]))
+        try:
+            if kind == "locally_periodic":
+                return LocallyPeriodic(d["sigma1"], d["sigma2"], d["period"], dims=dims)
+            if kind == "periodic":
+                return Periodic(d["sigma2"], d["period"], dims=dims)
+            if kind == "squared_exponential":
+                return SquaredExponential(d["lengthscale"], dims=dims)
+            if kind == "product":
+                return Product(*[Kernel.from_dict(x) for x in d["factors"]])
+        except KeyError as exc:
+            raise ValueError(f"kernel of type {kind!r} is missing key {exc.args[0]!r}") from None
+        raise ValueError(
+            f"unknown kernel type {kind!r}; use locally_periodic, periodic, squared_exponential or product"
+        )
+
+    def _dims_dict(self, f: Factor) -> dict:
+        return {} if (f.start, f.stop) == (0, -1) else {"dims": [f.start, f.stop]}
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Kernel) and self.factors == other.factors
+
+    def __hash__(self) -> int:
+        return hash(self.factors)
+
+
+class SquaredExponential(Kernel):
+    """RBF kernel ``k(x, x') = exp(-||x - x'||² / (2 ℓ²))`` on vector inputs.
+
+    Parameters
+    ----------
+    lengthscale : float
+        ℓ, in the units of the inputs.
+    dims : int or slice, optional
+        Input columns the kernel reads (all by default).
+    """
+
+    def __init__(self, lengthscale: float, dims=None):
+        self.lengthscale = _check_positive("lengthscale", lengthscale)
+        start, stop = _dims_to_range(dims)
+        self.factors = (Factor(KIND_SE, (self.lengthscale, 0.0, 0.0), start, stop),)
+
+    def to_dict(self) -> dict:
+        return {"type": "squared_exponential", "lengthscale": self.lengthscale, **self._dims_dict(self.factors[0])}
+
+    def __repr__(self) -> str:
+        return f"SquaredExponential(lengthscale={self.lengthscale!r})"
+
+
+class Periodic(Kernel):
+    """Periodic kernel ``k(d) = exp(-sin²(π d / ψ) / (2 σ2²))`` on a scalar input (method §5).
+
+    Parameters
+    ----------
+    sigma2 : float
+        σ2, thesis convention (scikit-learn's ExpSineSquared uses ``ℓ = 2 σ2``).
+    period : float
+        ψ, the disturbance period in the input's units (s for time).
+    """
+
+    def __init__(self, sigma2: float, period: float, dims=None):
+        self.sigma2 = _check_positive("sigma2", sigma2)
+        self.period = _check_positive("period", period)
+        start, stop = _dims_to_range(dims)
+        self.factors = (Factor(KIND_PERIODIC, (self.sigma2, self.period, 0.0), start, stop),)
+
+    def to_dict(self) -> dict:
+        return {"type": "periodic", "sigma2": self.sigma2, "period": self.period, **self._dims_dict(self.factors[0])}
+
+    def __repr__(self) -> str:
+        return f"Periodic(sigma2={self.sigma2!r}, period={self.period!r})"
+
+
+class LocallyPeriodic(Kernel):
+    """Locally periodic kernel on time (thesis eq. 2.11 as corrected in method §5).
+
+    ``k(d) = exp(-d² / (2 σ1²)) · exp(-sin²(π d / ψ) / (2 σ2²))``, ``d = t - t'``.
+
+    Parameters
+    ----------
+    sigma1 : float
+        σ1 (s), how long the periodic pattern stays correlated.
+    sigma2 : float
+        σ2, smoothness within one period (thesis convention).
+    period : float
+        ψ (s): 1/55 s for the shaker, 60/rpm for a spindle with runout.
+    """
+
+    def __init__(self, sigma1: float, sigma2: float, period: float, dims=None):
+        self.sigma1 = _check_positive("sigma1", sigma1)
+        self.sigma2 = _check_positive("sigma2", sigma2)
+        self.period = _check_positive("period", period)
+        start, stop = _dims_to_range(dims)
+        self.factors = (
+            Factor(KIND_LOCALLY_PERIODIC, (self.sigma1, self.sigma2, self.period), start, stop),
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "type": "locally_periodic",
+            "sigma1": self.sigma1,
+            "sigma2": self.sigma2,
+            "period": self.period,
+            **self._dims_dict(self.factors[0]),
+        }
+
+    def __repr__(self) -> str:
+        return f"LocallyPeriodic(sigma1={self.sigma1!r}, sigma2={self.sigma2!r}, period={self.period!r})"
+
+
+class Product(Kernel):
+    """Product of kernels, ``k = k_a · k_b · …`` (positive definite when each factor is)."""
+
+    def __init__(self, *kernels: Kernel):
+        if len(kernels) < 2:
+            raise ValueError("Product needs at least two kernels")
+        self.kernels = tuple(kernels)
+        self.factors = tuple(f for k in kernels for f in k.factors)
+
+    def to_dict(self) -> dict:
+        return {"type": "product", "factors": [k.to_dict() for k in self.kernels]}
+
+    def __repr__(self) -> str:
+        return " * ".join(repr(k) for k in self.kernels)
+
+
+# ---------------------------------------------------------------------------
+# @njit evaluation (online path). Same formulas as _lag_values/_factor_matrix.
+# ---------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _factor_value(kind, p, x1, x2, start, stop):
+    if stop == -1:
+        stop = x1.shape[0]
+    if kind == KIND_SE:
+        sq = 0.0
+        for j in range(start, stop):
+            d = x1[j] - x2[j]
+            sq += d * d
+        return math.exp(-sq / (2.0 * p[0] * p[0]))
+    d = x1[start] - x2[start]
+    if kind == KIND_PERIODIC:
+        s = math.sin(math.pi * d / p[1])
+        return math.exp(-(s * s) / (2.0 * p[0] * p[0]))
+    s = math.sin(math.pi * d / p[2])
+    return math.exp(-(d * d) / (2.0 * p[0] * p[0]) - (s * s) / (2.0 * p[1] * p[1]))
+
+
+@njit(cache=True, nogil=True)
+def kernel_value(kinds, params, cols, x1, x2):
+    """``k(x1, x2)`` for the factor table from :meth:`Kernel.spec` (x1, x2: 1-D float64)."""
+    v = 1.0
+    for f in range(kinds.shape[0]):
+        v *= _factor_value(kinds[f], params[f], x1, x2, cols[f, 0], cols[f, 1])
+    return v
+
+
+@njit(cache=True, nogil=True)
+def kernel_row(kinds, params, cols, X, n, x, out):
+    """``out[i] = k(X[i], x)`` for ``i < n`` without allocation (the KRLS-T ``k_t``)."""
+    for i in range(n):
+        out[i] = kernel_value(kinds, params, cols, X[i], x)
