@@ -1,0 +1,262 @@
+"""``McapSink``: the monitor's MCAP log (samples + estimates of every axis, one file per run).
+
+The file is written with :class:`monitor.mcapio.TrialWriter`, so a monitor log
+*is* a trial file: same channels (``/<machine>/<axis>/samples|truth|disturbance``),
+same JSON + ``jsonschema`` schemas, zstd chunks, one ``feedmon.trial`` metadata
+record per axis. ``feedmon replay`` and :func:`monitor.mcapio.read_trial` read it.
+
+* Flushing: a chunk is closed and flushed to the OS at least every
+  ``flush_seconds`` (default 0.5 s) of wall time while data arrives, so a crash
+  loses about half a second.
+* Rotation: with ``rotate_bytes`` and/or ``rotate_seconds`` the sink starts a
+  new file when the current one reaches about that size (checked after each
+  flush, so files overshoot by up to one chunk) or age. Files are then named
+  ``<stem>-000.mcap``, ``<stem>-001.mcap``, ... next to ``path``; without
+  rotation the single file is ``path`` itself. :attr:`McapSink.files` lists
+  them; every file is complete and self-describing.
+* Axes: a TrialWriter needs the :class:`~monitor.schema.TrialMeta` of every
+  axis up front. Pass ``metas`` (the monitor knows Ts and form from its model
+  files). A block of an axis without meta gets one from ``meta_factory``
+  (default: Ts inferred from the block's sample times, form "velocity-loop",
+  provenance ``source="live"``, flagged ``details={"inferred": True}``), and,
+  if a file is already open, the sink rotates to a new file that declares it
+  (TrialWriter cannot add an axis to an open file). Without ``metas`` the first
+  file is opened ``discover_seconds`` (default 1 s) after the first block, with
+  every axis seen by then, so a multi-axis run does not rotate at start-up.
+
+Items: :class:`SampleBlock`, :class:`EstimateBlock`, or ``(machine, axis, TruthBlock)``
+(see :meth:`McapSink.offer_truth`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from .. import schema as S
+from ..mcapio import TrialWriter
+from .queued import QueuedSink
+
+__all__ = ["McapSink", "infer_meta"]
+
+
+def infer_meta(machine: str, axis: str, block: Any) -> S.TrialMeta:
+    """A best-effort :class:`TrialMeta` for a live axis nobody declared."""
+    from .. import __version__
+
+    ts = None
+    t = list(getattr(block, "t", []) or [])
+    if len(t) > 1:
+        diffs = sorted(b - a for a, b in zip(t, t[1:]) if b > a)
+        if diffs:
+            ts = diffs[len(diffs) // 2]
+    if ts is None or not math.isfinite(ts) or ts <= 0:
+        ts = 1.0 / 333.0
+    return S.TrialMeta(
+        Ts=float(ts),
+        form="velocity-loop",
+        machine=machine,
+        axis=axis,
+        provenance=S.Provenance(
+            source="live", tool="feedmon run", version=__version__,
+            details={"inferred": True, "note": "TrialMeta inferred by McapSink: Ts from sample times, form assumed"},
+        ),
+        units=dict(S.UNITS),
+        description="live monitor log (axis metadata inferred)",
+    )
+
+
+class McapSink(QueuedSink):
+    """Queued MCAP writer. See the module docstring.
+
+    Parameters
+    ----------
+    path:
+        output file (``.mcap``); with rotation the counter is inserted before the suffix.
+    rotate_bytes, rotate_seconds:
+        start a new file at about this size / wall-clock age (None: never).
+    metas:
+        :class:`TrialMeta` of the axes expected (recommended).
+    meta_factory:
+        ``(machine, axis, block) -> TrialMeta`` for undeclared axes (default :func:`infer_meta`).
+    flush_seconds:
+        close and flush a chunk at least this often (wall clock).
+    discover_seconds:
+        without ``metas``: buffer this long before opening the first file.
+    maxsize:
+        queue capacity (blocks).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        rotate_bytes: int | None = None,
+        rotate_seconds: float | None = None,
+        *,
+        metas: S.TrialMeta | Sequence[S.TrialMeta] | None = None,
+        meta_factory: Callable[[str, str, Any], S.TrialMeta] | None = None,
+        flush_seconds: float = 0.5,
+        discover_seconds: float = 1.0,
+        maxsize: int = 4096,
+        name: str = "mcap",
+    ) -> None:
+        if rotate_bytes is not None and rotate_bytes <= 0:
+            raise ValueError(f"rotate_bytes must be > 0, got {rotate_bytes}")
+        if rotate_seconds is not None and rotate_seconds <= 0:
+            raise ValueError(f"rotate_seconds must be > 0, got {rotate_seconds}")
+        if not flush_seconds > 0:
+            raise ValueError(f"flush_seconds must be > 0, got {flush_seconds}")
+        self.path = Path(path)
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(f"directory of the MCAP log {str(self.path)!r} does not exist")
+        self.rotate_bytes = rotate_bytes
+        self.rotate_seconds = rotate_seconds
+        self.flush_seconds = float(flush_seconds)
+        self.meta_factory = meta_factory or infer_meta
+        ms = [metas] if isinstance(metas, S.TrialMeta) else list(metas or [])
+        self._metas: dict[tuple[str, str], S.TrialMeta] = {(m.machine, m.axis): m for m in ms}
+        self.files: list[str] = []
+        self._writer: TrialWriter | None = None
+        self._opened_at = 0.0
+        self._index = 0
+        self._in_file = 0  # messages in the current file
+        self.discover_seconds = float(discover_seconds)
+        self._held: list[Any] = []  # blocks buffered while discovering axes (no metas given)
+        self._held_since = 0.0
+        super().__init__(maxsize, name=name, tick_interval=min(0.1, self.flush_seconds / 2))
+
+    # ---- producer helpers ----------------------------------------------------------------
+    def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
+        """Queue a :class:`TruthBlock` of ``machine/axis`` (truth blocks carry no axis)."""
+        return self.offer((machine, axis, block))
+
+    @property
+    def rotating(self) -> bool:
+        return self.rotate_bytes is not None or self.rotate_seconds is not None
+
+    def extra_status(self) -> dict[str, Any]:
+        return {"files": list(self.files), "current_file": self.files[-1] if self._writer else None}
+
+    # ---- worker side -----------------------------------------------------------------------
+    def _next_path(self) -> str:
+        if not self.rotating and self._index == 0:
+            p = self.path
+        else:
+            p = self.path.with_name(f"{self.path.stem}-{self._index:03d}{self.path.suffix or '.mcap'}")
+        self._index += 1
+        return str(p)
+
+    def _open(self) -> None:
+        path = self._next_path()
+        self._writer = TrialWriter(path, list(self._metas.values()), chunk_seconds=self.flush_seconds)
+        self._opened_at = time.monotonic()
+        self._in_file = 0
+        self.files.append(path)
+
+    def _close_writer(self) -> None:
+        w, self._writer = self._writer, None
+        if w is not None:
+            w.close()
+
+    def rotate(self) -> None:
+        """Finish the current file and start the next one (worker thread only)."""
+        self._close_writer()
+        self._open()
+
+    def start_worker(self) -> None:
+        if self._metas:
+            self._open()  # without metas the first file opens at the first block
+
+    def _ensure_axis(self, machine: str, axis: str, block: Any) -> TrialWriter:
+        key = (machine, axis)
+        if key not in self._metas:
+            meta = self.meta_factory(machine, axis, block)
+            if (meta.machine, meta.axis) != key:
+                raise ValueError(f"meta_factory returned meta of {meta.machine}/{meta.axis} for {machine}/{axis}")
+            self._metas[key] = meta
+            if self._writer is not None:
+                self.rotate()
+        if self._writer is None:
+            self._open()
+        assert self._writer is not None
+        return self._writer
+
+    def handle(self, item: Any) -> None:
+        if self._writer is None and not self.files and self.discover_seconds > 0:
+            key = self._axis_of(item)
+            if key not in self._metas:
+                self._metas[key] = self.meta_factory(key[0], key[1], item)
+            if not self._held:
+                self._held_since = time.monotonic()
+            self._held.append(item)
+            return
+        self._write(item)
+        self._in_file += 1
+
+    @staticmethod
+    def _axis_of(item: Any) -> tuple[str, str]:
+        if isinstance(item, (S.SampleBlock, S.EstimateBlock)):
+            return item.machine, item.axis
+        if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
+            return str(item[0]), str(item[1])
+        raise TypeError(
+            f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+        )
+
+    def _release(self) -> None:
+        """Open the first file with every axis seen so far and write the held blocks."""
+        held, self._held = self._held, []
+        if self._writer is None:
+            self._open()
+        for item in held:
+            try:
+                self._write(item)
+                self._in_file += 1
+            except Exception as exc:  # noqa: BLE001 - counted like any other write failure
+                with self._lock:
+                    self.written -= 1  # it was counted when it was held
+                self._record_failure(exc)
+
+    def _write(self, item: Any) -> None:
+        if isinstance(item, S.SampleBlock):
+            self._ensure_axis(item.machine, item.axis, item).write_samples(item)
+        elif isinstance(item, S.EstimateBlock):
+            self._ensure_axis(item.machine, item.axis, item).write_estimates(item)
+        elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
+            machine, axis, block = item
+            self._ensure_axis(machine, axis, block).write_truth(block, machine, axis)
+        else:
+            raise TypeError(
+                f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+            )
+
+    def tick(self, now: float) -> None:
+        if self._held and now - self._held_since >= self.discover_seconds:
+            self._release()
+        w = self._writer
+        if w is None:
+            return
+        w.flush_if_due(now)
+        if not self._in_file:
+            return  # never rotate away from an empty file
+        if self.rotate_seconds is not None and now - self._opened_at >= self.rotate_seconds:
+            self.rotate()
+            return
+        if self.rotate_bytes is not None:
+            try:
+                size = os.path.getsize(self.files[-1])
+            except OSError:
+                return
+            if size >= self.rotate_bytes:
+                self.rotate()
+
+    def finish(self) -> None:
+        if self._held:
+            self._release()
+        if self._writer is None and not self.files and self._metas:
+            self._open()  # a run without data still leaves a valid (empty) file
+        self._close_writer()
