@@ -2,5 +2,6 @@
 PL-LSSVM and the KRLS-T tracker. No I/O, no networking."""
 
 from .covariance import Kernel, LocallyPeriodic, Periodic, Product, SquaredExponential
+from .krlst import KRLST, Step
 
-__all__ = ["Kernel", "LocallyPeriodic", "Periodic", "Product", "SquaredExponential"]
+__all__ = ["KRLST", "Kernel", "LocallyPeriodic", "Periodic", "Product", "SquaredExponential", "Step"]

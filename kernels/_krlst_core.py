@@ -1,0 +1,470 @@
+"""Allocation-free ``@njit`` core of the KRLS-T tracker (method §6, thesis eq. 2.14–2.22).
+
+Reference: kafbox ``lib/krlst.m`` (S. Van Vaerenbergh), back-to-the-prior forgetting.
+The public class is :class:`kernels.krlst.KRLST`; this module holds only the numerics.
+Kernel values come from :func:`kernels.covariance.kernel_value` (one formula per kernel).
+
+Slots
+-----
+All matrices live in preallocated ``(M+1)×(M+1)`` buffers whose rows/columns are
+*slots*. ``order[:n]`` lists the slots of the ``n`` dictionary elements in the
+dictionary's logical order (kafbox's order, oldest first), ``order[n:]`` the free
+slots. A free slot has an all-zero row and column in ``Q``, ``S`` (Σ) and ``K`` and
+zero entries in ``mu`` and the pending vectors, so every matrix–vector product and
+rank-one update runs over the contiguous range ``[0, hw)`` (``hw``: high-water mark
+of used slots) without gathering: zeros contribute nothing. Adding a basis writes
+one row/column into a free slot; removing one zeroes a row/column; nothing is
+shifted, and no kernel value is recomputed. Only the pruning ``argmin`` walks the
+logical order, so ties resolve to the first (oldest) element as Matlab's ``min``.
+
+``Q``, ``S`` and ``K`` are stored full and kept *bitwise* symmetric: each element
+update is an expression symmetric in ``(i, j)`` in floating point (for example
+``Q[i,j] + c*(p[i]*p[j])``). Matrix–vector products use the symmetry to run
+row-wise as contiguous axpys (``q += k[j] * Q[j, :]``), which LLVM vectorises
+without reassociation, so the results do not depend on the vector width.
+
+``K`` caches ``K_D = k(D, D) + ε_j I`` (the jitter on the diagonal, as ``Q ≈ K_D⁻¹``
+is built from ``k_tt = k(x,x) + ε_j``), updated by one row/column per add/remove.
+
+Deferred rank-one updates
+-------------------------
+The rank-one (rank-two with a removal) updates of ``Q`` and ``Σ`` at the end of
+step ``t`` are stored as *pending* vectors and applied element by element inside
+the first passes of step ``t+1`` (``q = Q k_t`` and ``Σ ← λΣ + (1−λ)K_D; h = Σq``),
+so each matrix is swept once per step instead of twice. Every element gets exactly
+the floating-point expression of the eager update, so the numbers are those of
+the eager algorithm. :func:`predict` evaluates pending updates on the fly without
+writing; ``KRLST`` materialises them for its ``Q``/``Sigma`` properties.
+
+Uniform-grid lag table
+----------------------
+For a stationary kernel on a scalar time input sampled on a grid of step ``Ts``,
+``k(t − t_i)`` depends on the integer lag ``L = (t − t_i)/Ts`` only. With a table
+``tab[L] = kernel_value(L·Ts, 0)`` (built once by :func:`build_lag_table` from the
+same ``kernel_value``) the ``k_t`` row costs ``n`` lookups instead of ``n``
+``exp``/``sin`` evaluations. A lag further than ``1e-6·Ts`` from an integer falls
+back to ``kernel_value``, and so does a lag beyond the table (which ends where the
+kernel underflows to 0, or at ``nmax`` entries for a kernel that does not decay).
+
+Layout of the small arrays
+--------------------------
+``ist`` int64 ``[n, hw, M, steps, q_pending, s_pending]``
+(``q_pending``: 0 none, 1 rank-one, 2 rank-one + removal downdate);
+``fst`` float64 ``[λ, sn2, ε_j, num, den, s0², 1/γ², 1/[Q_new]_rr, 1/σ_y², 1/Ts]``;
+``P`` float64 ``(3, M+1)`` pending vectors ``p = [q; −1]``, ``a = [Q_new]_{:,r}``,
+``g = [h; σ_f²]``; ``W`` float64 ``(5, M+1)`` scratch ``k_t, q, h, u, μ_new``;
+``out`` float64 ``(10,)`` ``ŷ, σ_y², σ_f², γ², removed, reduced, filtered,
+filtered_var, s0², n``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .covariance import kernel_value
+
+N_OUT = 10
+I_N, I_HW, I_M, I_STEPS, I_QPEND, I_SPEND = range(6)
+F_LAM, F_SN2, F_JIT, F_NUM, F_DEN, F_S02, F_QSC, F_QBINV, F_SC, F_INVTS = range(10)
+N_IST = 6
+N_FST = 10
+LAG_TOL = 1e-6
+
+
+def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: float, grid_step: float):
+    """Zeroed state buffers ``(X, Q, S, K, mu, order, ist, fst, P)`` for budget M and input dimension d."""
+    cap = budget + 1
+    X = np.zeros((cap, dim))
+    Q = np.zeros((cap, cap))
+    S = np.zeros((cap, cap))
+    K = np.zeros((cap, cap))
+    mu = np.zeros(cap)
+    order = np.arange(cap, dtype=np.int64)
+    ist = np.zeros(N_IST, dtype=np.int64)
+    ist[I_M] = budget
+    fst = np.zeros(N_FST)
+    fst[F_LAM] = forgetting
+    fst[F_SN2] = sn2
+    fst[F_JIT] = jitter
+    fst[F_INVTS] = 0.0 if not grid_step else 1.0 / grid_step
+    P = np.zeros((3, cap))
+    return X, Q, S, K, mu, order, ist, fst, P
+
+
+@njit(cache=True, nogil=True)
+def build_lag_table(kinds, params, cols, step, nmax, tab):
+    """``tab[L] = k(L·Ts)`` for ``L < nmax``, stopping where the kernel underflows to 0; returns the length."""
+    x0 = np.zeros(1)
+    x1 = np.zeros(1)
+    for L in range(nmax):
+        x1[0] = L * step
+        v = kernel_value(kinds, params, cols, x1, x0)
+        if v == 0.0:
+            return L
+        tab[L] = v
+    return nmax
+
+
+@njit(cache=True, nogil=True)
+def _kernel_row(kinds, params, cols, X, order, n, hw, ist, fst, tab, x, kt):
+    """``k_t = k(D, x)`` into the slots of ``kt`` (zeros elsewhere); returns ``k_tt = k(x,x) + ε_j``."""
+    for i in range(hw):
+        kt[i] = 0.0
+    invts = fst[F_INVTS]
+    ntab = tab.shape[0]
+    if invts > 0.0 and ntab > 0:
+        lim = ntab - 0.5
+        for l in range(n):
+            i = order[l]
+            dl = abs(x[0] - X[i, 0]) * invts      # lag in grid steps
+            if dl < lim:
+                L = int(dl + 0.5)
+                if abs(dl - L) <= LAG_TOL:
+                    kt[i] = tab[L]                # k(L Ts), same kernel_value, computed once
+                    continue
+            kt[i] = kernel_value(kinds, params, cols, X[i], x)
+        return tab[0] + fst[F_JIT]
+    for l in range(n):
+        i = order[l]
+        kt[i] = kernel_value(kinds, params, cols, X[i], x)      # k_t = k(D, x)
+    return kernel_value(kinds, params, cols, x, x) + fst[F_JIT]  # k_tt = k(x, x) + ε_j
+
+
+@njit(cache=True, nogil=True)
+def _q_pass(Q, P, ist, fst, hw, kt, q, write):
+    """``q = Q k_t``, applying the pending update of ``Q`` on the way (written back when ``write``)."""
+    for i in range(hw):
+        q[i] = 0.0
+    mode = ist[I_QPEND]
+    p = P[0]
+    a = P[1]
+    sc = fst[F_QSC]
+    binv = fst[F_QBINV]
+    if mode == 0:
+        for j in range(hw):
+            kj = kt[j]
+            for i in range(hw):
+                q[i] += kj * Q[j, i]                            # q = Q k_t
+    elif mode == 1:
+        for j in range(hw):
+            kj = kt[j]
+            pj = p[j]
+            for i in range(hw):
+                v = Q[j, i] + sc * (pj * p[i])                  # Q ← [[Q,0],[0,0]] + p pᵀ/γ²  (2.15)
+                if write:
+                    Q[j, i] = v
+                q[i] += kj * v
+    else:
+        for j in range(hw):
+            kj = kt[j]
+            pj = p[j]
+            aj = a[j]
+            for i in range(hw):
+                # (2.15) then (2.22): Q ← Q_new[−r,−r] − Q_new[−r,r] Q_new[−r,r]ᵀ / Q_new[r,r]
+                v = (Q[j, i] + sc * (pj * p[i])) - (aj * a[i]) * binv
+                if write:
+                    Q[j, i] = v
+                q[i] += kj * v
+    if write:
+        ist[I_QPEND] = 0
+
+
+@njit(cache=True, nogil=True)
+def _h_pass(S, K, P, ist, fst, hw, lam, q, h, write):
+    """``h = Σ q`` after ``Σ ← λΣ + (1−λ)K_D`` (2.19), applying the pending update of Σ on the way."""
+    for i in range(hw):
+        h[i] = 0.0
+    c1 = 1.0 - lam
+    g = P[2]
+    cs = fst[F_SC]
+    if ist[I_SPEND] == 0:
+        for j in range(hw):
+            qj = q[j]
+            for i in range(hw):
+                v = lam * S[j, i] + c1 * K[j, i]                # Σ ← λ Σ + (1 − λ) K_D
+                if write:
+                    S[j, i] = v
+                h[i] += qj * v                                  # h = Σ q
+    else:
+        for j in range(hw):
+            qj = q[j]
+            gj = g[j]
+            for i in range(hw):
+                v = S[j, i] - cs * (gj * g[i])                  # Σ ← [[Σ,h],[hᵀ,σ_f²]] − g gᵀ/σ_y²  (2.14)
+                v = lam * v + c1 * K[j, i]                      # Σ ← λ Σ + (1 − λ) K_D  (2.19)
+                if write:
+                    S[j, i] = v
+                h[i] += qj * v                                  # h = Σ q
+    if write:
+        ist[I_SPEND] = 0
+
+
+@njit(cache=True, nogil=True)
+def _init(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, x, y, out):
+    """Step 6, eq. 2.16 (first sample): ``Q = 1/k``, ``μ = y k/(k+sn2)``, ``Σ = k − k²/(k+sn2)``."""
+    sn2 = fst[F_SN2]
+    k = kernel_value(kinds, params, cols, x, x) + fst[F_JIT]   # k = k(x, x) + ε_j
+    s = order[0]
+    for c in range(x.shape[0]):
+        X[s, c] = x[c]
+    K[s, s] = k                                   # K_D = k
+    Q[s, s] = 1.0 / k                             # Q = 1 / k
+    mu[s] = y * k / (k + sn2)                     # μ = y k / (k + sn2)
+    S[s, s] = k - k * k / (k + sn2)               # Σ = k − k² / (k + sn2)
+    fst[F_NUM] = y * y / (k + sn2)                # num = y² / (k + sn2)
+    fst[F_DEN] = 1.0                              # den = 1
+    fst[F_S02] = fst[F_NUM] / fst[F_DEN]          # s0² = num / den
+    ist[I_N] = 1
+    ist[I_HW] = s + 1
+    ist[I_STEPS] += 1
+    # report the prior predictive of this first sample (kafbox writes zeros on this row)
+    _write_out(out, y, 0.0, sn2 + k, k, k, -1.0, 0.0, fst[F_S02], 1)
+
+
+@njit(cache=True, nogil=True)
+def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
+    """One KRLS-T update for ``n ≥ 1`` (method §6 steps 1–5; eq. 2.14, 2.15, 2.17, 2.19–2.22)."""
+    n = ist[I_N]
+    hw = ist[I_HW]
+    M = ist[I_M]
+    lam = fst[F_LAM]
+    sn2 = fst[F_SN2]
+    jit = fst[F_JIT]
+    kt = W[0]
+    q = W[1]
+    h = W[2]
+    u = W[3]
+    m = W[4]
+    p = P[0]
+    a = P[1]
+    g = P[2]
+
+    # ---- 1. forget, μ part (2.19); the Σ part is fused into the h pass ---------------
+    sl = math.sqrt(lam)
+    for i in range(hw):
+        mu[i] = sl * mu[i]                        # μ ← √λ μ
+
+    # ---- 2. predict (2.17) ---------------------------------------------------------
+    ktt = _kernel_row(kinds, params, cols, X, order, n, hw, ist, fst, tab, x, kt)
+    _q_pass(Q, P, ist, fst, hw, kt, q, True)      # q = Q k_t
+    y_mean = 0.0
+    ktq = 0.0
+    for i in range(hw):
+        y_mean += q[i] * mu[i]                    # ŷ = qᵀ μ
+        ktq += kt[i] * q[i]
+    gamma2 = ktt - ktq                            # γ² = k_tt − k_tᵀ q
+    if gamma2 < 0.0:
+        gamma2 = 0.0
+    _h_pass(S, K, P, ist, fst, hw, lam, q, h, True)  # Σ ← λΣ + (1−λ)K_D;  h = Σ q
+    qh = 0.0
+    for i in range(hw):
+        qh += q[i] * h[i]
+    sf2 = gamma2 + qh                             # σ_f² = γ² + qᵀ h
+    if sf2 < 0.0:
+        sf2 = 0.0
+    sy2 = sn2 + sf2                               # σ_y² = sn2 + σ_f²
+    err = y - y_mean
+    e = err / sy2                                 # (y − ŷ) / σ_y²
+    cs = 1.0 / sy2
+
+    # ---- 4. signal power (2.20, with the square) ---------------------------------------
+    fst[F_NUM] += lam * err * err / sy2           # num ← num + λ (y − ŷ)² / σ_y²
+    fst[F_DEN] += lam                             # den ← den + λ
+    fst[F_S02] = fst[F_NUM] / fst[F_DEN]          # s0² = num / den
+
+    # ---- 3. posterior of f at [D; x] (2.14), μ part -------------------------------------
+    s = order[n]                                  # free slot for the new basis
+    hwn = hw if s < hw else s + 1
+    for i in range(hw):
+        m[i] = mu[i] + e * h[i]                   # μ_new = [μ; ŷ] + (y − ŷ)/σ_y² [h; σ_f²]
+    m[s] = y_mean + e * sf2
+
+    # ---- 5. which basis to prune (2.21–2.22) ---------------------------------------------
+    r = -1                                        # logical index to remove, -1: none
+    if gamma2 < jit:
+        r = n                                     # roundoff guard: drop the new sample
+    elif n + 1 > M:
+        # criterion on Q_new = [[Q,0],[0,0]] + p pᵀ/γ², p = [q; −1], without forming Q_new:
+        #   [Q_new μ_new]_i = [Q μ_new]_i + p_i (pᵀ μ_new)/γ²,  [Q_new]_ii = Q_ii + p_i²/γ²
+        sc = 1.0 / gamma2
+        q[s] = -1.0
+        for i in range(hwn):
+            u[i] = 0.0
+        for j in range(hwn):                      # u = Q μ_new   (row/column s of Q is zero)
+            mj = m[j]
+            for i in range(hwn):
+                u[i] += mj * Q[j, i]
+        pm = 0.0
+        for i in range(hwn):
+            pm += q[i] * m[i]                     # pᵀ μ_new
+        best = np.inf
+        for l in range(n + 1):
+            i = order[l]                          # order[n] == s: the new sample is last
+            qii = Q[i, i] + sc * (q[i] * q[i])    # [Q_new]_ii
+            qmu = u[i] + sc * (q[i] * pm)         # [Q_new μ_new]_i
+            crit = abs(qmu / qii)                 # |[Q μ]_i / Q_ii|, MSE pruning criterion
+            if crit < best:                       # first minimum, as Matlab's min
+                best = crit
+                r = l
+        q[s] = 0.0
+
+    if r == n:
+        # ---- reduced update: Q stays as before step 3, x is not added --------------------
+        for i in range(hw):
+            mu[i] = m[i]                          # μ ← μ + (y − ŷ)/σ_y² h
+            g[i] = h[i]                           # Σ ← Σ − h hᵀ/σ_y²   (pending)
+        m[s] = 0.0
+        fst[F_SC] = cs
+        ist[I_SPEND] = 1
+        ist[I_STEPS] += 1
+        _write_out(out, y, y_mean, sy2, sf2, gamma2, float(n), 1.0, fst[F_S02], n)
+        return
+
+    # ---- 3. update (2.14, 2.15): append x to D in slot s -----------------------------------
+    for c in range(x.shape[0]):
+        X[s, c] = x[c]
+    for i in range(hw):
+        K[s, i] = kt[i]
+        K[i, s] = kt[i]
+    K[s, s] = ktt                                 # K_D ← [[K_D, k_t], [k_tᵀ, k_tt]]
+    for i in range(hw):
+        S[s, i] = h[i]
+        S[i, s] = h[i]
+    S[s, s] = sf2                                 # Σ ← [[Σ, h], [hᵀ, σ_f²]] ...
+    for i in range(hwn):
+        mu[i] = m[i]                              # μ ← μ_new
+        g[i] = h[i]
+        p[i] = q[i]
+    m[s] = 0.0
+    g[s] = sf2                                    # ... − g gᵀ/σ_y²,  g = [h; σ_f²]  (pending)
+    p[s] = -1.0                                   # Q ← [[Q,0],[0,0]] + p pᵀ/γ²,  p = [q; −1]  (pending)
+    fst[F_SC] = cs
+    ist[I_SPEND] = 1
+    sc = 1.0 / gamma2
+    fst[F_QSC] = sc
+    if r < 0:
+        ist[I_QPEND] = 1
+        n_new = n + 1
+        removed = -1.0
+    else:
+        sr = order[r]
+        for i in range(hwn):
+            a[i] = Q[i, sr] + sc * (p[i] * p[sr])  # a = [Q_new]_{:, r}
+        fst[F_QBINV] = 1.0 / a[sr]                # 1 / [Q_new]_rr
+        ist[I_QPEND] = 2
+        for i in range(hwn):                       # drop r: zero its row/column (2.21)
+            Q[sr, i] = 0.0
+            Q[i, sr] = 0.0
+            S[sr, i] = 0.0
+            S[i, sr] = 0.0
+            K[sr, i] = 0.0
+            K[i, sr] = 0.0
+        mu[sr] = 0.0
+        p[sr] = 0.0
+        a[sr] = 0.0
+        g[sr] = 0.0
+        for c in range(x.shape[0]):
+            X[sr, c] = 0.0
+        for l in range(r, n):                      # and from the logical order
+            order[l] = order[l + 1]
+        order[n] = sr
+        n_new = n
+        removed = float(r)
+    ist[I_N] = n_new
+    ist[I_HW] = hwn
+    ist[I_STEPS] += 1
+    _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, 0.0, fst[F_S02], n_new)
+
+
+@njit(cache=True, nogil=True)
+def _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, reduced, s02, n):
+    out[0] = y_mean
+    out[1] = sy2
+    out[2] = sf2
+    out[3] = gamma2
+    out[4] = removed
+    out[5] = reduced
+    out[6] = y_mean + sf2 * (y - y_mean) / sy2    # E[f(x) | y] = ŷ + σ_f² (y − ŷ)/σ_y²
+    out[7] = sf2 - sf2 * sf2 / sy2                # Var[f(x) | y] = σ_f² − σ_f⁴/σ_y²
+    out[8] = s02
+    out[9] = n
+
+
+@njit(cache=True, nogil=True)
+def learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
+    """One sample: initialisation (2.16) when the dictionary is empty, else steps 1–5."""
+    if ist[I_N] == 0:
+        _init(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, x, y, out)
+    else:
+        _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out)
+
+
+@njit(cache=True, nogil=True)
+def learn_many(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs, ys, outs):
+    """:func:`learn` over a stream; ``outs[t]`` receives the ``out`` row of sample ``t``."""
+    for t in range(ys.shape[0]):
+        learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs[t], ys[t], outs[t])
+
+
+@njit(cache=True, nogil=True)
+def predict(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, forget, out):
+    """``ŷ, σ_f², σ_y², γ²`` at ``x`` from the current state (2.17) into ``out[:4]``; state untouched.
+
+    With ``forget`` the forgetting (2.19) of the next step is applied virtually, so
+    the numbers are bit-identical to what the next :func:`learn` reports for ``x``.
+    """
+    n = ist[I_N]
+    hw = ist[I_HW]
+    lam = fst[F_LAM] if forget else 1.0
+    kt = W[0]
+    q = W[1]
+    h = W[2]
+    ktt = _kernel_row(kinds, params, cols, X, order, n, hw, ist, fst, tab, x, kt)
+    _q_pass(Q, P, ist, fst, hw, kt, q, False)
+    sl = math.sqrt(lam)
+    y_mean = 0.0
+    ktq = 0.0
+    for i in range(hw):
+        y_mean += q[i] * (sl * mu[i])
+        ktq += kt[i] * q[i]
+    gamma2 = ktt - ktq
+    if gamma2 < 0.0:
+        gamma2 = 0.0
+    _h_pass(S, K, P, ist, fst, hw, lam, q, h, False)
+    qh = 0.0
+    for i in range(hw):
+        qh += q[i] * h[i]
+    sf2 = gamma2 + qh
+    if sf2 < 0.0:
+        sf2 = 0.0
+    out[0] = y_mean
+    out[1] = sf2
+    out[2] = fst[F_SN2] + sf2
+    out[3] = gamma2
+
+
+@njit(cache=True, nogil=True)
+def materialize(Q, S, P, ist, fst, hw, Qout, Sout):
+    """``Q`` and ``Σ`` with the pending updates applied (no forgetting), into ``Qout``, ``Sout``."""
+    p = P[0]
+    a = P[1]
+    g = P[2]
+    sc = fst[F_QSC]
+    binv = fst[F_QBINV]
+    cs = fst[F_SC]
+    mode = ist[I_QPEND]
+    for j in range(hw):
+        for i in range(hw):
+            v = Q[j, i]
+            if mode == 1:
+                v = v + sc * (p[j] * p[i])
+            elif mode == 2:
+                v = (v + sc * (p[j] * p[i])) - (a[j] * a[i]) * binv
+            Qout[j, i] = v
+            w = S[j, i]
+            if ist[I_SPEND] != 0:
+                w = w - cs * (g[j] * g[i])
+            Sout[j, i] = w

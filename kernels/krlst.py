@@ -1,0 +1,443 @@
+"""KRLS-T: kernel recursive least-squares tracker (method §6, thesis §2.2.3, Algorithm 1).
+
+Online Gaussian-process regression of the disturbance ``f`` with a fixed-budget
+dictionary and back-to-the-prior forgetting (Van Vaerenbergh, Lázaro-Gredilla and
+Santamaría 2012; reference implementation kafbox ``lib/krlst.m``).
+
+Symbols (thesis → code): ``Ω_D``/``K_D`` kernel matrix of the dictionary ``D``;
+``Q ≈ K_D⁻¹`` (``K_D`` with ``ε_j`` on the diagonal); posterior ``N(μ, Σ)`` of ``f`` at ``D`` (normalised, i.e.
+in units of the signal power ``s0²``); ``σ² = sn2 = 1/γ`` noise-to-signal ratio;
+``λ`` forgetting factor; ``M`` budget; ``ε_j`` jitter.
+
+Per sample ``(x, y)`` (method §6):
+
+1. forget, eq. 2.19:     ``Σ ← λΣ + (1−λ)K_D``,  ``μ ← √λ μ``
+2. predict, eq. 2.17:    ``q = Q k_t``, ``ŷ = qᵀμ``, ``γ² = k_tt − k_tᵀq``, ``h = Σq``,
+   ``σ_f² = γ² + qᵀh``, ``σ_y² = sn2 + σ_f²``
+3. update, eq. 2.14–2.15: ``μ, Σ, Q`` grow by the new basis ``x``
+4. signal power, eq. 2.20 (with the square): ``s0² = num/den``
+5. prune, eq. 2.21–2.22: when ``|D| > M`` or ``γ² < ε_j``
+6. initialise, eq. 2.16, on the first sample.
+
+The numerics live in :mod:`kernels._krlst_core` (``@njit``, allocation-free).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from numbers import Integral, Real
+
+import numpy as np
+
+from . import _krlst_core as core
+from .covariance import (
+    KIND_LOCALLY_PERIODIC,
+    KIND_PERIODIC,
+    KIND_SE,
+    Kernel,
+    LocallyPeriodic,
+    Periodic,
+    Product,
+    SquaredExponential,
+)
+
+__all__ = ["KRLST", "Step"]
+
+_STATE_NAMES = ("X", "Q", "Sigma", "K", "mu", "order", "ist", "fst", "P")
+_OUT_FIELDS = ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced",
+               "filtered", "filtered_var", "s02", "size")
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    """What one :meth:`KRLST.learn_one` call reports (variances normalised: × ``s02`` for signal units).
+
+    Attributes
+    ----------
+    mean : float
+        ``ŷ = qᵀμ``, prediction of ``y`` before it was seen, after forgetting (eq. 2.17).
+    sigma_y2 : float
+        ``σ_y² = sn2 + σ_f²``, predictive variance of the observation.
+    sigma_f2 : float
+        ``σ_f² = γ² + qᵀh``, predictive variance of the disturbance ``f(x)``.
+    gamma2 : float
+        ``γ² = k_tt − k_tᵀ Q k_t``, projection uncertainty of ``x`` on the dictionary.
+    removed : int
+        0-based dictionary index of the pruned basis (before removal, with the new
+        sample appended last); ``-1`` when nothing was pruned.
+    reduced : bool
+        True when the new sample itself was dropped (reduced update; ``removed == size``).
+    filtered : float
+        Posterior mean of ``f(x)`` after the update, ``ŷ + σ_f²(y − ŷ)/σ_y²``.
+    filtered_var : float
+        Its normalised variance ``σ_f² − σ_f⁴/σ_y²``.
+    s02 : float
+        ``s0²`` after this step (eq. 2.20).
+    size : int
+        Dictionary size after this step.
+
+    On the first sample (initialisation, eq. 2.16) the prior predictive is reported:
+    ``mean = 0``, ``sigma_f2 = gamma2 = k(x,x) + ε_j``.
+    """
+
+    mean: float
+    sigma_y2: float
+    sigma_f2: float
+    gamma2: float
+    removed: int
+    reduced: bool
+    filtered: float
+    filtered_var: float
+    s02: float
+    size: int
+
+
+def _kernel_from_spec(kinds: np.ndarray, params: np.ndarray, cols: np.ndarray) -> Kernel:
+    """Rebuild a :class:`Kernel` from the arrays of :meth:`Kernel.spec` (for :meth:`KRLST.restore`)."""
+    parts = []
+    for kind, p, (start, stop) in zip(kinds.tolist(), params.tolist(), cols.tolist()):
+        dims = slice(start, None if stop == -1 else stop)
+        if kind == KIND_SE:
+            parts.append(SquaredExponential(p[0], dims=dims))
+        elif kind == KIND_PERIODIC:
+            parts.append(Periodic(p[0], p[1], dims=dims))
+        elif kind == KIND_LOCALLY_PERIODIC:
+            parts.append(LocallyPeriodic(p[0], p[1], p[2], dims=dims))
+        else:
+            raise ValueError(f"snapshot holds an unknown kernel kind {kind}")
+    if not parts:
+        raise ValueError("snapshot holds an empty kernel")
+    return parts[0] if len(parts) == 1 else Product(*parts)
+
+
+class KRLST:
+    """Kernel recursive least-squares tracker with back-to-the-prior forgetting (method §6).
+
+    Parameters
+    ----------
+    kernel : Kernel
+        Covariance function (method §5), e.g. ``LocallyPeriodic(1.2, 0.495, 1/55)``.
+    gamma : float
+        Regularisation γ > 0; the noise-to-signal ratio is ``sn2 = 1/γ``.
+    forgetting : float
+        λ in (0, 1]; 1 means no forgetting (exact GP regression while ``|D| ≤ M``).
+    budget : int
+        Dictionary size M ≥ 1.
+    jitter : float
+        ε_j ≥ 0 added to ``k(x, x)``; a sample whose projection uncertainty
+        ``γ² < ε_j`` is not added (reduced update).
+    grid_step : float, optional
+        Sampling period ``Ts`` (s) when ``x`` is the time on a uniform grid and the
+        kernel is a function of the time lag (``kernel.is_stationary_1d``). Enables
+        a lag lookup table ``k(L·Ts)`` for the ``k_t`` row; inputs off the grid are
+        evaluated directly, so results stay correct (the table evaluates the kernel
+        at the exact lag ``L·Ts`` instead of the rounded ``t − t_i``).
+
+    Examples
+    --------
+    >>> tracker = KRLST(LocallyPeriodic(1.2, 0.495, 1/55), gamma=5.85, forgetting=0.996, budget=100)
+    >>> step = tracker.learn_one(0.0, 0.1)
+    >>> mean, var = tracker.predict_one(1 / 333)
+    """
+
+    #: longest lag table (entries); a kernel that does not decay (pure periodic) stops here
+    LAG_TABLE_MAX = 1 << 16
+
+    def __init__(self, kernel: Kernel, gamma: float = 1e4, forgetting: float = 0.999,
+                 budget: int = 100, jitter: float = 1e-6, grid_step: float | None = None):
+        if not isinstance(kernel, Kernel):
+            raise ValueError(f"kernel must be a kernels.Kernel, got {type(kernel).__name__}")
+        if isinstance(gamma, bool) or not isinstance(gamma, Real) or not (math.isfinite(gamma) and gamma > 0):
+            raise ValueError(f"gamma must be a finite number > 0, got {gamma!r}")
+        if (isinstance(forgetting, bool) or not isinstance(forgetting, Real)
+                or not (math.isfinite(forgetting) and 0.0 < forgetting <= 1.0)):
+            raise ValueError(f"forgetting must be in (0, 1], got {forgetting!r}")
+        if isinstance(budget, bool) or not isinstance(budget, Integral) or budget < 1:
+            raise ValueError(f"budget must be an integer >= 1, got {budget!r}")
+        if isinstance(jitter, bool) or not isinstance(jitter, Real) or not (math.isfinite(jitter) and jitter >= 0):
+            raise ValueError(f"jitter must be a finite number >= 0, got {jitter!r}")
+        if grid_step is not None:
+            if (isinstance(grid_step, bool) or not isinstance(grid_step, Real)
+                    or not (math.isfinite(grid_step) and grid_step > 0)):
+                raise ValueError(f"grid_step must be None or a finite number > 0, got {grid_step!r}")
+            if not kernel.is_stationary_1d:
+                raise ValueError(f"grid_step needs a kernel of the time lag; {kernel!r} is not")
+            grid_step = float(grid_step)
+        self.kernel = kernel
+        self.gamma = float(gamma)
+        self.forgetting = float(forgetting)
+        self.budget = int(budget)
+        self.jitter = float(jitter)
+        self.grid_step = grid_step
+        self._spec = kernel.spec()
+        self._dim = 0
+        self._state = None                  # (X, Q, S, K, mu, order, ist, fst, P) once initialised
+        self._W = np.zeros((5, self.budget + 1))
+        self._out = np.zeros(core.N_OUT)
+        self._xbuf = None
+        self._tab = np.zeros(0)
+        if grid_step is not None:
+            tab = np.zeros(self.LAG_TABLE_MAX)
+            length = core.build_lag_table(*self._spec, grid_step, self.LAG_TABLE_MAX, tab)
+            self._tab = tab[:length].copy()
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def sn2(self) -> float:
+        """Noise-to-signal ratio ``σ² = 1/γ``."""
+        return 1.0 / self.gamma
+
+    @property
+    def size(self) -> int:
+        """Current dictionary size ``|D|``."""
+        return 0 if self._state is None else int(self._state[6][core.I_N])
+
+    @property
+    def s02(self) -> float:
+        """Signal power ``s0²`` (eq. 2.20); 0 before the first sample."""
+        return 0.0 if self._state is None else float(self._state[7][core.F_S02])
+
+    def _logical(self) -> np.ndarray:
+        st = self._state
+        return st[5][: st[6][core.I_N]]
+
+    @property
+    def dictionary(self) -> np.ndarray:
+        """Dictionary inputs, shape ``(n, d)``, oldest first (a copy)."""
+        if self._state is None:
+            return np.zeros((0, self._dim))
+        return self._state[0][self._logical()].copy()
+
+    @property
+    def mu(self) -> np.ndarray:
+        """Posterior mean ``μ`` of ``f`` at the dictionary (a copy)."""
+        if self._state is None:
+            return np.zeros(0)
+        return self._state[4][self._logical()].copy()
+
+    def _materialized(self) -> tuple[np.ndarray, np.ndarray]:
+        X, Q, S, K, mu, order, ist, fst, P = self._state
+        Qm = np.zeros_like(Q)
+        Sm = np.zeros_like(S)
+        core.materialize(Q, S, P, ist, fst, int(ist[core.I_HW]), Qm, Sm)
+        idx = self._logical()
+        return Qm[np.ix_(idx, idx)], Sm[np.ix_(idx, idx)]
+
+    @property
+    def Sigma(self) -> np.ndarray:
+        """Posterior covariance ``Σ`` (normalised) at the dictionary (a copy)."""
+        if self._state is None:
+            return np.zeros((0, 0))
+        return self._materialized()[1]
+
+    @property
+    def Q(self) -> np.ndarray:
+        """``Q ≈ K_D⁻¹`` (a copy)."""
+        if self._state is None:
+            return np.zeros((0, 0))
+        return self._materialized()[0]
+
+    @property
+    def K(self) -> np.ndarray:
+        """Cached dictionary kernel matrix ``K_D = k(D, D) + ε_j I`` (a copy)."""
+        if self._state is None:
+            return np.zeros((0, 0))
+        idx = self._logical()
+        return self._state[3][np.ix_(idx, idx)].copy()
+
+    def inverse_error(self) -> float:
+        """``max |Q K_D − I|`` (max-abs norm, ``K_D`` with jitter): drift of ``Q`` from ``K_D⁻¹``."""
+        if self._state is None:
+            return 0.0
+        Q, K = self.Q, self.K
+        return float(np.max(np.abs(Q @ K - np.eye(Q.shape[0]))))
+
+    def get_params(self) -> dict:
+        """Hyperparameters (scikit-learn style)."""
+        return {"kernel": self.kernel, "gamma": self.gamma, "forgetting": self.forgetting,
+                "budget": self.budget, "jitter": self.jitter, "grid_step": self.grid_step}
+
+    def __repr__(self) -> str:
+        return (f"KRLST({self.kernel!r}, gamma={self.gamma!r}, forgetting={self.forgetting!r}, "
+                f"budget={self.budget!r}, jitter={self.jitter!r}, grid_step={self.grid_step!r})")
+
+    # ------------------------------------------------------------------ input checks
+    def _as_x(self, x) -> np.ndarray:
+        """x as a 1-D float64 array (a float becomes shape (1,)); raises ValueError if non-finite."""
+        if isinstance(x, Real) and not isinstance(x, bool):
+            xf = float(x)
+            if not math.isfinite(xf):
+                raise ValueError(f"x must be finite, got {x!r}")
+            if self._xbuf is None or self._xbuf.shape[0] != 1:
+                self._xbuf = np.empty(1)
+            self._xbuf[0] = xf
+            xa = self._xbuf
+        else:
+            xa = np.asarray(x, dtype=np.float64)
+            if xa.ndim == 0:
+                xa = xa.reshape(1)
+            if xa.ndim != 1 or xa.shape[0] == 0:
+                raise ValueError(f"x must be a float or a non-empty 1-D array, got shape {xa.shape}")
+            if not np.all(np.isfinite(xa)):
+                raise ValueError(f"x must be finite, got {xa!r}")
+            xa = np.ascontiguousarray(xa)
+        if self._dim and xa.shape[0] != self._dim:
+            raise ValueError(f"x has dimension {xa.shape[0]}, the tracker was started with {self._dim}")
+        return xa
+
+    @staticmethod
+    def _as_y(y) -> float:
+        try:
+            yf = float(y)
+        except (TypeError, ValueError):
+            raise ValueError(f"y must be a real number, got {y!r}") from None
+        if not math.isfinite(yf):
+            raise ValueError(f"y must be finite, got {y!r}")
+        return yf
+
+    def _start(self, dim: int, x_example: np.ndarray) -> None:
+        # lets the kernel reject inputs it cannot read (e.g. a periodic factor on 2 columns)
+        self.kernel(x_example.reshape(1, -1))
+        self._dim = dim
+        self._state = core.new_state(self.budget, dim, self.forgetting, self.sn2, self.jitter, self.grid_step)
+
+    # ------------------------------------------------------------------ learning
+    def learn_one(self, x, y) -> Step:
+        """Train on one sample (method §6 steps 1–6) and report the step.
+
+        ``x``: float (time) or 1-D array; ``y``: the residual ``v(k)``. A non-finite
+        ``x`` or ``y`` raises ``ValueError`` and leaves the state untouched.
+        """
+        xa = self._as_x(x)
+        yf = self._as_y(y)
+        if self._state is None:
+            self._start(xa.shape[0], xa)
+        kinds, params, cols = self._spec
+        X, Q, S, K, mu, order, ist, fst, P = self._state
+        out = self._out
+        core.learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa, yf, out)
+        v = out.tolist()
+        return Step(v[0], v[1], v[2], v[3], int(v[4]), v[5] != 0.0, v[6], v[7], v[8], int(v[9]))
+
+    def learn_many(self, X, y) -> dict[str, np.ndarray]:
+        """Train on a whole stream in one ``@njit`` loop; same results as repeated :meth:`learn_one`.
+
+        ``X``: shape ``(N,)`` (times) or ``(N, d)``; ``y``: shape ``(N,)``. Returns a dict
+        of 1-D arrays named like the fields of :class:`Step`. Non-finite input raises
+        ``ValueError`` (naming the first bad index) before anything is learned.
+        """
+        Xa = np.asarray(X, dtype=np.float64)
+        if Xa.ndim == 1:
+            Xa = Xa.reshape(-1, 1)
+        if Xa.ndim != 2:
+            raise ValueError(f"X must have shape (N,) or (N, d), got {np.shape(X)}")
+        ya = np.asarray(y, dtype=np.float64)
+        if ya.ndim != 1 or ya.shape[0] != Xa.shape[0]:
+            raise ValueError(f"y must have shape ({Xa.shape[0]},), got {ya.shape}")
+        bad_x = ~np.all(np.isfinite(Xa), axis=1)
+        if bad_x.any():
+            raise ValueError(f"X must be finite; row {int(np.argmax(bad_x))} is not")
+        bad_y = ~np.isfinite(ya)
+        if bad_y.any():
+            raise ValueError(f"y must be finite; element {int(np.argmax(bad_y))} is not")
+        if self._dim and Xa.shape[1] != self._dim:
+            raise ValueError(f"X has dimension {Xa.shape[1]}, the tracker was started with {self._dim}")
+        N = ya.shape[0]
+        outs = np.zeros((N, core.N_OUT))
+        if N:
+            Xa = np.ascontiguousarray(Xa)
+            ya = np.ascontiguousarray(ya)
+            if self._state is None:
+                self._start(Xa.shape[1], Xa[0])
+            kinds, params, cols = self._spec
+            Xs, Q, S, K, mu, order, ist, fst, P = self._state
+            core.learn_many(kinds, params, cols, Xs, Q, S, K, mu, order, ist, fst, P, self._W, self._tab,
+                            Xa, ya, outs)
+        res = {name: outs[:, i].copy() for i, name in enumerate(_OUT_FIELDS)}
+        res["removed"] = res["removed"].astype(np.int64)
+        res["reduced"] = res["reduced"] != 0.0
+        res["size"] = res["size"].astype(np.int64)
+        return res
+
+    # ------------------------------------------------------------------ prediction
+    def predict_one(self, x, noise: bool = True, forget: bool = False) -> tuple[float, float]:
+        """Predictive mean and variance at ``x`` (signal units), without learning (eq. 2.17).
+
+        Returns ``(ŷ, s0²·σ_y²)``, or ``(ŷ, s0²·σ_f²)`` with ``noise=False`` (the
+        disturbance ``f`` alone). With ``forget=True`` the forgetting of the next
+        step is applied virtually, so the mean equals the ``mean`` the next
+        :meth:`learn_one` reports for this ``x`` (kafbox's ``evaluate`` does not
+        forget: that is the default). Before the first sample: ``(0.0, nan)``
+        (``s0²`` is unknown).
+        """
+        xa = self._as_x(x)
+        if self._state is None:
+            return 0.0, math.nan
+        kinds, params, cols = self._spec
+        X, Q, S, K, mu, order, ist, fst, P = self._state
+        out = self._out
+        core.predict(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa,
+                     bool(forget), out)
+        s02 = float(fst[core.F_S02])
+        var = out[2] if noise else out[1]
+        return float(out[0]), s02 * float(var)
+
+    # ------------------------------------------------------------------ persistence
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """The complete state as a plain ``dict[str, np.ndarray]`` (copies; no pickle needed).
+
+        Hyperparameters are 0-d arrays (``grid_step`` 0 for none), the kernel is its
+        :meth:`Kernel.spec` arrays. The state arrays are the core's buffers as they
+        are, pending rank-one updates included, so :meth:`restore` continues
+        bit-identically.
+        """
+        kinds, params, cols = self._spec
+        snap = {
+            "gamma": np.array(self.gamma),
+            "forgetting": np.array(self.forgetting),
+            "budget": np.array(self.budget, dtype=np.int64),
+            "jitter": np.array(self.jitter),
+            "grid_step": np.array(0.0 if self.grid_step is None else self.grid_step),
+            "dim": np.array(self._dim, dtype=np.int64),
+            "kernel_kinds": kinds.copy(),
+            "kernel_params": params.copy(),
+            "kernel_cols": cols.copy(),
+        }
+        if self._state is not None:
+            for name, arr in zip(_STATE_NAMES, self._state):
+                snap[name] = arr.copy()
+        return snap
+
+    @classmethod
+    def restore(cls, snap: dict) -> "KRLST":
+        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot."""
+        try:
+            kernel = _kernel_from_spec(np.asarray(snap["kernel_kinds"]), np.asarray(snap["kernel_params"]),
+                                       np.asarray(snap["kernel_cols"]))
+            grid_step = float(snap["grid_step"])
+            tracker = cls(kernel, gamma=float(snap["gamma"]), forgetting=float(snap["forgetting"]),
+                          budget=int(snap["budget"]), jitter=float(snap["jitter"]),
+                          grid_step=grid_step if grid_step > 0 else None)
+            dim = int(snap["dim"])
+        except KeyError as exc:
+            raise ValueError(f"snapshot is missing {exc.args[0]!r}") from None
+        if dim == 0:
+            return tracker
+        cap = tracker.budget + 1
+        shapes = {"X": ((cap, dim), np.float64), "Q": ((cap, cap), np.float64),
+                  "Sigma": ((cap, cap), np.float64), "K": ((cap, cap), np.float64),
+                  "mu": ((cap,), np.float64), "order": ((cap,), np.int64),
+                  "ist": ((core.N_IST,), np.int64), "fst": ((core.N_FST,), np.float64),
+                  "P": ((3, cap), np.float64)}
+        state = []
+        for name, (shape, dtype) in shapes.items():
+            if name not in snap:
+                raise ValueError(f"snapshot is missing {name!r}")
+            arr = np.array(snap[name], dtype=dtype, copy=True, order="C")
+            if arr.shape != shape:
+                raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {shape}")
+            state.append(arr)
+        tracker._dim = dim
+        tracker._state = tuple(state)
+        return tracker
