@@ -14,6 +14,9 @@ import sys
 
 # name -> module providing register(subparsers); one line per sub-command
 COMMANDS: dict[str, str] = {
+    "simulate": "replay.simulate_cmd",
+    "import": "replay.import_cmd",
+    "replay": "replay.replay_cmd",
 }
 
 

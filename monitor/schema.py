@@ -1,0 +1,348 @@
+"""One schema for everything feedmon sends or stores: samples, truth, estimates, trial metadata.
+
+The same JSON encoding (``msgspec.json``) is used on Zenoh and inside MCAP trial
+files, and the JSON Schemas stored on every MCAP channel are generated from the
+Structs below (:func:`json_schema`), so there is one source.
+
+Conventions
+-----------
+* SI units everywhere: s, m, m/s, N, A, rpm for spindle speed.
+* Columnar blocks: a controller streams samples in blocks; one sample is a block
+  of length 1. ``seq`` is the sequence number of the first sample of the block;
+  sample ``i`` of the block has sequence number ``seq + i``.
+* Every per-sample column has the length of ``t``; blocks are never empty.
+  This is checked on decode (``__post_init__``) and on construction, and the
+  error names the field and both lengths.
+
+Non-finite values
+-----------------
+JSON has no NaN; ``msgspec`` writes NaN/±inf as ``null``. Measured columns are
+therefore typed ``list[float | None]``: a ``null`` is one missing or non-finite
+sample (a dropped encoder read, a NaN from the controller). It decodes to
+``None`` and becomes ``NaN`` in the NumPy arrays of :mod:`monitor.mcapio`, so
+the monitor can reject that one sample (flag ``REJECTED``) instead of losing
+the whole block. ``t`` is strictly ``list[float]``: a sample without a time
+cannot be placed, so a block with a ``null`` time is rejected as a whole.
+
+Unknown fields
+--------------
+All Structs are ``forbid_unknown_fields=True``. A misspelt optional column
+(``"curent"``) would otherwise decode silently as "absent" and the data would
+be lost without a word; here it is an error naming the field. Schema evolution
+goes through new optional fields with defaults, and every MCAP channel carries
+the JSON Schema it was written with.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+__all__ = [
+    "SchemaError",
+    "SampleBlock",
+    "TruthBlock",
+    "EstimateBlock",
+    "Provenance",
+    "TrialTruth",
+    "TrialMeta",
+    "STALE",
+    "GAP",
+    "REJECTED",
+    "WARMUP",
+    "REDUCED",
+    "FLAG_NAMES",
+    "flag_names",
+    "encode",
+    "decode",
+    "decode_samples",
+    "decode_estimates",
+    "decode_truth",
+    "decode_meta",
+    "json_schema",
+    "JSON_SCHEMAS",
+    "SCHEMA_NAMES",
+    "UNITS",
+]
+
+# ---- flags of EstimateBlock.flags (bitmask) -------------------------------------------------
+STALE = 1  # the estimate was produced from data older than the freshness limit
+GAP = 2  # one or more samples missing before this one (sequence gap)
+REJECTED = 4  # sample rejected (non-finite value, out of range); tracker not updated
+WARMUP = 8  # tracker still warming up (dictionary not filled / variance not settled)
+REDUCED = 16  # KRLS-T reduced update (the newest element was pruned at once)
+FLAG_NAMES = {STALE: "STALE", GAP: "GAP", REJECTED: "REJECTED", WARMUP: "WARMUP", REDUCED: "REDUCED"}
+
+
+def flag_names(flags: int) -> list[str]:
+    """Names of the bits set in ``flags``."""
+    return [name for bit, name in FLAG_NAMES.items() if flags & bit]
+
+
+class SchemaError(ValueError):
+    """A message does not follow the feedmon schema (says which field and why)."""
+
+
+NonNeg = Annotated[int, msgspec.Meta(ge=0)]
+Positive = Annotated[float, msgspec.Meta(gt=0.0)]
+Column = list[float | None]  # measured column: null = missing / non-finite sample
+Form = Literal["velocity-loop", "force-input"]
+
+_STRUCT_OPTS = dict(forbid_unknown_fields=True, omit_defaults=True)
+
+
+def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
+    """Common block checks: non-empty, finite times, every column as long as ``t``."""
+    n = len(obj.t)
+    kind = type(obj).__name__
+    if n == 0:
+        raise ValueError(f"{kind} is empty: 't' has no samples (a block holds at least one sample)")
+    for name in columns:
+        col = getattr(obj, name)
+        if col is not None and len(col) != n:
+            raise ValueError(
+                f"{kind} field '{name}' has {len(col)} values but 't' has {n}; every column must have one value per sample"
+            )
+    for i, ti in enumerate(obj.t):
+        if not math.isfinite(ti):
+            raise ValueError(f"{kind} field 't' has a non-finite time at index {i}")
+
+
+class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
+    """A block of controller samples of one axis (topic ``<machine>/<axis>/samples``).
+
+    ``t`` controller time (s), ``v_ref`` reference velocity (m/s), ``v_meas`` measured
+    velocity (m/s); optional ``u`` force command (N), ``current`` motor current (A),
+    ``position`` (m), ``spindle_rpm`` (rpm). ``None`` inside a column = missing sample.
+    """
+
+    machine: str
+    axis: str
+    seq: NonNeg
+    t: list[float]
+    v_ref: Column
+    v_meas: Column
+    u: Column | None = None
+    current: Column | None = None
+    position: Column | None = None
+    spindle_rpm: Column | None = None
+
+    def __post_init__(self) -> None:
+        _check_columns(self, ("v_ref", "v_meas", "u", "current", "position", "spindle_rpm"))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def validate(self) -> "SampleBlock":
+        """Re-run the checks (after in-place edits); returns ``self``; raises :class:`SchemaError`."""
+        try:
+            self.__post_init__()
+        except ValueError as exc:
+            raise SchemaError(str(exc)) from None
+        return self
+
+
+class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
+    """Ground truth of a simulated (or instrumented) trial (topic ``<machine>/<axis>/truth``).
+
+    ``force`` the true disturbance force acting on the drive (N; ``T_c`` of method §1,
+    positive opposes positive motion), ``f`` the same in the model's velocity units
+    (m/s, ``f = −b·T_c`` via ``force_to_disturbance``), optional ``dynamometer`` the
+    force a dynamometer on the table measured (N, machine axis direction, with sensor
+    noise), ``v_true`` the true velocity (m/s), ``glitch`` True where the recorded
+    ``v_meas`` repeats the previous value (recording glitch).
+    """
+
+    seq: NonNeg
+    t: list[float]
+    force: Column
+    f: Column
+    dynamometer: Column | None = None
+    v_true: Column | None = None
+    glitch: list[bool] | None = None
+
+    def __post_init__(self) -> None:
+        _check_columns(self, ("force", "f", "dynamometer", "v_true", "glitch"))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
+    """Monitor output for one axis (topic ``<machine>/<axis>/disturbance``).
+
+    Velocity units: ``v_meas``, ``v_pred`` (one-step prediction), ``residual``,
+    ``f`` (filtered disturbance) and ``f_next`` (one-step-ahead prediction) in m/s,
+    variances in (m/s)². Force units (N, N²) only when the model can scale
+    (force-input form, or velocity-loop with known K); otherwise ``None``.
+    ``dict_size`` KRLS-T dictionary size, ``removed`` index of the pruned element
+    (-1 none), ``flags`` bitmask of STALE, GAP, REJECTED, WARMUP, REDUCED.
+    """
+
+    machine: str
+    axis: str
+    seq: NonNeg
+    t: list[float]
+    v_meas: Column
+    v_pred: Column
+    residual: Column
+    f: Column
+    f_var: Column
+    f_next: Column
+    f_next_var: Column
+    dict_size: list[int]
+    removed: list[int]
+    flags: list[int]
+    force: Column | None = None
+    force_var: Column | None = None
+    force_next: Column | None = None
+
+    def __post_init__(self) -> None:
+        _check_columns(
+            self,
+            (
+                "v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var",
+                "dict_size", "removed", "flags", "force", "force_var", "force_next",
+            ),
+        )
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class Provenance(msgspec.Struct, **_STRUCT_OPTS):
+    """Where a trial came from. ``created`` is only set when the caller gives it
+    (simulated trials stay byte-identical for the same seed)."""
+
+    source: str  # "simulated", "emps", "csv", ...
+    tool: str  # e.g. "feedmon simulate"
+    version: str
+    seed: int | None = None
+    scenario: str | None = None
+    created: str | None = None
+    details: dict[str, Any] = {}
+
+
+class TrialTruth(msgspec.Struct, **_STRUCT_OPTS):
+    """Known truth of a simulated trial.
+
+    ``beta`` the exact ZOH β (``kernels.feed_drive.physical_to_beta``), ``omega`` the
+    Coulomb dead band Ω (m/s), ``coulomb`` whether the Coulomb columns belong to the
+    model (False for trials without speed reversal), ``physical``: inertia (kg),
+    damping (N·s/m), coulomb_pos / coulomb_neg (N), loop_gain (N·s/m);
+    ``scenario`` all scenario constants used.
+    """
+
+    beta: list[float]
+    omega: float
+    coulomb: bool
+    physical: dict[str, float]
+    scenario: dict[str, Any] = {}
+    beta_names: list[str] = []
+
+
+UNITS = {
+    "t": "s",
+    "v_ref": "m/s",
+    "v_meas": "m/s",
+    "u": "N",
+    "current": "A",
+    "position": "m",
+    "spindle_rpm": "rpm",
+}
+
+
+class TrialMeta(msgspec.Struct, **_STRUCT_OPTS):
+    """Metadata of one axis of a trial (MCAP metadata record ``feedmon.trial``)."""
+
+    Ts: Positive
+    form: Form
+    machine: str
+    axis: str
+    provenance: Provenance
+    units: dict[str, str] = {}
+    spindle_rpm: float | None = None
+    teeth: int | None = None
+    loop_gain: float | None = None
+    truth: TrialTruth | None = None
+    description: str = ""
+
+
+# ---- encode / decode --------------------------------------------------------------------------
+_encoder = msgspec.json.Encoder()
+_decoders: dict[type, msgspec.json.Decoder] = {}
+
+
+def encode(obj: msgspec.Struct) -> bytes:
+    """JSON bytes of a message (NaN/inf written as null)."""
+    return _encoder.encode(obj)
+
+
+def decode(data: bytes | str, type_: type, *, what: str = "message"):
+    """Decode and validate ``data`` as ``type_``; raises :class:`SchemaError` naming ``what``."""
+    dec = _decoders.get(type_)
+    if dec is None:
+        dec = _decoders[type_] = msgspec.json.Decoder(type_)
+    try:
+        return dec.decode(data)
+    except msgspec.ValidationError as exc:
+        raise SchemaError(f"{what} is not a valid {type_.__name__}: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise SchemaError(f"{what} is not valid JSON: {exc}") from None
+
+
+def decode_samples(data: bytes | str, *, what: str = "sample block") -> SampleBlock:
+    """Decode a :class:`SampleBlock` (lengths, types and names checked)."""
+    return decode(data, SampleBlock, what=what)
+
+
+def decode_truth(data: bytes | str, *, what: str = "truth block") -> TruthBlock:
+    return decode(data, TruthBlock, what=what)
+
+
+def decode_estimates(data: bytes | str, *, what: str = "estimate block") -> EstimateBlock:
+    return decode(data, EstimateBlock, what=what)
+
+
+def decode_meta(data: bytes | str, *, what: str = "trial metadata") -> TrialMeta:
+    return decode(data, TrialMeta, what=what)
+
+
+# ---- JSON Schemas (draft 2020-12), generated from the Structs ---------------------------------
+SCHEMA_NAMES = {
+    SampleBlock: "feedmon.SampleBlock",
+    TruthBlock: "feedmon.TruthBlock",
+    EstimateBlock: "feedmon.EstimateBlock",
+    TrialMeta: "feedmon.TrialMeta",
+}
+
+
+def json_schema(type_: type) -> dict:
+    """JSON Schema (draft 2020-12) of a message type, generated by ``msgspec.json.schema``.
+
+    Self-contained: the top level is the object schema itself plus ``$defs`` for nested
+    types, with ``$schema`` and ``$id`` set. (Length equality of the columns is a
+    cross-field rule JSON Schema cannot state; it is documented in ``description``.)
+    """
+    raw = msgspec.json.schema(type_)
+    defs = dict(raw.get("$defs", {}))
+    name = type_.__name__
+    top = dict(defs.pop(name)) if raw.get("$ref") == f"#/$defs/{name}" else dict(raw)
+    out = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": f"https://feedmon.invalid/schemas/{SCHEMA_NAMES.get(type_, name)}.json",
+    }
+    out.update(top)
+    if hasattr(type_, "__post_init__") and "t" in getattr(type_, "__struct_fields__", ()):
+        out["description"] = (
+            (out.get("description", "") + "\n\n").lstrip()
+            + "Every per-sample array has the same length as 't' (at least 1); null = missing sample."
+        )
+    if defs:
+        out["$defs"] = defs
+    return out
+
+
+JSON_SCHEMAS = {SCHEMA_NAMES[t]: json_schema(t) for t in SCHEMA_NAMES}

@@ -1,0 +1,367 @@
+"""Importers: real recordings → MCAP trial files (:mod:`monitor.mcapio`).
+
+* :func:`import_emps` — the EMPS benchmark drive (Janot et al., nonlinearbenchmark.org),
+  force-input form.
+* :func:`import_csv` — any controller export as CSV, with a column map and unit conversion.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from monitor import schema as S
+
+__all__ = [
+    "ImportedTrial",
+    "load_emps",
+    "import_emps",
+    "read_csv_trial",
+    "import_csv",
+    "write_imported",
+    "UNIT_FACTORS",
+    "EMPS_REFERENCE",
+    "EMPS_HOWTO",
+]
+
+# published IDIM-LS reference of the EMPS (symmetric friction model)
+EMPS_REFERENCE = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}
+EMPS_HOWTO = (
+    "the EMPS data set (DATA_EMPS.mat, DATA_EMPS_PULSES.mat) is available from "
+    "nonlinearbenchmark.org (benchmark 'EMPS: Electro-Mechanical Positioning System'); "
+    "download and unzip it and point FEEDMON_EMPS_DIR at the folder"
+)
+
+
+@dataclass
+class ImportedTrial:
+    meta: S.TrialMeta
+    t: np.ndarray
+    v_ref: np.ndarray
+    v_meas: np.ndarray
+    u: np.ndarray | None = None
+    current: np.ndarray | None = None
+    position: np.ndarray | None = None
+    spindle_rpm: np.ndarray | None = None
+    truth_force: np.ndarray | None = None  # T_c (N), method §1 sign: positive opposes positive motion
+    truth_f: np.ndarray | None = None  # m/s
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ============================================================================================
+# EMPS
+# ============================================================================================
+def load_emps(path, *, rate: int = 333, cutoff: float = 100.0, order: int = 4) -> ImportedTrial:
+    """Read an EMPS ``.mat`` file into a force-input trial.
+
+    * Force command ``u = gtau·vir`` (N); for the PULSES file the PD-law force
+      ``gtau·(vir − 1.014·pulses_N)`` and the pulse force ``gtau·1.014·pulses_N`` goes to the
+      truth (``T_c = −pulse``: the pulse pushes in the + direction).
+    * Velocity from the motor position ``qm``: zero-phase Butterworth (``order``, ``cutoff`` Hz,
+      ``filtfilt``) then central differences at 1 kHz; ``v_ref`` likewise from ``qg``.
+    * ``rate=333``: sample k is at the 1 kHz index 3k, ``Ts = 3 ms``; the velocity is the value
+      at the start of the interval and ``u(k)`` the **mean force over the interval**
+      [3k, 3k+3) — the force the ZOH model of method §1–2 integrates from v(k) to v(k+1).
+      (Taking the force at 3k only, or shifting the velocity by one 1 kHz sample, moves Fv
+      by several percent.) ``rate=1000`` keeps the 1 kHz samples.
+    """
+    from scipy.io import loadmat
+    from scipy.signal import butter, filtfilt
+
+    path = Path(path)
+    if rate not in (333, 1000):
+        raise ValueError(f"--rate must be 333 or 1000 (Hz), got {rate}")
+    if not path.is_file():
+        raise OSError(f"EMPS file {path} not found; {EMPS_HOWTO}")
+    try:
+        d = loadmat(path)
+    except Exception as exc:  # scipy raises ValueError/TypeError/MatReadError on non-.mat input
+        raise ValueError(f"{path} is not a MATLAB .mat file readable by scipy.io.loadmat ({exc})") from None
+    missing = [k for k in ("t", "qm", "qg", "vir", "gtau") if k not in d]
+    if missing:
+        have = ", ".join(sorted(k for k in d if not k.startswith("__")))
+        raise ValueError(f"{path} is not an EMPS data file: variable(s) {', '.join(missing)} missing (has: {have})")
+    t1 = np.asarray(d["t"], dtype=np.float64).ravel()
+    qm = np.asarray(d["qm"], dtype=np.float64).ravel()
+    qg = np.asarray(d["qg"], dtype=np.float64).ravel()
+    vir = np.asarray(d["vir"], dtype=np.float64).ravel()
+    gtau = float(np.asarray(d["gtau"]).ravel()[0])
+    pulses = np.asarray(d["pulses_N"], dtype=np.float64).ravel() if "pulses_N" in d else None
+    n1 = t1.size
+    if not (qm.size == qg.size == vir.size == n1) or n1 < 100:
+        raise ValueError(f"{path}: t, qm, qg, vir must have the same length ≥ 100 (got {n1}, {qm.size}, {qg.size}, {vir.size})")
+    dt = float(np.median(np.diff(t1)))
+    fs = 1.0 / dt
+    b, a = butter(order, cutoff / (fs / 2.0), "low")
+    v1 = np.gradient(filtfilt(b, a, qm), dt)
+    vr1 = np.gradient(filtfilt(b, a, qg), dt)
+    force_pd = gtau * vir if pulses is None else gtau * (vir - 1.014 * pulses)
+    pulse1 = None if pulses is None else gtau * 1.014 * pulses
+
+    step = 3 if rate == 333 else 1
+    n = (n1 - 1) // step  # every interval [step k, step k + step) complete
+    idx = step * np.arange(n)
+
+    def interval_mean(x):
+        return x[: n * step].reshape(n, step).mean(axis=1)
+
+    Ts = step * dt
+    u = interval_mean(force_pd)
+    sha = _sha256(path)
+    ref = EMPS_REFERENCE
+    meta = S.TrialMeta(
+        Ts=Ts,
+        form="force-input",
+        machine="emps",
+        axis="X",
+        units=dict(S.UNITS),
+        provenance=S.Provenance(
+            source="emps",
+            tool="feedmon import emps",
+            version=_version(),
+            details={
+                "file": path.name,
+                "sha256": sha,
+                "rate_hz": rate,
+                "velocity": f"filtfilt Butterworth order {order} at {cutoff:g} Hz on qm, central difference at 1 kHz",
+                "force": "gtau·vir" if pulses is None else "gtau·(vir − 1.014·pulses_N) (PD law)",
+                "alignment": "v(k) at the interval start, u(k) mean force over the interval",
+                "gtau": gtau,
+                "reference": "Janot, Gautier, Brunot 2019, IDIM-LS symmetric friction",
+                "reference_M": ref["M"],
+                "reference_Fv": ref["Fv"],
+                "reference_Fc": ref["Fc"],
+                "reference_offset": ref["offset"],
+            },
+        ),
+        description="EMPS electro-mechanical positioning system (real data), force-input form",
+    )
+    out = ImportedTrial(
+        meta=meta,
+        t=t1[idx] - t1[0],
+        v_ref=vr1[idx],
+        v_meas=v1[idx],
+        u=u,
+        position=qm[idx],
+    )
+    if pulse1 is not None:
+        from kernels.feed_drive import force_to_disturbance, physical_to_beta
+
+        tc = 0.0 - interval_mean(pulse1)  # (0.0 − x: no negative zeros in the file)
+        beta_ref = physical_to_beta("force-input", Ts, ref["M"], ref["Fv"])
+        out.truth_force = tc
+        out.truth_f = force_to_disturbance("force-input", beta_ref, tc)
+    return out
+
+
+def _version() -> str:
+    from monitor import __version__
+
+    return __version__
+
+
+def import_emps(path, output, *, rate: int = 333) -> ImportedTrial:
+    """``feedmon import emps``: read an EMPS ``.mat`` and write an MCAP trial file."""
+    tr = load_emps(path, rate=rate)
+    write_imported(tr, output)
+    return tr
+
+
+# ============================================================================================
+# CSV
+# ============================================================================================
+# unit → (dimension, factor to SI)
+UNIT_FACTORS: dict[str, tuple[str, float]] = {
+    "s": ("time", 1.0), "ms": ("time", 1e-3), "us": ("time", 1e-6),
+    "m/s": ("velocity", 1.0), "mm/s": ("velocity", 1e-3), "mm/min": ("velocity", 1e-3 / 60.0),
+    "m/min": ("velocity", 1.0 / 60.0),
+    "N": ("force", 1.0), "kN": ("force", 1e3),
+    "A": ("current", 1.0), "mA": ("current", 1e-3),
+    "m": ("length", 1.0), "mm": ("length", 1e-3), "um": ("length", 1e-6),
+    "rpm": ("speed", 1.0), "rev/s": ("speed", 60.0),
+}
+FIELD_DIMENSION = {
+    "t": "time", "v_ref": "velocity", "v_meas": "velocity", "u": "force",
+    "current": "current", "position": "length", "spindle_rpm": "speed",
+}
+
+
+def _parse_pairs(text: str | None, what: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    if not text:
+        return out
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise ValueError(f"{what}: {part!r} is not FIELD=VALUE (e.g. t=time)")
+        k, v = (s.strip() for s in part.split("=", 1))
+        if k not in FIELD_DIMENSION:
+            raise ValueError(f"{what}: unknown field {k!r}; fields: {', '.join(FIELD_DIMENSION)}")
+        out[k] = v
+    return out
+
+
+def _float(cell: str) -> float | None:
+    cell = cell.strip()
+    if cell == "" or cell.lower() in ("nan", "na", "null", "none"):
+        return None
+    return float(cell)
+
+
+def read_csv_trial(
+    path,
+    mapping: dict[str, str] | str,
+    units: dict[str, str] | str | None = None,
+    *,
+    form: str = "velocity-loop",
+    machine: str = "machine",
+    axis: str = "X",
+    loop_gain: float | None = None,
+    Ts: float | None = None,
+) -> ImportedTrial:
+    """Read a CSV export (header row; delimiter sniffed) into a trial.
+
+    ``mapping`` feedmon field → CSV column (``t`` and ``v_meas`` required, ``v_ref`` for the
+    velocity-loop form, ``u`` for the force-input form); ``units`` feedmon field → unit of the
+    column (default SI). ``Ts`` defaults to the median time step.
+    """
+    path = Path(path)
+    mapping = _parse_pairs(mapping, "--map") if isinstance(mapping, str) else dict(mapping)
+    units = _parse_pairs(units, "--units") if isinstance(units, str) or units is None else dict(units)
+    if form not in ("velocity-loop", "force-input"):
+        raise ValueError(f"--form must be velocity-loop or force-input, got {form!r}")
+    need = ["t", "v_meas"] + (["v_ref"] if form == "velocity-loop" else ["u"])
+    lacking = [f for f in need if f not in mapping]
+    if lacking:
+        raise ValueError(f"--map must give the column of {', '.join(lacking)} for the {form} form")
+    for field, unit in units.items():
+        if unit not in UNIT_FACTORS:
+            raise ValueError(f"--units {field}={unit}: unknown unit; known: {', '.join(UNIT_FACTORS)}")
+        if UNIT_FACTORS[unit][0] != FIELD_DIMENSION[field]:
+            raise ValueError(f"--units {field}={unit}: {unit} is a {UNIT_FACTORS[unit][0]} unit, {field} needs a {FIELD_DIMENSION[field]} unit")
+    try:
+        fh = open(path, newline="", encoding="utf-8-sig")
+    except OSError as exc:
+        raise OSError(f"cannot read CSV file {path}: {exc.strerror or exc}") from exc
+    with fh:
+        sample = fh.read(65536)
+        fh.seek(0)
+        try:
+            dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
+        except csv.Error:
+            dialect = csv.excel
+        reader = csv.reader(fh, dialect)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise ValueError(f"CSV file {path} is empty") from None
+        missing = [f"{c!r} (for {f})" for f, c in mapping.items() if c not in header]
+        if missing:
+            raise ValueError(
+                f"CSV file {path}: column {', '.join(missing)} not found; available columns: {', '.join(map(repr, header))}"
+            )
+        cols = {f: header.index(c) for f, c in mapping.items()}
+        data: dict[str, list] = {f: [] for f in cols}
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            for f, j in cols.items():
+                try:
+                    data[f].append(_float(row[j]))
+                except (ValueError, IndexError):
+                    cell = row[j] if j < len(row) else "<missing>"
+                    raise ValueError(
+                        f"CSV file {path}, line {lineno}, column {mapping[f]!r} (for {f}): {cell!r} is not a number"
+                    ) from None
+    if len(data["t"]) < 3:
+        raise ValueError(f"CSV file {path} has {len(data['t'])} data rows; a trial needs at least 3")
+    arrays = {}
+    for f, vals in data.items():
+        factor = UNIT_FACTORS[units.get(f, {"time": "s", "velocity": "m/s", "force": "N", "current": "A",
+                                             "length": "m", "speed": "rpm"}[FIELD_DIMENSION[f]])][1]
+        arrays[f] = np.array(vals, dtype=np.float64) * factor
+    t = arrays["t"]
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"CSV file {path}: column {mapping['t']!r} (t) has empty or non-numeric times at rows {np.flatnonzero(~np.isfinite(t))[:5] + 2}")
+    dts = np.diff(t)
+    if np.any(dts <= 0):
+        k = int(np.flatnonzero(dts <= 0)[0])
+        raise ValueError(f"CSV file {path}: time {mapping['t']!r} does not increase at data row {k + 2} → {k + 3}")
+    if t[0] < 0:
+        raise ValueError(f"CSV file {path}: times must be ≥ 0 s (first is {t[0]:g} s)")
+    Ts_ = float(Ts) if Ts is not None else float(np.median(dts))
+    n = t.size
+    meta = S.TrialMeta(
+        Ts=Ts_,
+        form=form,
+        machine=machine,
+        axis=axis,
+        units=dict(S.UNITS),
+        loop_gain=loop_gain,
+        provenance=S.Provenance(
+            source="csv",
+            tool="feedmon import csv",
+            version=_version(),
+            details={"file": path.name, "sha256": _sha256(path),
+                     "map": ",".join(f"{k}={v}" for k, v in mapping.items()),
+                     "units": ",".join(f"{k}={v}" for k, v in units.items())},
+        ),
+    )
+    return ImportedTrial(
+        meta=meta,
+        t=t,
+        v_ref=arrays.get("v_ref", np.full(n, np.nan)),
+        v_meas=arrays["v_meas"],
+        u=arrays.get("u"),
+        current=arrays.get("current"),
+        position=arrays.get("position"),
+        spindle_rpm=arrays.get("spindle_rpm"),
+    )
+
+
+def import_csv(path, output, mapping, units=None, **kw) -> ImportedTrial:
+    tr = read_csv_trial(path, mapping, units, **kw)
+    write_imported(tr, output)
+    return tr
+
+
+# ============================================================================================
+def write_imported(tr: ImportedTrial, output, *, block: int = 100) -> None:
+    """Write an imported trial (and pulse truth, if any) to an MCAP trial file."""
+    from monitor.mcapio import TrialWriter
+
+    m = tr.meta
+    n = len(tr)
+
+    def col(a, i, j):
+        return None if a is None else a[i:j].tolist()
+
+    with TrialWriter(os.fspath(output), m) as w:
+        for i in range(0, n, block):
+            j = min(i + block, n)
+            t = tr.t[i:j].tolist()
+            w.write_samples(S.SampleBlock(
+                machine=m.machine, axis=m.axis, seq=i, t=t, v_ref=tr.v_ref[i:j].tolist(),
+                v_meas=tr.v_meas[i:j].tolist(), u=col(tr.u, i, j), current=col(tr.current, i, j),
+                position=col(tr.position, i, j), spindle_rpm=col(tr.spindle_rpm, i, j),
+            ))
+            if tr.truth_force is not None:
+                w.write_truth(S.TruthBlock(seq=i, t=t, force=tr.truth_force[i:j].tolist(),
+                                           f=tr.truth_f[i:j].tolist()), m.machine, m.axis)

@@ -1,0 +1,237 @@
+"""Scenario constants (TOML under ``replay/scenarios/``) and reference trajectories.
+
+A scenario is a nested dict: top-level ``form, machine, axis, rate, duration, block,
+fine_rate`` and tables ``drive``, ``model``, ``noise``, ``trajectory``,
+``disturbance``. Files may ``extends = "<other scenario>"``; the child's keys
+override the parent's, table by table. Every constant can be changed with an
+override TOML (``feedmon simulate … --config my.toml``) holding any subset of the
+keys; a key that the scenario does not have is an error (catches typos).
+
+Scenarios after the thesis (chapter 3):
+
+* ``shaker-control``, ``shaker-constant``, ``shaker-sweep`` — case study 1: linear
+  drive, identification trajectory with speed reversals (trapezoids of several
+  amplitudes in both directions, then sinusoids of decreasing amplitude and rising
+  frequency, after Erkorkmaz & Altintas), shaker at 55 Hz.
+* ``milling-aircut``, ``milling-incdec``, ``milling-inc``, ``milling-dec`` — case
+  study 2: CNC X axis, feed in one direction only with feed-rate steps; slotting
+  7050 Al, 3000 rpm, 2 flutes, 16 mm, 1.5 mm depth (mechanistic force,
+  :mod:`replay.cutting`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "SCENARIOS",
+    "list_scenarios",
+    "load_scenario",
+    "merge",
+    "reference_velocity",
+    "engagement",
+]
+
+SCENARIOS = (
+    "shaker-control",
+    "shaker-constant",
+    "shaker-sweep",
+    "milling-aircut",
+    "milling-incdec",
+    "milling-inc",
+    "milling-dec",
+)
+
+
+def list_scenarios() -> list[str]:
+    return list(SCENARIOS)
+
+
+def _read_builtin(name: str) -> dict:
+    res = resources.files("replay").joinpath("scenarios", f"{name}.toml")
+    try:
+        text = res.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ValueError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
+    return tomllib.loads(text)
+
+
+def merge(base: dict, override: dict, *, where: str = "", source: str = "override", strict: bool = True) -> dict:
+    """Deep-merge ``override`` into a copy of ``base``; unknown keys raise ValueError when ``strict``."""
+    out = copy.deepcopy(base)
+    for key, value in override.items():
+        path = f"{where}.{key}" if where else key
+        if key not in out and not strict:
+            out[key] = copy.deepcopy(value)
+            continue
+        if key not in out:
+            known = ", ".join(sorted(k for k in out if k != "extends"))
+            raise ValueError(f"{source}: unknown scenario key {path!r}; keys here: {known}")
+        if isinstance(out[key], dict):
+            if not isinstance(value, dict):
+                raise ValueError(f"{source}: {path!r} must be a table")
+            out[key] = merge(out[key], value, where=path, source=source, strict=strict)
+        else:
+            if isinstance(value, dict):
+                raise ValueError(f"{source}: {path!r} is a value, not a table")
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _resolve(name: str, depth: int = 0) -> dict:
+    if depth > 8:
+        raise ValueError(f"scenario {name!r}: 'extends' chain too deep")
+    raw = _read_builtin(name)
+    parent = raw.pop("extends", None)
+    if parent is None:
+        return raw
+    # a built-in child may add keys its parent lacks (e.g. the shaker constants)
+    return merge(_resolve(parent, depth + 1), raw, source=f"scenario {name}", strict=False)
+
+
+def load_scenario(name: str, config: str | Path | dict | None = None, *, duration: float | None = None) -> dict:
+    """The constants of a built-in scenario, with an optional override (TOML path or dict).
+
+    Returns a plain dict with ``name`` set; validated (:func:`check`).
+    """
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}")
+    sc = _resolve(name)
+    if config is not None:
+        if isinstance(config, dict):
+            override, source = config, "config"
+        else:
+            path = Path(config)
+            try:
+                override = tomllib.loads(path.read_text(encoding="utf-8"))
+            except OSError as exc:
+                raise OSError(f"cannot read scenario config {path}: {exc.strerror or exc}") from exc
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"scenario config {path} is not valid TOML: {exc}") from None
+            source = str(path)
+        override = dict(override)
+        override.pop("extends", None)
+        sc = merge(sc, override, source=source)
+    if duration is not None:
+        sc["duration"] = float(duration)
+    sc["name"] = name
+    check(sc)
+    return sc
+
+
+def _pos(sc: dict, path: str, *, allow_zero: bool = False) -> float:
+    node = sc
+    for part in path.split("."):
+        node = node[part]
+    ok = isinstance(node, (int, float)) and math.isfinite(node) and (node >= 0 if allow_zero else node > 0)
+    if not ok:
+        raise ValueError(f"scenario constant {path} must be a finite number {'≥' if allow_zero else '>'} 0, got {node!r}")
+    return float(node)
+
+
+def check(sc: dict) -> None:
+    """Validate the numbers of a scenario (clear message naming the constant)."""
+    if sc["form"] not in ("velocity-loop", "force-input"):
+        raise ValueError(f"scenario constant form must be velocity-loop or force-input, got {sc['form']!r}")
+    for p in ("rate", "duration", "fine_rate", "drive.inertia", "drive.damping", "drive.loop_gain", "drive.force_constant"):
+        _pos(sc, p)
+    for p in ("drive.coulomb_pos", "drive.coulomb_neg", "drive.omega", "noise.v_meas_std", "noise.dynamometer_std"):
+        _pos(sc, p, allow_zero=True)
+    if not 0.0 <= sc["noise"]["glitch_rate"] < 1.0:
+        raise ValueError(f"noise.glitch_rate must be in [0, 1), got {sc['noise']['glitch_rate']!r}")
+    if int(sc["block"]) != sc["block"] or sc["block"] < 1:
+        raise ValueError(f"block must be a positive integer, got {sc['block']!r}")
+    if sc["fine_rate"] < sc["rate"]:
+        raise ValueError("fine_rate must be ≥ rate")
+    if sc["duration"] * sc["rate"] < 10:
+        raise ValueError(f"duration {sc['duration']} s is shorter than 10 samples")
+    kind = sc["trajectory"]["kind"]
+    if kind not in ("identification", "feed-steps"):
+        raise ValueError(f"trajectory.kind must be identification or feed-steps, got {kind!r}")
+    dk = sc["disturbance"]["kind"]
+    if dk not in ("none", "shaker", "milling"):
+        raise ValueError(f"disturbance.kind must be none, shaker or milling, got {dk!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# trajectories (sampled at Ts; the velocity loop holds v_r over each interval)
+# ---------------------------------------------------------------------------------------------
+def _ramp(v0: float, v1: float, accel: float, Ts: float) -> np.ndarray:
+    n = max(int(math.ceil(abs(v1 - v0) / (accel * Ts))), 1)
+    return v0 + (v1 - v0) * np.arange(1, n + 1) / n
+
+
+def _hold(v: float, seconds: float, Ts: float) -> np.ndarray:
+    return np.full(max(int(round(seconds / Ts)), 0), float(v))
+
+
+def _identification_cycle(tr: dict, Ts: float) -> np.ndarray:
+    parts = []
+    v = 0.0
+    for amp in tr["amplitudes"]:
+        for target in (amp, -amp, 0.0):
+            parts.append(_ramp(v, target, tr["accel"], Ts))
+            v = target
+            parts.append(_hold(v, tr["hold"] if target else tr["dwell"], Ts))
+    for amp, freq in zip(tr["sine_amplitudes"], tr["sine_frequencies"], strict=True):
+        n = int(round(tr["sine_cycles"] / freq / Ts))
+        k = np.arange(1, n + 1)
+        parts.append(amp * np.sin(2 * np.pi * freq * k * Ts))
+        parts.append(_hold(0.0, tr["dwell"], Ts))
+    return np.concatenate(parts)
+
+
+def reference_velocity(sc: dict, n: int, Ts: float) -> np.ndarray:
+    """Reference velocity v_r(k), k = 0…n−1 (m/s)."""
+    tr = sc["trajectory"]
+    if tr["kind"] == "identification":
+        rest = _hold(0.0, tr["rest"], Ts)
+        cycle = _identification_cycle(tr, Ts)
+        reps = int(math.ceil(max(n - rest.size, 0) / cycle.size)) + 1
+        v = np.concatenate([rest, np.tile(cycle, reps)])
+        return v[:n].copy()
+    # feed-steps: lead-in from rest, equal time per level, lead-out to rest
+    tool_hz = sc["disturbance"]["spindle_rpm"] / 60.0 * sc["disturbance"]["teeth"]
+    if tool_hz <= 0:  # air cut with the spindle off: feed rates as programmed for 3000 rpm
+        tool_hz = 3000.0 / 60.0 * sc["disturbance"]["teeth"]
+    feeds = [c * 1e-3 * tool_hz for c in tr["levels"]]  # mm/tooth → m/s
+    accel = tr["accel"]
+    t_levels = n * Ts - tr["lead_in"] - tr["lead_out"]
+    if t_levels <= 0:
+        raise ValueError("duration too short for trajectory.lead_in + lead_out")
+    per = t_levels / len(feeds)
+    parts = [_ramp(0.0, feeds[0], accel, Ts)]
+    parts.append(_hold(feeds[0], tr["lead_in"] - parts[0].size * Ts, Ts))
+    v = feeds[0]
+    for i, f in enumerate(feeds):
+        if i:
+            parts.append(_ramp(v, f, accel, Ts))
+            v = f
+        start = sum(p.size for p in parts)
+        end_level = int(round((tr["lead_in"] + per * (i + 1)) / Ts))
+        parts.append(_hold(v, (end_level - start) * Ts, Ts))
+    parts.append(_ramp(v, 0.0, accel, Ts))
+    out = np.concatenate(parts)
+    if out.size < n:
+        out = np.concatenate([out, np.zeros(n - out.size)])
+    return out[:n].copy()
+
+
+def engagement(sc: dict, t: np.ndarray) -> np.ndarray:
+    """Milling engagement 0…1 at times t: ramps up over ``entry`` s after ``lead_in``,
+    down over ``entry`` s before the lead-out (tool entering / leaving the slot)."""
+    d = sc["disturbance"]
+    if not d.get("cutting", True):
+        return np.zeros_like(t)
+    t_in = sc["trajectory"]["lead_in"]
+    t_out = sc["duration"] - sc["trajectory"]["lead_out"]
+    entry = max(float(d["entry"]), 1e-9)
+    up = np.clip((t - t_in) / entry, 0.0, 1.0)
+    down = np.clip((t_out - t) / entry, 0.0, 1.0)
+    return np.minimum(up, down)

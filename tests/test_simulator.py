@@ -1,0 +1,159 @@
+"""Simulator with known truth: exact ZOH truth, physics sanity, determinism, CLI, speed."""
+
+import time
+
+import numpy as np
+import pytest
+
+from kernels.feed_drive import force_to_disturbance, physical_to_beta, regressors
+from kernels.least_squares import least_squares
+from monitor.cli import main
+from monitor.mcapio import read_trial
+from replay import scenarios as SC
+from replay.cutting import MillingTool, feed_force, mean_feed_force
+from replay.simulator import simulate, simulate_scenario, true_beta
+
+QUIET = {"noise": {"v_meas_std": 0.0, "glitch_rate": 0.0, "dynamometer_std": 0.0}}
+
+
+def _ls(trial_like):
+    truth = trial_like.meta.truth
+    reg = regressors(trial_like.meta.form, trial_like.v_meas, v_ref=trial_like.v_ref, omega=truth.omega,
+                     coulomb=truth.coulomb)
+    return reg, least_squares(reg.Z, reg.y).beta
+
+
+@pytest.mark.parametrize("name", ["shaker-control", "milling-aircut"])
+def test_ls_recovers_true_beta_noise_free(name, tmp_path):
+    res = simulate_scenario(name, seed=0, duration=20.0, config=QUIET)
+    p = tmp_path / "q.mcap"
+    from replay.simulator import write_trial
+
+    write_trial(res, p)
+    tr = read_trial(p)
+    beta = np.array(tr.meta.truth.beta)
+    phys = tr.meta.truth.physical
+    expect = physical_to_beta(
+        "velocity-loop", tr.Ts, phys["inertia"], phys["damping"], gain=phys["loop_gain"],
+        coulomb_pos=phys["coulomb_pos"], coulomb_neg=phys["coulomb_neg"], coulomb=tr.meta.truth.coulomb,
+    )
+    np.testing.assert_array_equal(beta, expect)
+    assert tr.meta.loop_gain == phys["loop_gain"]
+    _, b = _ls(tr)
+    assert b.shape == beta.shape == ((4,) if name == "shaker-control" else (2,))
+    np.testing.assert_allclose(b, beta, rtol=1e-9, atol=0)
+
+
+def test_thesis_like_beta():
+    b1 = true_beta(SC.load_scenario("shaker-constant"))
+    assert b1[0] == pytest.approx(0.834, abs=0.003) and b1[1] == pytest.approx(0.163, abs=0.003)
+    assert 5e-5 < abs(b1[2]) < 2e-4 and 5e-5 < abs(b1[3]) < 2e-4
+    b2 = true_beta(SC.load_scenario("milling-incdec"))
+    assert b2[0] == pytest.approx(0.37, abs=0.005) and b2[1] == pytest.approx(0.63, abs=0.005)
+
+
+def test_truth_is_the_model_residual():
+    """Noise-free with a disturbance: y − Zβ equals the recorded f = −b·T_c exactly."""
+    res = simulate_scenario("shaker-constant", seed=0, duration=10.0, config=QUIET)
+    reg, _ = _ls(res)
+    resid = reg.y - reg.Z @ res.beta
+    np.testing.assert_allclose(resid, res.f[:-1], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(res.f, force_to_disturbance("velocity-loop", res.beta, res.force, gain=res.meta.loop_gain))
+    on = res.force != 0
+    assert on.any() and not on[: int(0.24 * len(res))].any() and not on[int(0.76 * len(res)):].any()
+    assert np.abs(res.force).max() > 50.0
+
+
+def test_disturbance_biases_ls():
+    res = simulate_scenario("shaker-constant", seed=0)
+    _, b = _ls(res)
+    assert abs(b[0] / res.beta[0] - 1) > 0.005  # visibly biased (PL-LSSVM's job to remove)
+    res = simulate_scenario("milling-incdec", seed=0)
+    _, b = _ls(res)
+    assert abs(b[0] / res.beta[0] - 1) > 0.2
+
+
+def test_milling_force_spectrum_and_feed_dependence():
+    tool = MillingTool()
+    Ts = 1 / 333
+    n = 3330
+    F = feed_force(tool, 0.0, Ts, np.full(n, 0.006))
+    spec = np.abs(np.fft.rfft(F - F.mean()))
+    freq = np.fft.rfftfreq(n, Ts)
+
+    def line(f0):
+        k = np.argmin(np.abs(freq - f0))
+        return spec[k - 2:k + 3].max()
+
+    floor = np.median(spec)
+    assert line(50.0) > 20 * floor and line(100.0) > 20 * floor
+    assert line(100.0) > line(50.0)  # tooth passing dominates, runout adds the spindle line
+    # mean force grows with the feed rate and matches the closed form (no runout)
+    no_runout = MillingTool(runout=0.0)
+    feeds = [0.002, 0.006, 0.010]
+    means = [feed_force(no_runout, 0.0, Ts, np.full(n, v)).mean() for v in feeds]
+    assert means[0] < means[1] < means[2]
+    for v, m in zip(feeds, means):
+        assert m == pytest.approx(mean_feed_force(no_runout, v), rel=2e-3)
+    # in a simulated trial too: the truth channel follows the feed steps
+    res = simulate_scenario("milling-inc", seed=0)
+    levels = [c * 1e-3 * 100.0 for c in SC.load_scenario("milling-inc")["trajectory"]["levels"]]  # mm/tooth → m/s
+    assert res.spindle_rpm is not None and res.meta.teeth == 2 and res.meta.spindle_rpm == 3000.0
+    steady = [res.force[np.isclose(res.v_ref, v) & (res.t > 1.0) & (res.t < res.t[-1] - 1.0)].mean() for v in levels]
+    assert np.all(np.diff(steady) > 0)
+    assert np.allclose(res.dynamometer, -res.force, atol=10.0)  # sensor noise only
+
+
+def test_glitches_repeat_previous_value():
+    res = simulate_scenario("milling-incdec", seed=3, config={"noise": {"glitch_rate": 0.01}})
+    g = np.flatnonzero(res.glitch)
+    assert g.size > 50 and not res.glitch[0]
+    np.testing.assert_array_equal(res.v_meas[g], res.v_meas[g - 1])
+    assert res.meta.truth.coulomb is False
+
+
+def test_fine_path_close_to_nominal_beta():
+    res = simulate_scenario("shaker-control", seed=0, duration=20.0, fine=True)
+    _, b = _ls(res)
+    assert res.meta.provenance.details["fine"] is True
+    np.testing.assert_allclose(b[:2], res.beta[:2], rtol=0.05)  # not exact (AA filter, continuous friction)
+
+
+def test_config_overrides_and_errors(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[drive]\ninertia = 600.0\n[disturbance]\namplitude = 5.0\n")
+    sc = SC.load_scenario("shaker-constant", cfg)
+    assert sc["drive"]["inertia"] == 600.0 and sc["disturbance"]["amplitude"] == 5.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[drive]\ninertya = 1.0\n")
+    with pytest.raises(ValueError, match="unknown scenario key 'drive.inertya'"):
+        SC.load_scenario("shaker-constant", bad)
+    with pytest.raises(ValueError, match="drive.damping must be a finite number > 0"):
+        SC.load_scenario("shaker-constant", {"drive": {"damping": -1.0}})
+    with pytest.raises(ValueError, match="unknown scenario 'nope'"):
+        SC.load_scenario("nope")
+
+
+def test_cli_simulate(tmp_path, capsys):
+    out = tmp_path / "cli.mcap"
+    assert main(["simulate", "milling-dec", "-o", str(out), "--seed", "4", "--duration", "3"]) == 0
+    tr = read_trial(out)
+    assert tr.meta.provenance.seed == 4 and tr.meta.provenance.scenario == "milling-dec" and len(tr) == 999
+    assert tr.meta.provenance.created is None
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[noise]\nglitch_rate = 2.0\n")
+    assert main(["simulate", "milling-dec", "-o", str(out), "--config", str(bad)]) == 2
+    assert "glitch_rate" in capsys.readouterr().err
+
+
+def test_ten_minute_trial_speed(tmp_path):
+    from replay.simulator import write_trial
+
+    simulate_scenario("shaker-sweep", duration=1.0)  # numba cache warm-up
+    t0 = time.perf_counter()
+    res = simulate_scenario("shaker-sweep", duration=600.0)
+    t1 = time.perf_counter()
+    write_trial(res, tmp_path / "long.mcap")
+    t2 = time.perf_counter()
+    print(f"\n10-minute shaker-sweep trial: simulate {t1 - t0:.2f} s, write MCAP {t2 - t1:.2f} s, {len(res)} samples")
+    assert len(res) == 199800
