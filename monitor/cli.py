@@ -17,6 +17,9 @@ COMMANDS: dict[str, str] = {
     "simulate": "replay.simulate_cmd",
     "import": "replay.import_cmd",
     "replay": "replay.replay_cmd",
+    "identify": "monitor.identify_cmd",
+    "run": "monitor.run_cmd",
+    "status": "monitor.status_cmd",
 }
 
 

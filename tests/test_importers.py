@@ -1,6 +1,5 @@
 """Importers: the real EMPS drive (key real-data check) and CSV exports."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -10,22 +9,13 @@ from kernels.feed_drive import beta_to_physical, regressors
 from kernels.least_squares import least_squares
 from monitor.cli import main
 from monitor.mcapio import read_trial
-from replay.importers import EMPS_HOWTO, EMPS_REFERENCE, read_csv_trial
+from replay.importers import EMPS_REFERENCE, read_csv_trial
 
-REPO = Path(__file__).resolve().parents[1]
 OMEGA = 1e-3  # Coulomb dead band for the EMPS (m/s)
 
 
-def emps_file(name: str) -> Path:
-    folder = Path(os.environ.get("FEEDMON_EMPS_DIR", REPO / ".." / "shared" / "data" / "emps"))
-    path = folder / name
-    if not path.is_file():
-        pytest.fail(f"EMPS file {path} not found (set FEEDMON_EMPS_DIR): {EMPS_HOWTO}", pytrace=False)
-    return path
-
-
 @pytest.fixture(scope="module")
-def emps_trial(tmp_path_factory):
+def emps_trial(tmp_path_factory, emps_file):
     out = tmp_path_factory.mktemp("emps") / "emps.mcap"
     assert main(["import", "emps", str(emps_file("DATA_EMPS.mat")), "-o", str(out)]) == 0
     return read_trial(out)
@@ -46,7 +36,7 @@ def test_emps_ls_identifies_published_parameters(emps_trial):
     assert offset == pytest.approx(ref["offset"], abs=0.5)
 
 
-def test_emps_1khz(tmp_path):
+def test_emps_1khz(tmp_path, emps_file):
     out = tmp_path / "emps1k.mcap"
     assert main(["import", "emps", str(emps_file("DATA_EMPS.mat")), "-o", str(out), "--rate", "1000"]) == 0
     tr = read_trial(out)
@@ -56,7 +46,7 @@ def test_emps_1khz(tmp_path):
     assert p.inertia == pytest.approx(EMPS_REFERENCE["M"], rel=0.03)
 
 
-def test_emps_pulses_truth(tmp_path):
+def test_emps_pulses_truth(tmp_path, emps_file):
     out = tmp_path / "pulses.mcap"
     assert main(["import", "emps", str(emps_file("DATA_EMPS_PULSES.mat")), "-o", str(out)]) == 0
     tr = read_trial(out)
