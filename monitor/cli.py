@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "identify": "monitor.identify_cmd",
     "run": "monitor.run_cmd",
     "status": "monitor.status_cmd",
+    "recover": "replay.recover_cmd",
 }
 
 

@@ -108,7 +108,7 @@ class AxisEstimator:
             acc -= b[2] * float(sp) + b[3] * float(sn)
         if self.model.form == "force-input":
             acc += b[-1]
-        return acc
+        return float(acc)  # a Python float: msgspec cannot encode numpy.float64
 
     def _predict_next(self, x: np.ndarray) -> tuple[float, float]:
         if self.tracker.size == 0:

@@ -1,0 +1,145 @@
+"""``feedmon run --from`` (offline), tracker state files, the monitor's robustness counters, ``feedmon status``."""
+
+from __future__ import annotations
+
+import logging
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from monitor import cli
+from monitor import schema as S
+from monitor import transport as T
+from monitor.mcapio import iter_blocks, read_trial
+from monitor.service import Monitor, StateStore, load_axes
+from monitor.status import BurstLog, LatencyRing
+from test_run_e2e import make_trial, model_from_truth
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run_offline")
+    make_trial(d / "trial.mcap", 6.0, seed=3)
+    model_from_truth(d / "trial.mcap", d / "z.model.toml")
+    return d
+
+
+def _run(*argv) -> int:
+    return cli.main(["run", *map(str, argv)])
+
+
+def test_offline_writes_samples_truth_estimates_and_reports_throughput(work, capsys):
+    out = work / "est.mcap"
+    assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml") == 0
+    text = capsys.readouterr().out
+    assert "samples/s" in text and str(out) in text
+    src, res = read_trial(work / "trial.mcap"), read_trial(out)
+    np.testing.assert_array_equal(res.seq, src.seq)
+    np.testing.assert_array_equal(res.truth.f, src.truth.f)
+    assert res.meta.truth == src.meta.truth
+    assert res.meta.provenance.details["model_sha256"]
+    est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
+    assert sum(len(b.t) for b in est) == len(src)
+
+
+def test_offline_is_deterministic(work):
+    a, b = work / "a.mcap", work / "b.mcap"
+    for out in (a, b):
+        assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml") == 0
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_offline_errors_are_clear(work, capsys, tmp_path):
+    assert _run("--from", work / "trial.mcap", "--model", work / "z.model.toml") == 2
+    assert "-o/--output" in capsys.readouterr().err
+    other = tmp_path / "y.model.toml"
+    other.write_text((work / "z.model.toml").read_text().replace('axis = "Z"', 'axis = "Y"'))
+    assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap", "--model", other) == 2
+    assert "has no axis linear-drive/Y" in capsys.readouterr().err
+    assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap", "--model", tmp_path / "none.toml") == 2
+    assert "model file not found" in capsys.readouterr().err
+    assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap") == 2
+    assert "--model" in capsys.readouterr().err
+
+
+def test_state_roundtrip_and_mismatch_is_ignored(work, tmp_path, caplog):
+    model = tmp_path / "z.model.toml"
+    model.write_text((work / "z.model.toml").read_text())
+    axes = load_axes([model])
+    ax = axes[("linear-drive", "Z")]
+    for _, b in iter_blocks(work / "trial.mcap"):
+        ax.estimator.process(b)
+    store = StateStore(tmp_path / "state")
+    path = store.save(ax)
+    with np.load(path, allow_pickle=False) as z:  # plain arrays only
+        assert str(z["meta.model_sha256"]) == ax.status.model_sha256
+    again = load_axes([model])[("linear-drive", "Z")]
+    assert store.load(again) == "restored"
+    assert again.estimator.tracker.size == ax.estimator.tracker.size
+    np.testing.assert_array_equal(again.estimator.tracker.mu, ax.estimator.tracker.mu)
+    model.write_text(model.read_text() + "\n# edited\n")  # another model file: its state is meaningless
+    edited = load_axes([model])[("linear-drive", "Z")]
+    with caplog.at_level(logging.WARNING, logger="monitor.service"):
+        assert store.load(edited) == "ignored"
+    assert "another model file" in caplog.text
+    assert edited.estimator.tracker.size == 0
+    path.write_bytes(b"garbage")
+    assert store.load(load_axes([model])[("linear-drive", "Z")]) == "unreadable"
+    default = StateStore(None).path_for(edited)
+    assert default.name == "z.model.state.npz" and default.parent == tmp_path
+
+
+def test_monitor_counts_malformed_no_model_and_queue_full(work):
+    endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
+    axes = load_axes([work / "z.model.toml"])
+    with T.open_session(listen=endpoint) as session:
+        mon = Monitor(axes, session, prefix="feedmon-unit", queue_size=1)
+        fake = SimpleNamespace(key_expr="feedmon-unit/linear-drive/Z/samples", payload=SimpleNamespace(to_bytes=lambda: b"x"))
+        mon._on_sample(fake)  # not started: stays queued
+        mon._on_sample(fake)  # queue full: dropped and counted
+        assert mon.queue_full["feedmon-unit/linear-drive/Z/samples"] == 1
+        mon._q.get_nowait()
+        mon.start()
+        try:
+            t = time.perf_counter()
+            assert mon.handle("feedmon-unit/linear-drive/Z/samples", b"{not json", t) is None
+            assert mon.handle("feedmon-unit/other/Q/samples", b"[]", t) is None
+            good = S.SampleBlock(machine="linear-drive", axis="Z", seq=0, t=[0.0, 0.003], v_ref=[0.0, 0.0],
+                                 v_meas=[0.0, 0.0])
+            unknown = S.SampleBlock(machine="m", axis="Q", seq=0, t=[0.0], v_ref=[0.0], v_meas=[0.0])
+            assert mon.handle("feedmon-unit/m/Q/samples", S.encode(unknown), t) is None
+            est = mon.handle("feedmon-unit/linear-drive/Z/samples", S.encode(good), t)
+            assert est is not None and len(est.t) == 2
+            st = mon.status()
+        finally:
+            mon.stop()
+    a = st["axes"]["linear-drive/Z"]
+    assert a["drops"] == {"malformed": 1, "input_queue_full": 1}
+    assert a["samples_in"] == a["estimates_out"] == 2 and a["latency_us"]["count"] == 1
+    assert st["input"]["malformed"] == 1  # the one on a key of no known axis
+    assert st["input"]["no_model"] == {"m/Q": 1}
+
+
+def test_status_without_monitor_exits_nonzero(capsys):
+    port = T.free_tcp_port()
+    rc = cli.main(["status", "--mode", "peer", "--connect", f"tcp/127.0.0.1:{port}", "--prefix", "feedmon-nobody",
+                   "--timeout", "1"])
+    assert rc == 1
+    assert "no monitor answered" in capsys.readouterr().err
+
+
+def test_latency_ring_and_burst_log(caplog):
+    r = LatencyRing(size=100)
+    assert r.summary()["p50"] is None
+    for i in range(1000):
+        r.record((i % 100 + 1) * 1e-6)
+    s = r.summary()
+    assert s["count"] == 1000 and s["window"] == 100 and 49 <= s["p50"] <= 52 and 98 <= s["p99"] <= 100
+    log = logging.getLogger("test.burst")
+    b = BurstLog(log, quiet=60.0)
+    with caplog.at_level(logging.WARNING, logger="test.burst"):
+        for _ in range(50):
+            b("k", "bad thing %s", 1)
+    assert caplog.text.count("bad thing") == 1
