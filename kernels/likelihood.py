@@ -13,11 +13,11 @@ closed form, ``ŝ² = yᵀPy/(N − p)``:
 where ``yᵀPy = (y − Z̃b̂)ᵀA⁻¹(y − Z̃b̂) = rᵀα`` and ``p`` = columns of ``Z̃``. The
 ``− log|Z̃ᵀZ̃|`` term (constant in the hyperparameters) makes ℓ invariant to rescaling the
 regressor columns (Harville's form). ``log|A|`` comes from Levinson–Durbin
-(:func:`kernels.toeplitz.toeplitz_logdet`, or the Cholesky factor for small N), the solves from
+(:func:`kernels.toeplitz.toeplitz_logdet`, or Levinson whitening for small N), the solves from
 the PL-LSSVM Toeplitz path.
 
-Exact evaluation (:func:`log_marginal_likelihood`): ``N ≤ dense_limit`` by a dense Cholesky of
-``A`` (whitened QR), above it by Levinson–Durbin for ``log|A|`` (``O(N²)``, ~0.1 s at N = 10 000)
+Exact evaluation (:func:`log_marginal_likelihood`): ``N ≤ dense_limit`` by Levinson–Durbin
+whitening (``L⁻¹[Z̃, y]`` and ``log|A|`` in one pass, then QR), above it by Levinson–Durbin for ``log|A|`` (``O(N²)``, ~0.1 s at N = 10 000)
 and Toeplitz PCG for the solves.
 
 Tuning (:func:`tune`) uses a **segmented** likelihood: the record is cut into ``S`` consecutive
@@ -27,9 +27,9 @@ block-diagonal part. The formula above is unchanged (``log|A| = Σ log|A_s|``,
 ``Z̃ᵀA⁻¹Z̃ = Σ Z̃_sᵀA_s⁻¹Z̃_s``); it drops only the correlation across segment boundaries, which is
 negligible while ``σ1`` is short compared with a segment (σ1 is bounded by the segment length).
 Why: PCG iteration counts grow steeply for long σ1 and large γ (T. Chan preconditioner, 1000+
-iterations), which made whole-record tuning take minutes; equal-length segments share one Toeplitz
-matrix, so one Cholesky of a ≤1500×1500 matrix (its leading blocks serve the shorter segments)
-gives every evaluation in tens of milliseconds, independent of the hyperparameters.
+iterations), which made whole-record tuning take minutes; the segments share one Toeplitz matrix,
+so one Levinson–Durbin pass of length ≤ 1500 whitens all of them (``O(segment · N · (p+1))``,
+single-threaded Numba, no BLAS) in tens of milliseconds, independent of the hyperparameters.
 """
 
 from __future__ import annotations
@@ -39,12 +39,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import LinAlgError, cholesky, solve_triangular, toeplitz
+from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
 from .covariance import LocallyPeriodic
 from .pl_lssvm import _check_gamma, gls_solve, prepare_regression
-from .toeplitz import DENSE_LIMIT, ToeplitzSolver, toeplitz_logdet
+from .toeplitz import DENSE_LIMIT, ToeplitzSolver, levinson_whiten, toeplitz_logdet
 
 __all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "tune", "TuneResult"]
 
@@ -74,7 +74,7 @@ def reml_terms(Z, y, kernel, gamma, Ts, *, names=None, tol: float = 1e-10,
     """All terms of the REML log likelihood of the PL-LSSVM model on a uniform time grid.
 
     ``kernel`` must be a time kernel (``kernel.is_stationary_1d``), ``Ts`` the sample period (s).
-    Exact unless ``segment`` is given: ``N ≤ dense_limit`` by a dense Cholesky (whitened QR),
+    Exact unless ``segment`` is given: ``N ≤ dense_limit`` by Levinson whitening + QR,
     above it Toeplitz PCG (tolerance ``tol``) + Levinson–Durbin. ``segment``: the block-diagonal
     (segmented) approximation of the module docstring.
     """
@@ -96,7 +96,7 @@ def reml_terms(Z, y, kernel, gamma, Ts, *, names=None, tol: float = 1e-10,
         return _assemble(Zt, b, quad, logdet_A, logdet_M_s, scale, f"segmented-{count}")
     if n <= dense_limit:
         b, quad, logdet_A, logdet_M_s, scale, _ = _whitened_terms(Zt, y, kernel, gamma, Ts, n)
-        return _assemble(Zt, b, quad, logdet_A, logdet_M_s, scale, "dense")
+        return _assemble(Zt, b, quad, logdet_A, logdet_M_s, scale, "levinson")
     column = kernel.lag(np.arange(n) * Ts)
     column[0] += 1.0 / gamma
     solver = ToeplitzSolver(column, tol=tol, dense_limit=0)
@@ -109,7 +109,8 @@ def reml_terms(Z, y, kernel, gamma, Ts, *, names=None, tol: float = 1e-10,
 
 def _whitened_terms(Zt, y, kernel, gamma, Ts, segment):
     """REML terms with block-diagonal A (consecutive segments of ≤ ``segment`` samples), by whitening
-    each segment with the Cholesky factor of its Toeplitz block (exact when N ≤ segment)."""
+    each segment with the inverse Cholesky factor of its Toeplitz block, obtained from one
+    Levinson–Durbin pass (:func:`kernels.toeplitz.levinson_whiten`; exact when N ≤ segment)."""
     n, p = Zt.shape
     count = max(1, -(-n // segment))
     edges = np.linspace(0, n, count + 1).astype(np.int64)
@@ -117,21 +118,13 @@ def _whitened_terms(Zt, y, kernel, gamma, Ts, segment):
     lmax = int(lengths.max())
     column = kernel.lag(np.arange(lmax) * Ts)
     column[0] += 1.0 / gamma
-    try:
-        L = cholesky(toeplitz(column), lower=True, overwrite_a=True, check_finite=False)
-    except LinAlgError:
-        raise ValueError("Ω + I/γ is not positive definite for these hyperparameters") from None
     data = np.column_stack([Zt, y])
-    white = np.empty_like(data)
-    logdet_A = 0.0
-    for length in np.unique(lengths):
-        idx = np.flatnonzero(lengths == length)
-        Lk = L[:length, :length]
-        logdet_A += idx.size * 2.0 * float(np.sum(np.log(np.diag(Lk))))
-        block = np.concatenate([data[edges[i]:edges[i + 1]] for i in idx], axis=1)  # (length, |idx|·(p+1))
-        wb = solve_triangular(Lk, block, lower=True, check_finite=False)
-        for j, i in enumerate(idx):
-            white[edges[i]:edges[i + 1]] = wb[:, j * (p + 1):(j + 1) * (p + 1)]
+    series = np.zeros((count, p + 1, lmax))
+    for i in range(count):
+        series[i, :, :lengths[i]] = data[edges[i]:edges[i + 1]].T
+    W, logdets = levinson_whiten(column, series, lengths)
+    white = np.concatenate([W[i, :, :lengths[i]].T for i in range(count)], axis=0)
+    logdet_A = float(np.sum(logdets))
     scale = np.sqrt(np.sum(Zt * Zt, axis=0))
     Zw = white[:, :p] / scale
     yw = white[:, p]
@@ -161,7 +154,8 @@ def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, tol: float =
     """Restricted log marginal likelihood (REML, ``b`` integrated out, ``s²`` profiled) of the
     PL-LSSVM model with ``kernel`` and ``gamma`` on a uniform grid of period ``Ts`` (module docstring).
 
-    Exact by default (dense Cholesky for ``N ≤ dense_limit``, else Levinson–Durbin + Toeplitz PCG);
+    Exact by default (Levinson whitening for ``N ≤ dense_limit``, else Levinson–Durbin log-det +
+    Toeplitz PCG);
     ``segment`` selects the segmented approximation used by :func:`tune`.
     """
     return reml_terms(Z, y, kernel, gamma, Ts, names=names, tol=tol, dense_limit=dense_limit,

@@ -18,7 +18,9 @@ are needed:
 Numerics: the (p × p) generalised-least-squares system is solved on unit-norm-scaled columns
 (β entries differ by orders of magnitude: Coulomb columns ±1, velocities 1e-2 m/s) and refined
 once: ``α₁ = A⁻¹(y − Z̃b₀)`` is solved on the (small) residual, the KKT constraint
-``Z̃ᵀα = 0`` gives the correction ``Δb = (Z̃ᵀA⁻¹Z̃)⁻¹Z̃ᵀα₁``, ``α = α₁ − A⁻¹Z̃ Δb``.
+``Z̃ᵀα = 0`` gives the correction ``Δb = (Z̃ᵀA⁻¹Z̃)⁻¹Z̃ᵀα₁``, ``α = α₁ − A⁻¹Z̃ Δb``. Because the
+correction uses the exact ``A``, the first (p+1 right-hand sides) PCG solve runs at the looser
+``FIRST_TOL`` and only the single refinement solve at ``tol``.
 
 The disturbance estimate (eq. 2.12) ``f = Ωα + c`` is computed without a product with Ω:
 ``Ωα = Aα − α/γ = y − Z̃[c; β] − α/γ``, hence ``f = y − Zβ − α/γ`` (more accurate than
@@ -151,6 +153,12 @@ def _dense_kernel_matrix(kernel: Kernel, X: np.ndarray, shift: float, block: int
     return A
 
 
+#: PCG tolerance of the first, (p+1)-right-hand-side solve. The refinement solve (tolerance ``tol``) on
+#: the residual removes its effect on b: g = Z̃ᵀA⁻¹(y − Z̃b₀) = M(b − b₀) uses the exact A, and an
+#: approximate M only slows the (one-step) correction by a factor ~FIRST_TOL·κ.
+FIRST_TOL = 1e-8
+
+
 class _DenseSolver:
     def __init__(self, A: np.ndarray):
         try:
@@ -161,7 +169,7 @@ class _DenseSolver:
         self.iterations = 0
         self.residual = 0.0
 
-    def solve(self, B):
+    def solve(self, B, tol=None):
         return cho_solve(self._chol, B, check_finite=False)
 
 
@@ -220,7 +228,7 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
     """
     p = Zt.shape[1]
     scale = np.sqrt(np.sum(Zt * Zt, axis=0))
-    S = solver.solve(np.column_stack([Zt, y]))
+    S = solver.solve(np.column_stack([Zt, y]), tol=max(getattr(solver, "tol", 0.0), FIRST_TOL))
     iterations, resid = solver.iterations, solver.residual
     W, u = S[:, :p], S[:, p]
     Ms = (Zt.T @ W) / np.outer(scale, scale)

@@ -1,0 +1,123 @@
+"""kernels.toeplitz: FFT products, circulant preconditioners, PCG, automatic choice, Levinson log-det."""
+
+import numpy as np
+import pytest
+from scipy.linalg import toeplitz
+
+from kernels.covariance import LocallyPeriodic, Periodic, SquaredExponential
+from kernels.toeplitz import (
+    SymmetricToeplitz,
+    ToeplitzSolver,
+    pcg,
+    solve_spd_toeplitz,
+    strang_eigenvalues,
+    tchan_eigenvalues,
+    toeplitz_logdet,
+)
+
+TS = 1.0 / 333.0
+
+
+def column(kernel, n, gamma=50.0):
+    t = kernel.lag(np.arange(n) * TS)
+    t[0] += 1.0 / gamma
+    return t
+
+
+KERNELS = [
+    LocallyPeriodic(0.59, 0.42, 1 / 55),
+    SquaredExponential(0.05),
+    Periodic(0.8, 1 / 50) * SquaredExponential(1.5),
+]
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 100, 1001])
+@pytest.mark.parametrize("kernel", [KERNELS[0], SquaredExponential(0.02)], ids=["lp", "se-banded"])
+def test_matvec_equals_dense(n, kernel):
+    rng = np.random.default_rng(n)
+    t = column(kernel, n)
+    op = SymmetricToeplitz(t)
+    assert op.size >= n + op.bandwidth and op.bandwidth <= max(n - 1, 0)
+    A = toeplitz(t)
+    x = rng.standard_normal(n)
+    X = rng.standard_normal((n, 3))
+    np.testing.assert_allclose(op.matvec(x), A @ x, rtol=0, atol=1e-12 * np.abs(A).sum(1).max())
+    np.testing.assert_allclose(op @ X, A @ X, rtol=0, atol=1e-12 * np.abs(A).sum(1).max())
+    np.testing.assert_allclose(op.to_dense(), A)
+
+
+@pytest.mark.parametrize("kernel,n", [(KERNELS[0], 1600), (KERNELS[0], 2400), (KERNELS[1], 1700), (KERNELS[2], 1700)],
+                         ids=["lp-1600", "lp-2400", "se-1700", "product-1700"])
+def test_pcg_solve_equals_dense(kernel, n):
+    t = column(kernel, n)
+    rng = np.random.default_rng(0)
+    B = rng.standard_normal((n, 3))
+    solver = ToeplitzSolver(t, tol=1e-13, dense_limit=0)
+    assert solver.method.startswith("pcg-")
+    X = solver.solve(B)
+    X_ref = np.linalg.solve(toeplitz(t), B)
+    assert np.linalg.norm(X - X_ref) / np.linalg.norm(X_ref) < 1e-10
+    x1 = solver.solve(B[:, 0])
+    assert x1.shape == (n,)
+    assert np.linalg.norm(x1 - X_ref[:, 0]) / np.linalg.norm(X_ref[:, 0]) < 1e-10
+    assert solver.iterations > 0 and solver.residual <= 1e-11
+
+
+def test_strang_not_positive_definite_falls_back_to_tchan():
+    n = 1800
+    record = n * TS
+    kernel = LocallyPeriodic(10.0 * record, 0.42, 1 / 55)
+    t = column(kernel, n)
+    assert strang_eigenvalues(t).min() <= 0.0  # the detected failure
+    assert tchan_eigenvalues(t).min() > 0.0
+    solver = ToeplitzSolver(t, tol=1e-13, dense_limit=0)
+    assert solver.method == "pcg-tchan"
+    b = np.random.default_rng(1).standard_normal(n)
+    x = solver.solve(b)
+    x_ref = np.linalg.solve(toeplitz(t), b)
+    assert np.linalg.norm(x - x_ref) / np.linalg.norm(x_ref) < 1e-10
+    with pytest.raises(ValueError, match="Strang preconditioner is not positive definite"):
+        ToeplitzSolver(t, dense_limit=0, preconditioner="strang")
+
+
+def test_short_sigma1_uses_strang_and_small_n_dense():
+    t = column(KERNELS[0], 3000)
+    assert ToeplitzSolver(t, dense_limit=0).method == "pcg-strang"
+    small = ToeplitzSolver(column(KERNELS[0], 800))
+    assert small.method == "dense"
+    b = np.ones(800)
+    np.testing.assert_allclose(small.solve(b), np.linalg.solve(toeplitz(column(KERNELS[0], 800)), b), rtol=1e-10)
+    np.testing.assert_allclose(solve_spd_toeplitz(column(KERNELS[0], 800), b), small.solve(b))
+
+
+def test_tchan_forced_and_pcg_generic():
+    t = column(KERNELS[1], 2000)
+    solver = ToeplitzSolver(t, dense_limit=0, preconditioner="tchan", tol=1e-13)
+    assert solver.method == "pcg-tchan"
+    b = np.sin(np.arange(2000) / 17.0)
+    x_ref = np.linalg.solve(toeplitz(t), b)
+    assert np.linalg.norm(solver.solve(b) - x_ref) / np.linalg.norm(x_ref) < 1e-10
+    # unpreconditioned CG on the same operator, zero right-hand side column handled
+    op = SymmetricToeplitz(t)
+    res = pcg(op.matvec_rows, np.column_stack([b, np.zeros(2000)]), tol=1e-12, max_iter=5000)
+    assert res.converged
+    np.testing.assert_array_equal(res.x[:, 1], 0.0)
+    assert np.linalg.norm(res.x[:, 0] - x_ref) / np.linalg.norm(x_ref) < 1e-9
+
+
+@pytest.mark.parametrize("kernel", KERNELS + [LocallyPeriodic(30.0, 0.42, 1 / 55)], ids=str)
+def test_levinson_logdet_equals_slogdet(kernel):
+    t = column(kernel, 900)
+    sign, ref = np.linalg.slogdet(toeplitz(t))
+    assert sign == 1.0
+    assert toeplitz_logdet(t) == pytest.approx(ref, rel=1e-10, abs=1e-8)
+    assert toeplitz_logdet(t * 7.0) == pytest.approx(ref + 900 * np.log(7.0), rel=1e-10)
+
+
+def test_not_positive_definite_is_reported():
+    with pytest.raises(ValueError, match="not positive definite"):
+        toeplitz_logdet(np.array([1.0, 2.0, 0.0]))
+    with pytest.raises(ValueError, match="not positive definite"):
+        ToeplitzSolver(np.array([1.0, 2.0, 0.0]))
+    with pytest.raises(ValueError, match="non-finite value at lag 1"):
+        SymmetricToeplitz([1.0, np.nan])
