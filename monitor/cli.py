@@ -18,9 +18,9 @@ COMMANDS: dict[str, str] = {
     "import": "replay.import_cmd",
     "replay": "replay.replay_cmd",
     "identify": "monitor.identify_cmd",
+    "demo": "monitor.demo_cmd",
     "run": "monitor.run_cmd",
     "status": "monitor.status_cmd",
-    "recover": "replay.recover_cmd",
 }
 
 
