@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "demo": "monitor.demo_cmd",
     "run": "monitor.run_cmd",
     "status": "monitor.status_cmd",
+    "recover": "replay.recover_cmd",
 }
 
 
