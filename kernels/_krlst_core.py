@@ -2,7 +2,7 @@
 
 Reference: kafbox ``lib/krlst.m`` (S. Van Vaerenbergh), back-to-the-prior forgetting.
 The public class is :class:`kernels.krlst.KRLST`; this module holds only the numerics.
-Kernel values come from :func:`kernels.covariance.kernel_value` (one formula per kernel).
+Kernel values come from :mod:`kernels.covariance` (one formula per kernel).
 
 Slots
 -----
@@ -46,15 +46,40 @@ same ``kernel_value``) the ``k_t`` row costs ``n`` lookups instead of ``n``
 back to ``kernel_value``, and so does a lag beyond the table (which ends where the
 kernel underflows to 0, or at ``nmax`` entries for a kernel that does not decay).
 
+Split step (predict_next / update)
+----------------------------------
+:func:`learn` is :func:`arm` (steps 1–2: forget, then predict at ``x``) followed by
+:func:`update` (steps 3–5, or 6 on the first sample). :func:`arm` writes the
+forgetting into the state and keeps everything the update needs ("armed"):
+``k_t, q, h`` in rows 3–5 of ``P``, ``k_tt, ŷ, γ², σ_f², σ_y²`` in ``fst`` and ``x``
+itself in the free slot ``X[order[n]]`` (where step 3 puts it). The monitor arms
+on ``x(k+1)`` as soon as it arrives and publishes the prediction, then calls
+:func:`update` with the residual once ``v_m(k+2)`` is known. Arming again without an
+update re-arms at the new ``x``; the forgetting is then applied once per :func:`arm`.
+:func:`track` runs ``[update(y_j)] + arm(x_j)`` over a block of arriving samples.
+
+Periodic re-inversion
+---------------------
+The rank-one recursions keep ``Q ≈ K_D⁻¹`` only to rounding, amplified by
+``1/γ² ≲ 1/ε_j`` on every step; with ``ε_j = 1e-6`` ``max|Q K_D − I|`` wanders
+around 1e-6…1e-5 with excursions above. Every ``refresh_every`` steps (``ist``; 0 = never),
+at the end of :func:`update`, :func:`refresh_inverse` recomputes ``Q`` from the cached
+``K_D`` by a Cholesky factorisation and triangular inverse in a dense scratch
+matrix that is part of ``W`` (no allocation). The new ``Q`` supersedes a pending
+``Q`` update.
+
 Layout of the small arrays
 --------------------------
-``ist`` int64 ``[n, hw, M, steps, q_pending, s_pending]``
+``ist`` int64 ``[n, hw, M, steps, q_pending, s_pending, refresh_every, armed]``
 (``q_pending``: 0 none, 1 rank-one, 2 rank-one + removal downdate);
-``fst`` float64 ``[λ, sn2, ε_j, num, den, s0², 1/γ², 1/[Q_new]_rr, 1/σ_y², 1/Ts]``;
-``P`` float64 ``(3, M+1)`` pending vectors ``p = [q; −1]``, ``a = [Q_new]_{:,r}``,
-``g = [h; σ_f²]``; ``W`` float64 ``(5, M+1)`` scratch ``k_t, q, h, u, μ_new``;
-``out`` float64 ``(10,)`` ``ŷ, σ_y², σ_f², γ², removed, reduced, filtered,
-filtered_var, s0², n``.
+``fst`` float64 ``[λ, sn2, ε_j, num, den, s0², 1/γ², 1/[Q_new]_rr, 1/σ_y², 1/Ts,
+k_tt, ŷ, γ², σ_f², σ_y²]`` (the last five: the armed prediction);
+``P`` float64 ``(7, M+1)`` pending vectors ``p = [q; −1]``, ``a = [Q_new]_{:,r}``,
+``g = [h; σ_f²]``, then the armed ``k_t, q, h, k_t − K_D q``; ``W`` float64
+``(6 + M+1, M+1)`` scratch (not state): ``k_t, q, h`` of :func:`predict`, ``u, μ_new,
+Q(k_t − K_D q)`` of :func:`update`, then the dense matrix of :func:`refresh_inverse`; ``out`` float64 ``(10,)`` ``ŷ, σ_y², σ_f², γ², removed,
+reduced, filtered, filtered_var, s0², n``; the ``out`` of :func:`arm` and
+:func:`predict` is ``ŷ, σ_f², σ_y², γ²``; a row of :func:`track` is described there.
 """
 
 from __future__ import annotations
@@ -64,17 +89,22 @@ import math
 import numpy as np
 from numba import njit
 
-from .covariance import kernel_value
+from .covariance import kernel_row_at, kernel_value, kernel_value_at
 
 N_OUT = 10
-I_N, I_HW, I_M, I_STEPS, I_QPEND, I_SPEND = range(6)
-F_LAM, F_SN2, F_JIT, F_NUM, F_DEN, F_S02, F_QSC, F_QBINV, F_SC, F_INVTS = range(10)
-N_IST = 6
-N_FST = 10
+N_TRACK = 17
+I_N, I_HW, I_M, I_STEPS, I_QPEND, I_SPEND, I_REFRESH, I_ARMED, I_REFINE = range(9)
+(F_LAM, F_SN2, F_JIT, F_NUM, F_DEN, F_S02, F_QSC, F_QBINV, F_SC, F_INVTS,
+ F_KTT, F_YM, F_G2, F_SF2, F_SY2) = range(15)
+N_IST = 9
+N_FST = 15
+N_P = 7
+N_W = 6
 LAG_TOL = 1e-6
 
 
-def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: float, grid_step: float):
+def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: float, grid_step: float,
+              refresh_every: int = 0, refine: bool = False):
     """Zeroed state buffers ``(X, Q, S, K, mu, order, ist, fst, P)`` for budget M and input dimension d."""
     cap = budget + 1
     X = np.zeros((cap, dim))
@@ -85,12 +115,14 @@ def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: floa
     order = np.arange(cap, dtype=np.int64)
     ist = np.zeros(N_IST, dtype=np.int64)
     ist[I_M] = budget
+    ist[I_REFRESH] = refresh_every
+    ist[I_REFINE] = 1 if refine else 0
     fst = np.zeros(N_FST)
     fst[F_LAM] = forgetting
     fst[F_SN2] = sn2
     fst[F_JIT] = jitter
     fst[F_INVTS] = 0.0 if not grid_step else 1.0 / grid_step
-    P = np.zeros((3, cap))
+    P = np.zeros((N_P, cap))
     return X, Q, S, K, mu, order, ist, fst, P
 
 
@@ -125,11 +157,9 @@ def _kernel_row(kinds, params, cols, X, order, n, hw, ist, fst, tab, x, kt):
                 if abs(dl - L) <= LAG_TOL:
                     kt[i] = tab[L]                # k(L Ts), same kernel_value, computed once
                     continue
-            kt[i] = kernel_value(kinds, params, cols, X[i], x)
+            kt[i] = kernel_value_at(kinds, params, cols, X, i, x)
         return tab[0] + fst[F_JIT]
-    for l in range(n):
-        i = order[l]
-        kt[i] = kernel_value(kinds, params, cols, X[i], x)      # k_t = k(D, x)
+    kernel_row_at(kinds, params, cols, X, order, n, x, kt)       # k_t = k(D, x)
     return kernel_value(kinds, params, cols, x, x) + fst[F_JIT]  # k_tt = k(x, x) + ε_j
 
 
@@ -173,74 +203,92 @@ def _q_pass(Q, P, ist, fst, hw, kt, q, write):
 
 
 @njit(cache=True, nogil=True)
-def _h_pass(S, K, P, ist, fst, hw, lam, q, h, write):
-    """``h = Σ q`` after ``Σ ← λΣ + (1−λ)K_D`` (2.19), applying the pending update of Σ on the way."""
+def _h_pass(S, K, P, ist, fst, hw, lam, q, h, kq, want_kq, write):
+    """``h = Σ q`` after ``Σ ← λΣ + (1−λ)K_D`` (2.19), applying the pending update of Σ on the way.
+
+    With ``want_kq`` also ``kq = K_D q`` (for ``refine``): ``K_D`` is read anyway, but the
+    extra accumulator costs ~10 %, so the loops exist in both forms.
+    """
     for i in range(hw):
         h[i] = 0.0
+    if want_kq:
+        for i in range(hw):
+            kq[i] = 0.0
     c1 = 1.0 - lam
     g = P[2]
     cs = fst[F_SC]
     if ist[I_SPEND] == 0:
         for j in range(hw):
             qj = q[j]
-            for i in range(hw):
-                v = lam * S[j, i] + c1 * K[j, i]                # Σ ← λ Σ + (1 − λ) K_D
-                if write:
-                    S[j, i] = v
-                h[i] += qj * v                                  # h = Σ q
+            if want_kq:
+                for i in range(hw):
+                    kji = K[j, i]
+                    v = lam * S[j, i] + c1 * kji                # Σ ← λ Σ + (1 − λ) K_D
+                    if write:
+                        S[j, i] = v
+                    h[i] += qj * v                              # h = Σ q
+                    kq[i] += qj * kji                           # K_D q
+            else:
+                for i in range(hw):
+                    v = lam * S[j, i] + c1 * K[j, i]            # Σ ← λ Σ + (1 − λ) K_D
+                    if write:
+                        S[j, i] = v
+                    h[i] += qj * v                              # h = Σ q
     else:
         for j in range(hw):
             qj = q[j]
             gj = g[j]
-            for i in range(hw):
-                v = S[j, i] - cs * (gj * g[i])                  # Σ ← [[Σ,h],[hᵀ,σ_f²]] − g gᵀ/σ_y²  (2.14)
-                v = lam * v + c1 * K[j, i]                      # Σ ← λ Σ + (1 − λ) K_D  (2.19)
-                if write:
-                    S[j, i] = v
-                h[i] += qj * v                                  # h = Σ q
+            if want_kq:
+                for i in range(hw):
+                    kji = K[j, i]
+                    v = S[j, i] - cs * (gj * g[i])              # Σ ← [[Σ,h],[hᵀ,σ_f²]] − g gᵀ/σ_y²  (2.14)
+                    v = lam * v + c1 * kji                      # Σ ← λ Σ + (1 − λ) K_D  (2.19)
+                    if write:
+                        S[j, i] = v
+                    h[i] += qj * v                              # h = Σ q
+                    kq[i] += qj * kji                           # K_D q
+            else:
+                for i in range(hw):
+                    v = S[j, i] - cs * (gj * g[i])              # Σ ← [[Σ,h],[hᵀ,σ_f²]] − g gᵀ/σ_y²  (2.14)
+                    v = lam * v + c1 * K[j, i]                  # Σ ← λ Σ + (1 − λ) K_D  (2.19)
+                    if write:
+                        S[j, i] = v
+                    h[i] += qj * v                              # h = Σ q
     if write:
         ist[I_SPEND] = 0
 
 
 @njit(cache=True, nogil=True)
-def _init(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, x, y, out):
-    """Step 6, eq. 2.16 (first sample): ``Q = 1/k``, ``μ = y k/(k+sn2)``, ``Σ = k − k²/(k+sn2)``."""
-    sn2 = fst[F_SN2]
-    k = kernel_value(kinds, params, cols, x, x) + fst[F_JIT]   # k = k(x, x) + ε_j
-    s = order[0]
-    for c in range(x.shape[0]):
-        X[s, c] = x[c]
-    K[s, s] = k                                   # K_D = k
-    Q[s, s] = 1.0 / k                             # Q = 1 / k
-    mu[s] = y * k / (k + sn2)                     # μ = y k / (k + sn2)
-    S[s, s] = k - k * k / (k + sn2)               # Σ = k − k² / (k + sn2)
-    fst[F_NUM] = y * y / (k + sn2)                # num = y² / (k + sn2)
-    fst[F_DEN] = 1.0                              # den = 1
-    fst[F_S02] = fst[F_NUM] / fst[F_DEN]          # s0² = num / den
-    ist[I_N] = 1
-    ist[I_HW] = s + 1
-    ist[I_STEPS] += 1
-    # report the prior predictive of this first sample (kafbox writes zeros on this row)
-    _write_out(out, y, 0.0, sn2 + k, k, k, -1.0, 0.0, fst[F_S02], 1)
+def arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out):
+    """Steps 1–2 at ``x``, in place ("predict_next"): forget, predict, keep what the update needs.
 
-
-@njit(cache=True, nogil=True)
-def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
-    """One KRLS-T update for ``n ≥ 1`` (method §6 steps 1–5; eq. 2.14, 2.15, 2.17, 2.19–2.22)."""
+    ``out[:4] = ŷ, σ_f², σ_y², γ²`` (normalised). On an empty dictionary only ``x`` and
+    ``k_tt`` are kept and the prior predictive ``0, k_tt, sn2 + k_tt, k_tt`` is reported.
+    Arming again before :func:`update` forgets once more and predicts at the new ``x``.
+    """
     n = ist[I_N]
     hw = ist[I_HW]
-    M = ist[I_M]
     lam = fst[F_LAM]
     sn2 = fst[F_SN2]
-    jit = fst[F_JIT]
-    kt = W[0]
-    q = W[1]
-    h = W[2]
-    u = W[3]
-    m = W[4]
-    p = P[0]
-    a = P[1]
-    g = P[2]
+    s = order[n]                                  # free slot: where step 3 puts x
+    for c in range(x.shape[0]):
+        X[s, c] = x[c]
+    ist[I_ARMED] = 1
+    if n == 0:
+        ktt = kernel_value(kinds, params, cols, x, x) + fst[F_JIT]   # k = k(x, x) + ε_j
+        fst[F_KTT] = ktt
+        fst[F_YM] = 0.0
+        fst[F_G2] = ktt
+        fst[F_SF2] = ktt
+        fst[F_SY2] = sn2 + ktt
+        out[0] = 0.0
+        out[1] = ktt
+        out[2] = sn2 + ktt
+        out[3] = ktt
+        return
+    kt = P[3]
+    q = P[4]
+    h = P[5]
 
     # ---- 1. forget, μ part (2.19); the Σ part is fused into the h pass ---------------
     sl = math.sqrt(lam)
@@ -258,14 +306,72 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
     gamma2 = ktt - ktq                            # γ² = k_tt − k_tᵀ q
     if gamma2 < 0.0:
         gamma2 = 0.0
-    _h_pass(S, K, P, ist, fst, hw, lam, q, h, True)  # Σ ← λΣ + (1−λ)K_D;  h = Σ q
+    res = P[6]
+    refine = ist[I_REFINE] != 0
+    _h_pass(S, K, P, ist, fst, hw, lam, q, h, res, refine, True)  # Σ ← λΣ + (1−λ)K_D;  h = Σ q
     qh = 0.0
     for i in range(hw):
         qh += q[i] * h[i]
+    if refine:
+        for i in range(hw):
+            res[i] = kt[i] - res[i]               # k_t − K_D q, for the refinement of q
     sf2 = gamma2 + qh                             # σ_f² = γ² + qᵀ h
     if sf2 < 0.0:
         sf2 = 0.0
     sy2 = sn2 + sf2                               # σ_y² = sn2 + σ_f²
+    fst[F_KTT] = ktt
+    fst[F_YM] = y_mean
+    fst[F_G2] = gamma2
+    fst[F_SF2] = sf2
+    fst[F_SY2] = sy2
+    out[0] = y_mean
+    out[1] = sf2
+    out[2] = sy2
+    out[3] = gamma2
+
+
+@njit(cache=True, nogil=True)
+def _init(X, Q, S, K, mu, order, ist, fst, y, out):
+    """Step 6, eq. 2.16 (first sample, armed): ``Q = 1/k``, ``μ = y k/(k+sn2)``, ``Σ = k − k²/(k+sn2)``."""
+    sn2 = fst[F_SN2]
+    k = fst[F_KTT]                                # k = k(x, x) + ε_j  (x is in X[order[0]])
+    s = order[0]
+    K[s, s] = k                                   # K_D = k
+    Q[s, s] = 1.0 / k                             # Q = 1 / k
+    mu[s] = y * k / (k + sn2)                     # μ = y k / (k + sn2)
+    S[s, s] = k - k * k / (k + sn2)               # Σ = k − k² / (k + sn2)
+    fst[F_NUM] = y * y / (k + sn2)                # num = y² / (k + sn2)
+    fst[F_DEN] = 1.0                              # den = 1
+    fst[F_S02] = fst[F_NUM] / fst[F_DEN]          # s0² = num / den
+    ist[I_N] = 1
+    ist[I_HW] = s + 1
+    ist[I_STEPS] += 1
+    # report the prior predictive of this first sample (kafbox writes zeros on this row)
+    _write_out(out, y, 0.0, sn2 + k, k, k, -1.0, 0.0, fst[F_S02], 1)
+
+
+@njit(cache=True, nogil=True)
+def _update(X, Q, S, K, mu, order, ist, fst, P, W, y, out):
+    """Steps 3–5 for ``n ≥ 1`` from the armed prediction (eq. 2.14, 2.15, 2.20–2.22)."""
+    n = ist[I_N]
+    hw = ist[I_HW]
+    M = ist[I_M]
+    lam = fst[F_LAM]
+    jit = fst[F_JIT]
+    kt = P[3]
+    q = P[4]
+    h = P[5]
+    u = W[3]
+    m = W[4]
+    p = P[0]
+    a = P[1]
+    g = P[2]
+    ktt = fst[F_KTT]
+    y_mean = fst[F_YM]
+    gamma2 = fst[F_G2]
+    sf2 = fst[F_SF2]
+    sy2 = fst[F_SY2]
+    dim = X.shape[1]
     err = y - y_mean
     e = err / sy2                                 # (y − ŷ) / σ_y²
     cs = 1.0 / sy2
@@ -276,7 +382,7 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
     fst[F_S02] = fst[F_NUM] / fst[F_DEN]          # s0² = num / den
 
     # ---- 3. posterior of f at [D; x] (2.14), μ part -------------------------------------
-    s = order[n]                                  # free slot for the new basis
+    s = order[n]                                  # free slot for the new basis (x is there)
     hwn = hw if s < hw else s + 1
     for i in range(hw):
         m[i] = mu[i] + e * h[i]                   # μ_new = [μ; ŷ] + (y − ŷ)/σ_y² [h; σ_f²]
@@ -284,19 +390,54 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
 
     # ---- 5. which basis to prune (2.21–2.22) ---------------------------------------------
     r = -1                                        # logical index to remove, -1: none
+    g2q = gamma2                                  # γ² of the Q update (refined below)
+    prune = n + 1 > M
     if gamma2 < jit:
         r = n                                     # roundoff guard: drop the new sample
-    elif n + 1 > M:
-        # criterion on Q_new = [[Q,0],[0,0]] + p pᵀ/γ², p = [q; −1], without forming Q_new:
-        #   [Q_new μ_new]_i = [Q μ_new]_i + p_i (pᵀ μ_new)/γ²,  [Q_new]_ii = Q_ii + p_i²/γ²
-        sc = 1.0 / gamma2
-        q[s] = -1.0
+    elif ist[I_REFINE] != 0:
+        # One step of iterative refinement for the Q update: q ← q + Q (k_t − K_D q),
+        # γ² ← k_tt − k_tᵀ q. Without it the update multiplies the error of Q by up to
+        # ~|q|²/γ² ≲ 1/ε_j (kafbox's recursion); with it the error is not amplified.
+        # (ŷ, γ², σ² reported and the μ, Σ updates keep the unrefined q, as kafbox.)
+        res = P[6]                                # k_t − K_D q (from the h pass)
+        w = W[5]
+        for i in range(hwn):
+            w[i] = 0.0
+        if prune:
+            for i in range(hwn):
+                u[i] = 0.0
+            for j in range(hwn):                  # u = Q μ_new, w = Q res (row/column s of Q is zero)
+                mj = m[j]
+                rj = res[j]
+                for i in range(hwn):
+                    v = Q[j, i]
+                    u[i] += mj * v
+                    w[i] += rj * v
+        else:
+            for j in range(hw):                   # w = Q res
+                rj = res[j]
+                for i in range(hw):
+                    w[i] += rj * Q[j, i]
+        g2r = ktt
+        for i in range(hw):
+            w[i] = q[i] + w[i]                    # refined q
+            g2r -= kt[i] * w[i]
+        if g2r > 0.0:
+            g2q = g2r
+            for i in range(hw):
+                q[i] = w[i]
+    elif prune:
         for i in range(hwn):
             u[i] = 0.0
         for j in range(hwn):                      # u = Q μ_new   (row/column s of Q is zero)
             mj = m[j]
             for i in range(hwn):
                 u[i] += mj * Q[j, i]
+    if r < 0 and prune:
+        # criterion on Q_new = [[Q,0],[0,0]] + p pᵀ/γ², p = [q; −1], without forming Q_new:
+        #   [Q_new μ_new]_i = [Q μ_new]_i + p_i (pᵀ μ_new)/γ²,  [Q_new]_ii = Q_ii + p_i²/γ²
+        sc = 1.0 / g2q
+        q[s] = -1.0
         pm = 0.0
         for i in range(hwn):
             pm += q[i] * m[i]                     # pᵀ μ_new
@@ -317,15 +458,15 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
             mu[i] = m[i]                          # μ ← μ + (y − ŷ)/σ_y² h
             g[i] = h[i]                           # Σ ← Σ − h hᵀ/σ_y²   (pending)
         m[s] = 0.0
+        for c in range(dim):
+            X[s, c] = 0.0                         # the slot stays free
         fst[F_SC] = cs
         ist[I_SPEND] = 1
         ist[I_STEPS] += 1
         _write_out(out, y, y_mean, sy2, sf2, gamma2, float(n), 1.0, fst[F_S02], n)
         return
 
-    # ---- 3. update (2.14, 2.15): append x to D in slot s -----------------------------------
-    for c in range(x.shape[0]):
-        X[s, c] = x[c]
+    # ---- 3. update (2.14, 2.15): append x (already in slot s) to D ---------------------------
     for i in range(hw):
         K[s, i] = kt[i]
         K[i, s] = kt[i]
@@ -343,7 +484,7 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
     p[s] = -1.0                                   # Q ← [[Q,0],[0,0]] + p pᵀ/γ²,  p = [q; −1]  (pending)
     fst[F_SC] = cs
     ist[I_SPEND] = 1
-    sc = 1.0 / gamma2
+    sc = 1.0 / g2q
     fst[F_QSC] = sc
     if r < 0:
         ist[I_QPEND] = 1
@@ -366,7 +507,7 @@ def _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y,
         p[sr] = 0.0
         a[sr] = 0.0
         g[sr] = 0.0
-        for c in range(x.shape[0]):
+        for c in range(dim):
             X[sr, c] = 0.0
         for l in range(r, n):                      # and from the logical order
             order[l] = order[l + 1]
@@ -394,12 +535,103 @@ def _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, reduced, s02, n):
 
 
 @njit(cache=True, nogil=True)
-def learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
-    """One sample: initialisation (2.16) when the dictionary is empty, else steps 1–5."""
+def refresh_inverse(Q, K, order, ist, W):
+    """``Q ← K_D⁻¹`` from the cached ``K_D`` by Cholesky; False (``Q`` untouched) if not PD.
+
+    Works in the dense scratch ``A = W[N_W:]`` (``(M+1)×(M+1)``, allocated with ``W``),
+    in the dictionary's logical order, with row-wise axpys only (contiguous, so LLVM
+    vectorises them without reassociation; about ``n³/2`` multiply-adds):
+
+    1. ``K_D = Uᵀ U`` (upper ``U`` in ``A``'s upper triangle), diagonal copied to ``W[4]``;
+    2. ``Z = U⁻ᵀ = L⁻¹`` row by row into ``A``'s strict lower triangle, diagonal in ``W[3]``;
+    3. ``K_D⁻¹ = Zᵀ Z`` accumulated into ``A``'s upper triangle (``U`` is no longer needed);
+    4. scattered into both halves of ``Q``'s slots (bitwise symmetric). The pending
+       update of ``Q`` is dropped. A pivot ``≤ 0`` (``K_D`` numerically singular, e.g.
+       ``ε_j = 0`` and a repeated input) leaves ``Q`` and its pending update as they were.
+    """
+    n = ist[I_N]
+    A = W[N_W:]
+    ud = W[4]
+    zd = W[3]
+    # ---- 1. Cholesky K_D = Uᵀ U (right-looking, row axpys) ------------------------------
+    for i in range(n):
+        si = order[i]
+        for j in range(i, n):
+            A[i, j] = K[si, order[j]]
+    for k in range(n):
+        d = A[k, k]
+        if not d > 0.0:
+            return False
+        ukk = math.sqrt(d)
+        A[k, k] = ukk
+        ud[k] = ukk
+        for j in range(k + 1, n):
+            A[k, j] = A[k, j] / ukk
+        for i in range(k + 1, n):
+            c = A[k, i]
+            for j in range(i, n):
+                A[i, j] -= c * A[k, j]
+    # ---- 2. Z = L⁻¹ (L = Uᵀ): row i solves Σ_k L[i,k] Z[k,:] = e_i -------------------------
+    for i in range(n):
+        for j in range(i):
+            A[i, j] = 0.0                         # row i of Z accumulates here (strict lower)
+        zi = 1.0
+        for k in range(i):
+            c = A[k, i]                           # L[i, k]
+            for j in range(k):
+                A[i, j] -= c * A[k, j]            # − L[i, k] Z[k, j]
+            A[i, k] -= c * zd[k]
+        uii = ud[i]
+        for j in range(i):
+            A[i, j] = A[i, j] / uii
+        zd[i] = zi / uii
+    # ---- 3. K_D⁻¹ = Zᵀ Z = Σ_k Z[k,:]ᵀ Z[k,:] into the upper triangle ----------------------------
+    for a in range(n):
+        for b in range(a, n):
+            A[a, b] = 0.0
+    for k in range(n):
+        for a in range(k):
+            c = A[k, a]                           # Z[k, a]
+            for b in range(a, k):
+                A[a, b] += c * A[k, b]            # row a of K_D⁻¹, columns a..k−1
+            A[a, k] += c * zd[k]
+        A[k, k] += zd[k] * zd[k]
+    # ---- 4. scatter -------------------------------------------------------------------------
+    for a in range(n):
+        sa = order[a]
+        for b in range(a, n):
+            v = A[a, b]
+            sb = order[b]
+            Q[sa, sb] = v
+            Q[sb, sa] = v
+    ist[I_QPEND] = 0
+    return True
+
+
+@njit(cache=True, nogil=True)
+def update(X, Q, S, K, mu, order, ist, fst, P, W, y, out):
+    """Steps 3–5 (or 6 on the first sample) with the armed prediction; False if nothing is armed.
+
+    After the step, every ``refresh_every`` steps, ``Q`` is recomputed from ``K_D``.
+    """
+    if ist[I_ARMED] == 0:
+        return False
+    ist[I_ARMED] = 0
     if ist[I_N] == 0:
-        _init(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, x, y, out)
+        _init(X, Q, S, K, mu, order, ist, fst, y, out)
     else:
-        _step(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out)
+        _update(X, Q, S, K, mu, order, ist, fst, P, W, y, out)
+    every = ist[I_REFRESH]
+    if every > 0 and ist[I_STEPS] % every == 0:
+        refresh_inverse(Q, K, order, ist, W)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
+    """One sample: :func:`arm` at ``x`` then :func:`update` with ``y`` (steps 1–5, or 6 first)."""
+    arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out)
+    update(X, Q, S, K, mu, order, ist, fst, P, W, y, out)
 
 
 @njit(cache=True, nogil=True)
@@ -407,6 +639,30 @@ def learn_many(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, 
     """:func:`learn` over a stream; ``outs[t]`` receives the ``out`` row of sample ``t``."""
     for t in range(ys.shape[0]):
         learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs[t], ys[t], outs[t])
+
+
+@njit(cache=True, nogil=True)
+def track(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs, ys, learn_mask, outs):
+    """Monitor block: for each arriving sample ``j`` in order, ``update(ys[j])`` if
+    ``learn_mask[j]`` (``ys[j]``: the residual of the previously armed ``x``), then
+    ``arm(xs[j])``.
+
+    ``outs[j]`` (width :data:`N_TRACK`): ``[0:10]`` the ``out`` of the update (NaN when
+    not learned), ``[10:14]`` the new prediction ``ŷ, σ_f², σ_y², γ²``, ``[14]`` s0²,
+    ``[15]`` n after sample ``j``, ``[16]`` 1.0 if an update ran (mask set and armed).
+    """
+    for j in range(xs.shape[0]):
+        o = outs[j]
+        learned = False
+        if learn_mask[j]:
+            learned = update(X, Q, S, K, mu, order, ist, fst, P, W, ys[j], o)
+        if not learned:
+            for c in range(N_OUT):
+                o[c] = np.nan
+        arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs[j], o[N_OUT:])
+        o[14] = fst[F_S02]
+        o[15] = ist[I_N]
+        o[16] = 1.0 if learned else 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -433,7 +689,7 @@ def predict(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, 
     gamma2 = ktt - ktq
     if gamma2 < 0.0:
         gamma2 = 0.0
-    _h_pass(S, K, P, ist, fst, hw, lam, q, h, False)
+    _h_pass(S, K, P, ist, fst, hw, lam, q, h, W[3], False, False)
     qh = 0.0
     for i in range(hw):
         qh += q[i] * h[i]

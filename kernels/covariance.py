@@ -38,7 +38,9 @@ __all__ = [
     "KIND_PERIODIC",
     "KIND_LOCALLY_PERIODIC",
     "kernel_value",
+    "kernel_value_at",
     "kernel_row",
+    "kernel_row_at",
 ]
 
 KIND_SE = 0
@@ -101,29 +103,40 @@ def _factor_matrix(f: Factor, X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
     if A.shape[1] == 0:
         raise ValueError(f"kernel factor reads columns [{f.start}, {stop}) but inputs have {X1.shape[1]}")
     if f.kind == KIND_SE:
-        (ell, _, _) = f.params
         sq = np.sum(A * A, 1)[:, None] + np.sum(B * B, 1)[None, :] - 2.0 * (A @ B.T)
         np.maximum(sq, 0.0, out=sq)
-        return np.exp(-sq / (2.0 * ell * ell))
+        return _se_formula(sq, f.params[0])
     if A.shape[1] != 1:
         raise ValueError("periodic and locally periodic factors act on one scalar column (time)")
     d = A[:, 0][:, None] - B[:, 0][None, :]
     return _lag_values(f, d)
 
 
+def _se_formula(sq, ell):
+    """Squared exponential factor from the squared distance ``sq``."""
+    return np.exp(-sq / (2.0 * ell * ell))
+
+
+def _periodic_formula(d, sigma2, period):
+    """Periodic factor at lag ``d`` (thesis σ2)."""
+    s = np.sin(np.pi * d / period)
+    return np.exp(-(s * s) / (2.0 * sigma2 * sigma2))
+
+
+def _locally_periodic_formula(d, sigma1, sigma2, period):
+    """Locally periodic factor at lag ``d`` (method §5)."""
+    s = np.sin(np.pi * d / period)
+    return np.exp(-(d * d) / (2.0 * sigma1 * sigma1) - (s * s) / (2.0 * sigma2 * sigma2))
+
+
 def _lag_values(f: Factor, d: np.ndarray) -> np.ndarray:
     """k(d) of one stationary scalar factor (eq. of method §5)."""
     if f.kind == KIND_SE:
-        ell = f.params[0]
-        return np.exp(-(d * d) / (2.0 * ell * ell))
+        return _se_formula(d * d, f.params[0])
     if f.kind == KIND_PERIODIC:
-        sigma2, period, _ = f.params
-        s = np.sin(np.pi * d / period)
-        return np.exp(-(s * s) / (2.0 * sigma2 * sigma2))
+        return _periodic_formula(d, f.params[0], f.params[1])
     if f.kind == KIND_LOCALLY_PERIODIC:
-        sigma1, sigma2, period = f.params
-        s = np.sin(np.pi * d / period)
-        return np.exp(-(d * d) / (2.0 * sigma1 * sigma1) - (s * s) / (2.0 * sigma2 * sigma2))
+        return _locally_periodic_formula(d, *f.params)
     raise ValueError(f"unknown kernel kind {f.kind}")
 
 
@@ -316,26 +329,56 @@ class Product(Kernel):
 
 
 # ---------------------------------------------------------------------------
-# @njit evaluation (online path). Same formulas as _lag_values/_factor_matrix.
+# @njit evaluation (online path).
+#
+# The three factor formulas below are the only place the kernels are written down:
+# ``_lag_values``/``_factor_matrix`` call the plain Python functions with NumPy
+# arrays, the ``@njit`` code calls their compiled twins (``_se``, ``_periodic``,
+# ``_locally_periodic``) with scalars.
+#
+# The compiled evaluation takes the *index* of a row and of a factor
+# (``X, i`` and ``params, f``) instead of the views ``X[i]`` and ``params[f]``:
+# creating an array view inside a hot loop costs a reference-count round trip
+# and blocks inlining (about 3x the cost of the formula itself).
 # ---------------------------------------------------------------------------
+
+_se = njit(cache=True, nogil=True)(_se_formula)
+_periodic = njit(cache=True, nogil=True)(_periodic_formula)
+_locally_periodic = njit(cache=True, nogil=True)(_locally_periodic_formula)
 
 
 @njit(cache=True, nogil=True)
-def _factor_value(kind, p, x1, x2, start, stop):
-    if stop == -1:
-        stop = x1.shape[0]
+def _factor(kind, params, f, r):
+    """Factor ``f`` of the table at ``r``: the squared distance (SE) or the signed lag (others)."""
     if kind == KIND_SE:
-        sq = 0.0
-        for j in range(start, stop):
-            d = x1[j] - x2[j]
-            sq += d * d
-        return math.exp(-sq / (2.0 * p[0] * p[0]))
-    d = x1[start] - x2[start]
+        return _se(r, params[f, 0])
     if kind == KIND_PERIODIC:
-        s = math.sin(math.pi * d / p[1])
-        return math.exp(-(s * s) / (2.0 * p[0] * p[0]))
-    s = math.sin(math.pi * d / p[2])
-    return math.exp(-(d * d) / (2.0 * p[0] * p[0]) - (s * s) / (2.0 * p[1] * p[1]))
+        return _periodic(r, params[f, 0], params[f, 1])
+    return _locally_periodic(r, params[f, 0], params[f, 1], params[f, 2])
+
+
+@njit(cache=True, nogil=True)
+def kernel_value_at(kinds, params, cols, X, i, x):
+    """``k(X[i], x)`` for the factor table from :meth:`Kernel.spec` (X: 2-D, x: 1-D float64).
+
+    The same value as ``kernel_value(kinds, params, cols, X[i], x)`` without the view ``X[i]``.
+    """
+    v = 1.0
+    for f in range(kinds.shape[0]):
+        kind = kinds[f]
+        start = cols[f, 0]
+        stop = cols[f, 1]
+        if stop == -1:
+            stop = x.shape[0]
+        if kind == KIND_SE:
+            r = 0.0
+            for j in range(start, stop):
+                d = X[i, j] - x[j]
+                r += d * d
+        else:
+            r = X[i, start] - x[start]
+        v *= _factor(kind, params, f, r)
+    return v
 
 
 @njit(cache=True, nogil=True)
@@ -343,12 +386,71 @@ def kernel_value(kinds, params, cols, x1, x2):
     """``k(x1, x2)`` for the factor table from :meth:`Kernel.spec` (x1, x2: 1-D float64)."""
     v = 1.0
     for f in range(kinds.shape[0]):
-        v *= _factor_value(kinds[f], params[f], x1, x2, cols[f, 0], cols[f, 1])
+        kind = kinds[f]
+        start = cols[f, 0]
+        stop = cols[f, 1]
+        if stop == -1:
+            stop = x1.shape[0]
+        if kind == KIND_SE:
+            r = 0.0
+            for j in range(start, stop):
+                d = x1[j] - x2[j]
+                r += d * d
+        else:
+            r = x1[start] - x2[start]
+        v *= _factor(kind, params, f, r)
     return v
+
+
+_ALL_ROWS = np.zeros(0, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _rows(kinds, params, cols, X, idx, use_idx, n, x, out):
+    """``out[i] = k(X[i], x)`` for ``i = idx[l]`` (or ``i = l``), ``l < n``: factor-outer loops.
+
+    Each factor's parameters are hoisted and its formula runs over all rows in one
+    tight loop; per row this is the product ``((1·f0)·f1)·…`` of :func:`kernel_value_at`,
+    so both give the same bits.
+    """
+    for l in range(n):
+        i = idx[l] if use_idx else l
+        out[i] = 1.0
+    for f in range(kinds.shape[0]):
+        kind = kinds[f]
+        start = cols[f, 0]
+        stop = cols[f, 1]
+        if stop == -1:
+            stop = x.shape[0]
+        p0 = params[f, 0]
+        p1 = params[f, 1]
+        p2 = params[f, 2]
+        x0 = x[start]
+        if kind == KIND_SE:
+            for l in range(n):
+                i = idx[l] if use_idx else l
+                r = 0.0
+                for j in range(start, stop):
+                    d = X[i, j] - x[j]
+                    r += d * d
+                out[i] *= _se(r, p0)
+        elif kind == KIND_PERIODIC:
+            for l in range(n):
+                i = idx[l] if use_idx else l
+                out[i] *= _periodic(X[i, start] - x0, p0, p1)
+        else:
+            for l in range(n):
+                i = idx[l] if use_idx else l
+                out[i] *= _locally_periodic(X[i, start] - x0, p0, p1, p2)
 
 
 @njit(cache=True, nogil=True)
 def kernel_row(kinds, params, cols, X, n, x, out):
     """``out[i] = k(X[i], x)`` for ``i < n`` without allocation (the KRLS-T ``k_t``)."""
-    for i in range(n):
-        out[i] = kernel_value(kinds, params, cols, X[i], x)
+    _rows(kinds, params, cols, X, _ALL_ROWS, False, n, x, out)
+
+
+@njit(cache=True, nogil=True)
+def kernel_row_at(kinds, params, cols, X, idx, n, x, out):
+    """``out[idx[l]] = k(X[idx[l]], x)`` for ``l < n`` (rows picked by an index list, e.g. slots)."""
+    _rows(kinds, params, cols, X, idx, True, n, x, out)

@@ -19,6 +19,14 @@ Per sample ``(x, y)`` (method §6):
 5. prune, eq. 2.21–2.22: when ``|D| > M`` or ``γ² < ε_j``
 6. initialise, eq. 2.16, on the first sample.
 
+Every ``refresh_every`` steps ``Q`` is recomputed from the cached ``K_D`` (Cholesky),
+which keeps ``max|Q K_D − I|`` below 1e-5 at ``ε_j = 1e-6`` over long runs.
+
+Monitor timing (method §6): :meth:`KRLST.predict_next` does steps 1–2 at ``x(k+1)``
+in place as soon as it arrives, :meth:`KRLST.update` does steps 3–5 with the residual
+once it is known; ``learn_one(x, y)`` is exactly ``predict_next(x)`` then ``update(y)``.
+:meth:`KRLST.track_many` runs that pattern over a block in one ``@njit`` call.
+
 The numerics live in :mod:`kernels._krlst_core` (``@njit``, allocation-free).
 """
 
@@ -43,6 +51,10 @@ from .covariance import (
 )
 
 __all__ = ["KRLST", "Step"]
+
+_TRACK_STEP_FIELDS = ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced", "filtered",
+                      "filtered_var")
+_TRACK_NEXT_FIELDS = ("next_mean", "next_sigma_f2", "next_sigma_y2", "next_gamma2")
 
 _STATE_NAMES = ("X", "Q", "Sigma", "K", "mu", "order", "ist", "fst", "P")
 _OUT_FIELDS = ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced",
@@ -133,19 +145,43 @@ class KRLST:
         a lag lookup table ``k(L·Ts)`` for the ``k_t`` row; inputs off the grid are
         evaluated directly, so results stay correct (the table evaluates the kernel
         at the exact lag ``L·Ts`` instead of the rounded ``t − t_i``).
+    refresh_every : int
+        Recompute ``Q = K_D⁻¹`` from the cached ``K_D`` (Cholesky, in place) after every
+        ``refresh_every``-th step (counting every trained sample); 0 = never. The
+        rank-one recursions lose accuracy at a rate ∝ 1/ε_j; see :meth:`inverse_error`.
+        One refresh costs about as much as ``n/3`` ordinary steps.
+    refine : bool
+        One step of iterative refinement of ``q`` (``q ← q + Q(k_t − K_D q)``) before the
+        ``Q`` update. kafbox's recursion multiplies the error of ``Q`` by up to
+        ``~1/γ² ≲ 1/ε_j`` on a step, so with ``ε_j = 1e-6`` ``max|Q K_D − I|`` is ~3e-6
+        typically and reaches 1e-4…1e-3 (and no periodic refresh prevents that: the
+        error is back within ~100 steps); with ``refine`` it stays ~1e-9. Costs one
+        extra sweep over ``Q`` while the dictionary grows (fused with the pruning
+        sweep once it is full). Off by default: the golden vectors follow kafbox,
+        whose own ``Q`` error steers its pruning near-ties.
 
     Examples
     --------
     >>> tracker = KRLST(LocallyPeriodic(1.2, 0.495, 1/55), gamma=5.85, forgetting=0.996, budget=100)
     >>> step = tracker.learn_one(0.0, 0.1)
     >>> mean, var = tracker.predict_one(1 / 333)
+
+    Monitor pattern (train on ``(x(k), v(k))``, then predict ``f(k+1)``):
+
+    >>> mean, sf2, sy2, g2 = tracker.predict_next(2 / 333)   # x(k+1) arrived: arm, publish
+    >>> step = tracker.update(0.05)                           # its residual is known: train
     """
+
+    #: default ``refresh_every``: at ε_j = 1e-6, M = 100 the error of ``Q`` grows to
+    #: ~1e-6 within a few thousand steps and then wanders; a refresh costs ~30 steps
+    REFRESH_EVERY = 10000
 
     #: longest lag table (entries); a kernel that does not decay (pure periodic) stops here
     LAG_TABLE_MAX = 1 << 16
 
     def __init__(self, kernel: Kernel, gamma: float = 1e4, forgetting: float = 0.999,
-                 budget: int = 100, jitter: float = 1e-6, grid_step: float | None = None):
+                 budget: int = 100, jitter: float = 1e-6, grid_step: float | None = None,
+                 refresh_every: int | None = None, refine: bool = False):
         if not isinstance(kernel, Kernel):
             raise ValueError(f"kernel must be a kernels.Kernel, got {type(kernel).__name__}")
         if isinstance(gamma, bool) or not isinstance(gamma, Real) or not (math.isfinite(gamma) and gamma > 0):
@@ -164,16 +200,24 @@ class KRLST:
             if not kernel.is_stationary_1d:
                 raise ValueError(f"grid_step needs a kernel of the time lag; {kernel!r} is not")
             grid_step = float(grid_step)
+        if refresh_every is None:
+            refresh_every = self.REFRESH_EVERY
+        if isinstance(refresh_every, bool) or not isinstance(refresh_every, Integral) or refresh_every < 0:
+            raise ValueError(f"refresh_every must be an integer >= 0 (0 = never), got {refresh_every!r}")
+        if not isinstance(refine, (bool, np.bool_)):
+            raise ValueError(f"refine must be a bool, got {refine!r}")
         self.kernel = kernel
         self.gamma = float(gamma)
         self.forgetting = float(forgetting)
         self.budget = int(budget)
         self.jitter = float(jitter)
         self.grid_step = grid_step
+        self.refresh_every = int(refresh_every)
+        self.refine = bool(refine)
         self._spec = kernel.spec()
         self._dim = 0
         self._state = None                  # (X, Q, S, K, mu, order, ist, fst, P) once initialised
-        self._W = np.zeros((5, self.budget + 1))
+        self._W = np.zeros((core.N_W + self.budget + 1, self.budget + 1))   # scratch
         self._out = np.zeros(core.N_OUT)
         self._xbuf = None
         self._tab = np.zeros(0)
@@ -192,6 +236,11 @@ class KRLST:
     def size(self) -> int:
         """Current dictionary size ``|D|``."""
         return 0 if self._state is None else int(self._state[6][core.I_N])
+
+    @property
+    def armed(self) -> bool:
+        """True between :meth:`predict_next` and :meth:`update` (a prediction waits for its ``y``)."""
+        return self._state is not None and bool(self._state[6][core.I_ARMED])
 
     @property
     def s02(self) -> float:
@@ -247,7 +296,10 @@ class KRLST:
         return self._state[3][np.ix_(idx, idx)].copy()
 
     def inverse_error(self) -> float:
-        """``max |Q K_D − I|`` (max-abs norm, ``K_D`` with jitter): drift of ``Q`` from ``K_D⁻¹``."""
+        """``max |Q K_D − I|`` (max-abs norm, ``K_D`` with jitter): drift of ``Q`` from ``K_D⁻¹``.
+
+        Kept small by the periodic re-inversion (``refresh_every``).
+        """
         if self._state is None:
             return 0.0
         Q, K = self.Q, self.K
@@ -256,11 +308,13 @@ class KRLST:
     def get_params(self) -> dict:
         """Hyperparameters (scikit-learn style)."""
         return {"kernel": self.kernel, "gamma": self.gamma, "forgetting": self.forgetting,
-                "budget": self.budget, "jitter": self.jitter, "grid_step": self.grid_step}
+                "budget": self.budget, "jitter": self.jitter, "grid_step": self.grid_step,
+                "refresh_every": self.refresh_every, "refine": self.refine}
 
     def __repr__(self) -> str:
         return (f"KRLST({self.kernel!r}, gamma={self.gamma!r}, forgetting={self.forgetting!r}, "
-                f"budget={self.budget!r}, jitter={self.jitter!r}, grid_step={self.grid_step!r})")
+                f"budget={self.budget!r}, jitter={self.jitter!r}, grid_step={self.grid_step!r}, "
+                f"refresh_every={self.refresh_every!r}, refine={self.refine!r})")
 
     # ------------------------------------------------------------------ input checks
     def _as_x(self, x) -> np.ndarray:
@@ -300,7 +354,8 @@ class KRLST:
         # lets the kernel reject inputs it cannot read (e.g. a periodic factor on 2 columns)
         self.kernel(x_example.reshape(1, -1))
         self._dim = dim
-        self._state = core.new_state(self.budget, dim, self.forgetting, self.sn2, self.jitter, self.grid_step)
+        self._state = core.new_state(self.budget, dim, self.forgetting, self.sn2, self.jitter, self.grid_step,
+                                     self.refresh_every, self.refine)
 
     # ------------------------------------------------------------------ learning
     def learn_one(self, x, y) -> Step:
@@ -308,6 +363,9 @@ class KRLST:
 
         ``x``: float (time) or 1-D array; ``y``: the residual ``v(k)``. A non-finite
         ``x`` or ``y`` raises ``ValueError`` and leaves the state untouched.
+
+        Bit for bit the same as ``predict_next(x)`` followed by ``update(y)``; a
+        prediction armed before is discarded (its forgetting stays applied).
         """
         xa = self._as_x(x)
         yf = self._as_y(y)
@@ -360,6 +418,118 @@ class KRLST:
         res["size"] = res["size"].astype(np.int64)
         return res
 
+    # ------------------------------------------------------------------ split step (monitor)
+    def predict_next(self, x) -> tuple[float, float, float, float]:
+        """Steps 1–2 at ``x`` *in place*: forget, predict, and arm the update (method §6 timing).
+
+        Returns ``(mean, sigma_f2, sigma_y2, gamma2)``, normalised like :class:`Step`
+        (× :attr:`s02` for signal units): the one-step-ahead prediction of ``f(x)``
+        (``sigma_f2``) and of the observation (``sigma_y2``). The mean and variances
+        are bit-identical to ``predict_one(x, forget=True)`` and to what
+        :meth:`learn_one` would report, but the forgetting and the ``k_t, Q k_t, Σ q``
+        passes are done here once and reused by :meth:`update`.
+
+        Calling it again before :meth:`update` (e.g. the monitor skips a stale sample)
+        is allowed: the tracker forgets again and re-arms at the new ``x``, so the
+        forgetting applies once per ``predict_next`` call. On an empty tracker it only
+        records ``x`` and returns the prior ``(0, k_tt, sn2 + k_tt, k_tt)``. A
+        non-finite ``x`` raises ``ValueError`` and leaves the state untouched.
+        """
+        xa = self._as_x(x)
+        if self._state is None:
+            self._start(xa.shape[0], xa)
+        kinds, params, cols = self._spec
+        X, Q, S, K, mu, order, ist, fst, P = self._state
+        out = self._out
+        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa, out)
+        return float(out[0]), float(out[1]), float(out[2]), float(out[3])
+
+    def update(self, y) -> Step:
+        """Steps 3–5 (6 on the first sample) for the ``x`` armed by :meth:`predict_next`.
+
+        ``y``: the residual observed for that ``x``. Returns the :class:`Step` that
+        :meth:`learn_one` would have returned. Raises ``RuntimeError`` when nothing is
+        armed (no :meth:`predict_next` since the last update) and ``ValueError`` on a
+        non-finite ``y`` (the state, armed prediction included, is left untouched).
+        """
+        yf = self._as_y(y)
+        if not self.armed:
+            raise RuntimeError("KRLST.update needs an armed prediction: call predict_next(x) first")
+        X, Q, S, K, mu, order, ist, fst, P = self._state
+        out = self._out
+        core.update(X, Q, S, K, mu, order, ist, fst, P, self._W, yf, out)
+        v = out.tolist()
+        return Step(v[0], v[1], v[2], v[3], int(v[4]), v[5] != 0.0, v[6], v[7], v[8], int(v[9]))
+
+    def track_many(self, xs, ys, learn_mask) -> dict[str, np.ndarray]:
+        """Monitor block in one ``@njit`` call: per arriving sample ``j``, in order,
+
+        1. if ``learn_mask[j]``: ``update(ys[j])``, ``ys[j]`` being the residual of the
+           ``x`` armed before (the previous sample, or the last one of the previous block);
+        2. always ``predict_next(xs[j])``.
+
+        Bit-identical to that sequence of :meth:`update` / :meth:`predict_next` calls.
+
+        ``xs``: shape ``(N,)`` or ``(N, d)``; ``ys``: ``(N,)`` (ignored, may be NaN, where
+        the mask is False); ``learn_mask``: ``(N,)`` bool. Returns a dict of ``(N,)`` arrays:
+
+        * ``learned`` (bool): an update ran for sample ``j``;
+        * the update, named as in :class:`Step`: ``mean, sigma_y2, sigma_f2, gamma2,
+          filtered, filtered_var`` (NaN when not learned), ``removed`` (-1 when not
+          learned or nothing pruned), ``reduced`` (False when not learned);
+        * the new prediction at ``xs[j]``: ``next_mean, next_sigma_f2, next_sigma_y2,
+          next_gamma2`` (normalised, as :meth:`predict_next` returns them);
+        * ``s02`` and ``size``: the state after sample ``j`` (multiply the normalised
+          variances by ``s02``).
+
+        Raises ``ValueError`` (before anything is done) on a non-finite ``xs`` row or a
+        non-finite ``ys`` where the mask is set, and ``RuntimeError`` when
+        ``learn_mask[0]`` is set but nothing is armed.
+        """
+        Xa = np.asarray(xs, dtype=np.float64)
+        if Xa.ndim == 1:
+            Xa = Xa.reshape(-1, 1)
+        if Xa.ndim != 2:
+            raise ValueError(f"xs must have shape (N,) or (N, d), got {np.shape(xs)}")
+        N = Xa.shape[0]
+        ya = np.asarray(ys, dtype=np.float64)
+        mask = np.asarray(learn_mask)
+        if ya.shape != (N,):
+            raise ValueError(f"ys must have shape ({N},), got {ya.shape}")
+        if mask.shape != (N,) or mask.dtype != np.bool_:
+            raise ValueError(f"learn_mask must be a bool array of shape ({N},), got {mask.dtype} {mask.shape}")
+        bad_x = ~np.all(np.isfinite(Xa), axis=1)
+        if bad_x.any():
+            raise ValueError(f"xs must be finite; row {int(np.argmax(bad_x))} is not")
+        bad_y = mask & ~np.isfinite(ya)
+        if bad_y.any():
+            raise ValueError(f"ys must be finite where learn_mask is set; element {int(np.argmax(bad_y))} is not")
+        if self._dim and Xa.shape[1] != self._dim:
+            raise ValueError(f"xs has dimension {Xa.shape[1]}, the tracker was started with {self._dim}")
+        if N and mask[0] and not self.armed:
+            raise RuntimeError("track_many: learn_mask[0] is set but no prediction is armed")
+        outs = np.zeros((N, core.N_TRACK))
+        if N:
+            Xa = np.ascontiguousarray(Xa)
+            ya = np.ascontiguousarray(ya)
+            if self._state is None:
+                self._start(Xa.shape[1], Xa[0])
+            kinds, params, cols = self._spec
+            Xs, Q, S, K, mu, order, ist, fst, P = self._state
+            core.track(kinds, params, cols, Xs, Q, S, K, mu, order, ist, fst, P, self._W, self._tab,
+                       Xa, ya, np.ascontiguousarray(mask), outs)
+        learned = outs[:, 16] != 0.0
+        res: dict[str, np.ndarray] = {"learned": learned}
+        for i, name in enumerate(_TRACK_STEP_FIELDS):
+            res[name] = outs[:, i].copy()
+        res["removed"] = np.where(learned, np.nan_to_num(res["removed"], nan=-1.0), -1.0).astype(np.int64)
+        res["reduced"] = learned & (res["reduced"] == 1.0)
+        for i, name in enumerate(_TRACK_NEXT_FIELDS):
+            res[name] = outs[:, core.N_OUT + i].copy()
+        res["s02"] = outs[:, 14].copy()
+        res["size"] = outs[:, 15].astype(np.int64)
+        return res
+
     # ------------------------------------------------------------------ prediction
     def predict_one(self, x, noise: bool = True, forget: bool = False) -> tuple[float, float]:
         """Predictive mean and variance at ``x`` (signal units), without learning (eq. 2.17).
@@ -369,7 +539,8 @@ class KRLST:
         step is applied virtually, so the mean equals the ``mean`` the next
         :meth:`learn_one` reports for this ``x`` (kafbox's ``evaluate`` does not
         forget: that is the default). Before the first sample: ``(0.0, nan)``
-        (``s0²`` is unknown).
+        (``s0²`` is unknown). Does not change the state (an armed prediction stays);
+        the monitor's "train, then predict the next" is :meth:`predict_next`.
         """
         xa = self._as_x(x)
         if self._state is None:
@@ -389,8 +560,8 @@ class KRLST:
 
         Hyperparameters are 0-d arrays (``grid_step`` 0 for none), the kernel is its
         :meth:`Kernel.spec` arrays. The state arrays are the core's buffers as they
-        are, pending rank-one updates included, so :meth:`restore` continues
-        bit-identically.
+        are, pending rank-one updates, the step counter (refresh schedule) and an armed
+        prediction included, so :meth:`restore` continues bit-identically.
         """
         kinds, params, cols = self._spec
         snap = {
@@ -399,6 +570,8 @@ class KRLST:
             "budget": np.array(self.budget, dtype=np.int64),
             "jitter": np.array(self.jitter),
             "grid_step": np.array(0.0 if self.grid_step is None else self.grid_step),
+            "refresh_every": np.array(self.refresh_every, dtype=np.int64),
+            "refine": np.array(self.refine),
             "dim": np.array(self._dim, dtype=np.int64),
             "kernel_kinds": kinds.copy(),
             "kernel_params": params.copy(),
@@ -411,14 +584,22 @@ class KRLST:
 
     @classmethod
     def restore(cls, snap: dict) -> "KRLST":
-        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot."""
+        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot.
+
+        Snapshots written before ``refresh_every`` and the split step existed (shorter
+        ``ist``/``fst``/``P``, no ``refresh_every`` key) are accepted: they get the default
+        ``refresh_every`` and no armed prediction.
+        """
         try:
             kernel = _kernel_from_spec(np.asarray(snap["kernel_kinds"]), np.asarray(snap["kernel_params"]),
                                        np.asarray(snap["kernel_cols"]))
             grid_step = float(snap["grid_step"])
+            refresh_every = int(snap["refresh_every"]) if "refresh_every" in snap else None
+            refine = bool(snap["refine"]) if "refine" in snap else False
             tracker = cls(kernel, gamma=float(snap["gamma"]), forgetting=float(snap["forgetting"]),
                           budget=int(snap["budget"]), jitter=float(snap["jitter"]),
-                          grid_step=grid_step if grid_step > 0 else None)
+                          grid_step=grid_step if grid_step > 0 else None, refresh_every=refresh_every,
+                          refine=refine)
             dim = int(snap["dim"])
         except KeyError as exc:
             raise ValueError(f"snapshot is missing {exc.args[0]!r}") from None
@@ -429,15 +610,23 @@ class KRLST:
                   "Sigma": ((cap, cap), np.float64), "K": ((cap, cap), np.float64),
                   "mu": ((cap,), np.float64), "order": ((cap,), np.int64),
                   "ist": ((core.N_IST,), np.int64), "fst": ((core.N_FST,), np.float64),
-                  "P": ((3, cap), np.float64)}
+                  "P": ((core.N_P, cap), np.float64)}
+        # the format before refresh_every / predict_next: fewer entries, zero-padded
+        old = {"ist": ((6,), np.int64), "fst": ((10,), np.float64), "P": ((3, cap), np.float64)}
         state = []
         for name, (shape, dtype) in shapes.items():
             if name not in snap:
                 raise ValueError(f"snapshot is missing {name!r}")
             arr = np.array(snap[name], dtype=dtype, copy=True, order="C")
+            if name in old and arr.shape == old[name][0] and "refresh_every" not in snap:
+                padded = np.zeros(shape, dtype=dtype)
+                padded[tuple(slice(0, k) for k in arr.shape)] = arr
+                arr = padded
             if arr.shape != shape:
                 raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {shape}")
             state.append(arr)
+        state[6][core.I_REFRESH] = tracker.refresh_every
+        state[6][core.I_REFINE] = int(tracker.refine)
         tracker._dim = dim
         tracker._state = tuple(state)
         return tracker

@@ -19,10 +19,16 @@ regressor of the previous sample and ``β`` from the model file:
 * ``force, force_var, force_next``  the same in newtons (``F = −f/b``) when the
   model can scale (force-input form, or known loop gain K)
 
+Per accepted sample the tracker runs the split KRLS-T step of method §6: the
+update with the residual of the previous sample, then the forgetting and
+prediction at the new sample, which the next update reuses. The whole block goes
+through one ``@njit`` loop, :func:`kernels.online.track_block`; this class is the
+thin Python API around it (model, counters, schema conversion, persistence).
+
 Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
 
-* non-finite or absurd values: the sample is REJECTED (row emitted, NaN
-  estimates); the regressor chain restarts at the next good sample;
+* non-finite or absurd values (:data:`LIMITS`): the sample is REJECTED (row
+  emitted, NaN estimates, tracker untouched); the chain restarts at the next good sample;
 * duplicate or out-of-order sequence numbers: dropped, no row;
 * a sequence gap or time going backwards: the chain restarts (GAP flag); no
   residual is formed across the gap;
@@ -36,32 +42,24 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
 
 import numpy as np
 
-from kernels import KRLST
-from kernels.feed_drive import coulomb_indicators
+from kernels import KRLST, online
 
 from .model_file import AxisModel
-from .schema import GAP, REDUCED, REJECTED, STALE, WARMUP, EstimateBlock, SampleBlock
+from .schema import EstimateBlock, SampleBlock
 
 __all__ = ["AxisEstimator", "LIMITS"]
 
-#: magnitudes beyond which a value is physically absurd for a machine-tool axis (SI)
+#: magnitudes beyond which a value is physically absurd for a machine-tool axis (SI):
+#: velocities (m/s), force command (N), controller time (s)
 LIMITS = {"v": 50.0, "u": 1e7, "t": 1e10}
 
 
-@dataclass
-class _Prev:
-    """What the next sample needs from the previous accepted one."""
-
-    seq: int
-    t: float
-    e: float  # exogenous input: v_ref (m/s) or u (N)
-    v_raw: float  # v_meas as received (m/s), for stale detection
-    v_used: float  # v_meas used in z (the prediction when stale)
-    x: np.ndarray  # tracker input x(k)
+def _as_column(values) -> np.ndarray:
+    """A measured column (``None`` = missing) as float64 with NaN."""
+    return np.array([math.nan if x is None else x for x in values], dtype=np.float64)
 
 
 class AxisEstimator:
@@ -84,42 +82,32 @@ class AxisEstimator:
         self.warmup = model.tracker.budget if warmup is None else int(warmup)
         self.stale_detection = stale_detection
         cfg = model.tracker
+        kernel = cfg.build_kernel()
         self.tracker = KRLST(
-            cfg.build_kernel(),
+            kernel,
             gamma=cfg.gamma,
             forgetting=cfg.forgetting,
             budget=cfg.budget,
             jitter=cfg.jitter,
-            grid_step=model.Ts if cfg.build_kernel().is_stationary_1d else None,
+            grid_step=model.Ts if kernel.is_stationary_1d else None,
         )
         self.counters: Counter[str] = Counter()
-        self.trained = 0
-        self._prev: _Prev | None = None
-        self._pending = (math.nan, math.nan)  # (f_next, f_next_var) predicted at _prev
-        self._x = np.zeros(1)
-
-    # ------------------------------------------------------------------ helpers
-    def _regressor(self, e: float, v: float) -> float:
-        """``βᵀ z(k)`` for one sample (method §2)."""
-        b = self.beta
-        acc = b[0] * e + b[1] * v
-        if self.model.coulomb:
-            sp, sn = coulomb_indicators(v, self.model.omega)
-            acc -= b[2] * float(sp) + b[3] * float(sn)
-        if self.model.form == "force-input":
-            acc += b[-1]
-        return float(acc)  # a Python float: msgspec cannot encode numpy.float64
-
-    def _predict_next(self, x: np.ndarray) -> tuple[float, float]:
-        if self.tracker.size == 0:
-            return 0.0, math.nan
-        mean, var = self.tracker.predict_one(x, noise=False, forget=True)
-        return mean, var
+        self._carry = online.new_carry()
+        self._limits = np.array([LIMITS["v"], LIMITS["u"] if model.form == "force-input" else LIMITS["v"], LIMITS["t"]])
+        self._counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
+        self._xbuf = np.zeros(1)
+        self._obuf = np.zeros(16)
 
     def reset(self) -> None:
         """Forget the regressor chain (not the tracker): the next sample starts afresh."""
-        self._prev = None
-        self._pending = (math.nan, math.nan)
+        trained = self._carry[online.K_TRAINED]
+        self._carry = online.new_carry()
+        self._carry[online.K_TRAINED] = trained
+
+    @property
+    def trained(self) -> int:
+        """Samples the tracker has learned from."""
+        return int(self._carry[online.K_TRAINED])
 
     # ------------------------------------------------------------------ main entry
     def process(self, block: SampleBlock) -> EstimateBlock | None:
@@ -132,118 +120,59 @@ class AxisEstimator:
                 f"axis {block.machine}/{block.axis}: the {self.model.form} model needs "
                 f"'{'u' if self.model.form == 'force-input' else 'v_ref'}' in every sample block"
             )
-        rows: dict[str, list] = {k: [] for k in _ROW_FIELDS}
-        for i in range(n):
-            self._one(block.seq + i, block.t[i], exo[i], block.v_meas[i], rows)
-        if not rows["seq"]:
+        self.counters["samples_in"] += n
+        t = np.asarray(block.t, dtype=np.float64)
+        e = _as_column(exo)
+        v = _as_column(block.v_meas)
+        rows = np.empty((n, online.N_ROW))
+        size = np.empty(n, dtype=np.int64)
+        removed = np.empty(n, dtype=np.int64)
+        flags = np.empty(n, dtype=np.int64)
+        counts = self._counts
+        counts[:] = 0
+        tr = self.tracker
+        if tr._state is None:
+            tr._start(1, np.zeros(1))
+        X, Q, S, K, mu, order, ist, fst, P = tr._state
+        kinds, params, cols = tr._spec
+        m = self.model
+        first = online.track_block(
+            kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, tr._W, tr._tab,
+            self.beta, m.coulomb, m.omega, m.form == "force-input", self._limits, self.stale_detection,
+            self.warmup, self._carry, block.seq, t, e, v, rows, size, removed, flags, counts, self._xbuf, self._obuf,
+        )
+        for name, count in zip(online.COUNTERS, counts.tolist()):
+            if count:
+                self.counters[name] += count
+        if first == n:
             return None
-        return self._block(block.machine, block.axis, rows)
+        self.counters["estimates_out"] += n - first
+        return self._block(block.machine, block.axis, block.seq + first, t[first:], v[first:], rows[first:],
+                           size[first:], removed[first:], flags[first:])
 
-    def _one(self, seq: int, t, e, v, rows: dict) -> None:
-        c = self.counters
-        prev = self._prev
-        c["samples_in"] += 1
-        if prev is not None and seq <= prev.seq:
-            c["duplicate" if seq == prev.seq else "out_of_order"] += 1
-            return
-        flags = 0
-        if not _finite(t, e, v):
-            c["rejected_non_finite"] += 1
-            self._reject(seq, t, v, rows)
-            return
-        if abs(v) > LIMITS["v"] or abs(e) > (LIMITS["u"] if self.model.form == "force-input" else LIMITS["v"]) or abs(t) > LIMITS["t"]:
-            c["rejected_out_of_range"] += 1
-            self._reject(seq, t, v, rows)
-            return
-        if prev is not None and seq > prev.seq + 1:
-            c["gaps"] += 1
-            c["missing_samples"] += seq - prev.seq - 1
-            flags |= GAP
-            prev = None
-        elif prev is not None and t <= prev.t:
-            c["time_backwards"] += 1
-            flags |= GAP
-            prev = None
-        x = np.array([float(t)])
-        if prev is None:  # chain (re)starts: no residual yet
-            f_next, f_next_var = self._predict_next(x)
-            self._prev = _Prev(seq, float(t), float(e), float(v), float(v), x)
-            self._pending = (f_next, f_next_var)
-            c["restarts"] += 1
-            self._row(rows, seq, t, v, math.nan, math.nan, math.nan, math.nan, f_next, f_next_var, -1, flags | WARMUP)
-            return
-
-        base = self._regressor(prev.e, prev.v_used)
-        f_pred, f_pred_var = self._pending
-        v_pred = base + (f_pred if math.isfinite(f_pred) else 0.0)
-        moving = abs(v) > self.model.omega or abs(e - prev.e) > 0.0
-        if self.stale_detection and v == prev.v_raw and moving:
-            c["stale"] += 1
-            f_next, f_next_var = self._predict_next(x)
-            self._prev = _Prev(seq, float(t), float(e), float(v), v_pred, x)
-            self._pending = (f_next, f_next_var)
-            self._row(rows, seq, t, v, v_pred, math.nan, f_pred, f_pred_var, f_next, f_next_var, -1, flags | STALE)
-            return
-
-        residual = float(v) - base  # v(k) = v_m(k+1) − βᵀz(k), eq. 2.13
-        step = self.tracker.learn_one(prev.x, residual)
-        self.trained += 1
-        c["trained"] += 1
-        s02 = step.s02
-        f, f_var = step.filtered, step.filtered_var * s02
-        if step.reduced:
-            flags |= REDUCED
-        if self.trained <= self.warmup:
-            flags |= WARMUP
-        f_next, f_next_var = self._predict_next(x)
-        self._prev = _Prev(seq, float(t), float(e), float(v), float(v), x)
-        self._pending = (f_next, f_next_var)
-        self._row(rows, seq, t, v, v_pred, residual, f, f_var, f_next, f_next_var, step.removed, flags)
-
-    def _reject(self, seq, t, v, rows) -> None:
-        self.reset()
-        self._prev = None
-        tt = float(t) if _finite(t) else math.nan
-        self._row(rows, seq, tt, v, math.nan, math.nan, math.nan, math.nan, math.nan, math.nan, -1, REJECTED)
-
-    def _row(self, rows, seq, t, v, v_pred, residual, f, f_var, f_next, f_next_var, removed, flags) -> None:
-        rows["seq"].append(seq)
-        rows["t"].append(float(t))
-        rows["v_meas"].append(float(v) if _finite(v) else math.nan)
-        rows["v_pred"].append(v_pred)
-        rows["residual"].append(residual)
-        rows["f"].append(f)
-        rows["f_var"].append(f_var)
-        rows["f_next"].append(f_next)
-        rows["f_next_var"].append(f_next_var)
-        rows["dict_size"].append(self.tracker.size)
-        rows["removed"].append(int(removed))
-        rows["flags"].append(int(flags))
-        self.counters["estimates_out"] += 1
-
-    def _block(self, machine: str, axis: str, rows: dict) -> EstimateBlock:
-        """Rows → :class:`EstimateBlock`; contiguous only when seq is contiguous (the caller splits)."""
+    def _block(self, machine, axis, seq0, t, v, rows, size, removed, flags) -> EstimateBlock:
+        f, f_var, f_next = rows[:, online.R_F], rows[:, online.R_FVAR], rows[:, online.R_FNEXT]
         force = force_var = force_next = None
         b = self.force_gain
         if b is not None:
-            force = [-x / b for x in rows["f"]]
-            force_var = [x / (b * b) for x in rows["f_var"]]
-            force_next = [-x / b for x in rows["f_next"]]
+            force = (-f / b).tolist()
+            force_var = (f_var / (b * b)).tolist()
+            force_next = (-f_next / b).tolist()
         return EstimateBlock(
             machine=machine,
             axis=axis,
-            seq=rows["seq"][0],
-            t=rows["t"],
-            v_meas=rows["v_meas"],
-            v_pred=rows["v_pred"],
-            residual=rows["residual"],
-            f=rows["f"],
-            f_var=rows["f_var"],
-            f_next=rows["f_next"],
-            f_next_var=rows["f_next_var"],
-            dict_size=rows["dict_size"],
-            removed=rows["removed"],
-            flags=rows["flags"],
+            seq=int(seq0),
+            t=t.tolist(),
+            v_meas=v.tolist(),
+            v_pred=rows[:, online.R_VPRED].tolist(),
+            residual=rows[:, online.R_RESID].tolist(),
+            f=f.tolist(),
+            f_var=f_var.tolist(),
+            f_next=f_next.tolist(),
+            f_next_var=rows[:, online.R_FNEXTVAR].tolist(),
+            dict_size=size.tolist(),
+            removed=removed.tolist(),
+            flags=flags.tolist(),
             force=force,
             force_var=force_var,
             force_next=force_next,
@@ -264,15 +193,5 @@ class AxisEstimator:
             raise ValueError("saved tracker state was made with other hyperparameters than the model file; "
                              "start without the state (--fresh) or use the matching model file")
         self.tracker = restored
-        self.trained = int(snap.get("estimator.trained", 0))
-        self.reset()
-
-
-_ROW_FIELDS = ("seq", "t", "v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var", "dict_size", "removed", "flags")
-
-
-def _finite(*values) -> bool:
-    for value in values:
-        if value is None or not math.isfinite(value):
-            return False
-    return True
+        self._carry = online.new_carry()
+        self._carry[online.K_TRAINED] = float(snap.get("estimator.trained", 0))

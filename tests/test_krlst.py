@@ -66,6 +66,26 @@ def test_golden_g1(g1, grid_step):
     assert np.mean(res["reduced"] == gold_reduced) > 0.8
 
 
+@pytest.mark.parametrize("grid_step", [None, TS], ids=["direct", "lag-table"])
+def test_golden_g1_with_refresh_midstream(g1, grid_step):
+    # re-inversions at samples 500, 1000, …: Q changes by rounding only, the golden criteria hold
+    t, y, ref = g1
+    tr = KRLST(g1_kernel(), grid_step=grid_step, refresh_every=500, **G1)
+    res = tr.learn_many(t, y)
+    pm = ref["pred_mean"]
+    early = slice(1, 100)
+    assert np.max(np.abs(res["mean"][early] - pm[early])) <= 1e-6 * np.max(np.abs(pm[early]))
+    np.testing.assert_allclose(res["sigma_y2"][early], ref["pred_var_normalized"][early], rtol=1e-6)
+    assert np.linalg.norm(res["mean"] - pm) / np.linalg.norm(pm) <= 1e-3
+    np.testing.assert_array_equal(res["size"], ref["dict_size"].astype(int))
+    gold_removed = ref["removed_index"].astype(int)
+    assert np.all((res["removed"] >= 0) == (gold_removed > 0))
+    assert np.argmax(res["removed"] + 1 != gold_removed) > 400
+    gold_reduced = gold_removed == ref["dict_size"] + 1
+    assert np.mean(res["reduced"] == gold_reduced) > 0.8
+    assert tr.inverse_error() < 1e-8                   # refreshed at sample 3000 (the last)
+
+
 def test_golden_row1_is_initialisation(g1):
     t, y, ref = g1
     tr = KRLST(g1_kernel(), **G1)
@@ -134,21 +154,55 @@ def test_exact_gp_limit(case):
 
 @pytest.mark.slow
 def test_inverse_stays_accurate_1m_steps():
-    """max-abs ‖Q K_D − I‖ at 10 checkpoints of a 1M-sample stream (M = 100, LP kernel, 333 Hz)."""
-    n, chunk = 1_000_000, 100_000
+    """max-abs ‖Q K_D − I‖ at 21 checkpoints of a 1M-sample stream (M = 100, LP kernel, 333 Hz, ε_j = 1e-6).
+
+    The checkpoints (every 49 999 samples) do not fall on the refresh schedule, so
+    what is measured is the error between re-inversions. With kafbox's recursion
+    (``refine=False``) the error is ~3e-6 typically and reaches 1e-4…1e-3 at ~5 % of
+    the samples whatever the refresh interval (one step multiplies it by up to ~1/ε_j);
+    the refined update keeps it ~1e-9 (max ~5e-8 over 1000 checkpoints).
+    """
+    n, chunk = 1_000_000, 49_999
     t, y = _stream(n, seed=3)
-    # jitter 1e-5: with the g1 value 1e-6 the error hovers ~3e-6 and reaches ~3e-5 at
-    # times (γ² ≈ ε_j amplifies rounding by 1/γ²); it does not grow with run length
-    tr = KRLST(g1_kernel(), gamma=5.85, forgetting=0.996, budget=100, jitter=1e-5, grid_step=TS)
+    tr = KRLST(g1_kernel(), gamma=5.85, forgetting=0.996, budget=100, jitter=1e-6, grid_step=TS, refine=True)
+    assert tr.refresh_every > 0 and chunk % tr.refresh_every != 0
     errors = []
     for c in range(0, n, chunk):
         res = tr.learn_many(t[c:c + chunk], y[c:c + chunk])
         errors.append(tr.inverse_error())
         assert tr.size == 100
         assert np.all(np.isfinite(res["mean"]))
-    assert max(errors) < 1e-5, errors
-    # and the tracker still tracks: one-step prediction error well below the signal
-    assert np.sqrt(np.mean((res["mean"] - y[-chunk:]) ** 2)) < 0.3 * np.std(y)
+        if len(res["mean"]) == chunk:
+            # and the tracker still tracks: one-step prediction error well below the signal
+            assert np.sqrt(np.mean((res["mean"] - y[c:c + chunk]) ** 2)) < 0.3 * np.std(y)
+    assert len(errors) == 21 and max(errors) < 1e-5, errors
+
+
+def test_refresh_restores_the_inverse():
+    t, y = _stream(1200, seed=4)
+    kw = dict(G1, budget=60, grid_step=TS)
+    drift = KRLST(g1_kernel(), refresh_every=0, **kw)
+    drift.learn_many(t, y)
+    fresh = KRLST(g1_kernel(), refresh_every=1200, **kw)
+    fresh.learn_many(t, y)                              # re-inverted after the last step
+    assert fresh.inverse_error() < 1e-8 < drift.inverse_error()
+    np.testing.assert_array_equal(fresh.K, drift.K)     # same dictionary; K_D is not touched
+    np.testing.assert_array_equal(fresh.Q, fresh.Q.T)
+    np.testing.assert_allclose(fresh.Q, np.linalg.inv(fresh.K), rtol=0, atol=1e-8 * np.abs(fresh.Q).max())
+
+
+def test_refresh_keeps_q_when_k_is_singular():
+    from kernels import _krlst_core as core
+    tr = KRLST(SquaredExponential(1.0), gamma=100.0, forgetting=1.0, budget=10, jitter=0.0, refresh_every=0)
+    for i in range(5):
+        tr.learn_one(np.array([float(i)]), 0.1 * i)
+    X, Q, S, K, mu, order, ist, fst, P = tr._state
+    K[order[1], :] = K[order[0], :]
+    K[:, order[1]] = K[:, order[0]]                      # two equal rows: not positive definite
+    before = Q.copy(), ist.copy()
+    assert not core.refresh_inverse(Q, K, order, ist, tr._W)
+    np.testing.assert_array_equal(Q, before[0])
+    np.testing.assert_array_equal(ist, before[1])
 
 
 def test_inverse_error_is_max_abs():
@@ -273,3 +327,179 @@ def test_predict_one():
     assert v_next == s02 * step.sigma_y2
     assert step.filtered == pytest.approx(step.mean + step.sigma_f2 * (y[-1] - step.mean) / step.sigma_y2)
     assert step.filtered_var == pytest.approx(step.sigma_f2 - step.sigma_f2**2 / step.sigma_y2)
+
+
+# -- 7. split step (predict_next / update) and track_many ---------------------------------------------
+
+
+def _split_stream(n, seed):
+    t, y = _stream(n, seed=seed)
+    return t, y
+
+
+@pytest.mark.parametrize("extra", [{}, {"grid_step": TS}, {"refine": True, "refresh_every": 97}],
+                         ids=["direct", "table", "refine+refresh"])
+def test_predict_next_update_equals_learn_one(extra):
+    t, y = _split_stream(1500, seed=11)
+    kw = dict(G1, budget=40, **extra)
+    a = KRLST(g1_kernel(), **kw)
+    b = KRLST(g1_kernel(), **kw)
+    assert not b.armed
+    for ti, yi in zip(t, y):
+        sa = a.learn_one(ti, yi)
+        pred = b.predict_next(ti)
+        assert b.armed
+        sb = b.update(yi)
+        assert not b.armed
+        assert sa == sb
+        if sa.size > 1 or sa.removed >= 0:
+            assert pred == (sa.mean, sa.sigma_f2, sa.sigma_y2, sa.gamma2)
+    _same_snapshot(a.snapshot(), b.snapshot())
+    many = KRLST(g1_kernel(), **kw).learn_many(t, y)
+    assert (many["removed"] >= 0).sum() > 500 and many["reduced"].any()
+
+
+def test_predict_next_equals_predict_one_forget():
+    t, y = _split_stream(400, seed=12)
+    tr = KRLST(g1_kernel(), **dict(G1, budget=50))
+    assert tr.predict_next(t[0]) == (0.0, 1.0 + G1["jitter"], 1 / G1["gamma"] + 1.0 + G1["jitter"],
+                                     1.0 + G1["jitter"])
+    tr.update(y[0])
+    for ti, yi in zip(t[1:], y[1:]):
+        m, v = tr.predict_one(ti, noise=False, forget=True)
+        s02 = tr.s02
+        mean, sf2, sy2, g2 = tr.predict_next(ti)
+        assert (m, v) == (mean, s02 * sf2)
+        m2, v2 = tr.predict_one(ti, noise=False)                 # armed: forgetting already applied
+        assert (m2, v2) == (mean, s02 * sf2)
+        tr.update(yi)
+
+
+def test_rearm_forgets_again():
+    # a stale sample: predict_next without update; the next predict_next forgets once more
+    t, y = _split_stream(300, seed=13)
+    a = KRLST(g1_kernel(), **dict(G1, budget=50))
+    a.learn_many(t[:200], y[:200])
+    base = a.snapshot()
+    c = KRLST.restore(base)
+    c.predict_next(t[200])
+    mean_c, *_ = c.predict_next(t[201])
+    d = KRLST.restore(base)
+    mean_d, *_ = d.predict_next(t[201])
+    assert mean_c == pytest.approx(math.sqrt(G1["forgetting"]) * mean_d, rel=1e-9)   # μ ← √λ μ twice
+    assert c.update(y[201]).mean == mean_c
+    assert c.size == d.update(y[201]).size
+
+
+def test_update_needs_an_armed_prediction():
+    tr = KRLST(g1_kernel(), **G1)
+    with pytest.raises(RuntimeError, match="predict_next"):
+        tr.update(0.1)
+    t, y = _split_stream(120, seed=14)
+    tr.learn_many(t[:100], y[:100])
+    with pytest.raises(RuntimeError, match="predict_next"):
+        tr.update(0.1)
+    tr.predict_next(t[100])
+    before = tr.snapshot()
+    with pytest.raises(ValueError, match="y"):
+        tr.update(math.nan)
+    _same_snapshot(before, tr.snapshot())                 # still armed, untouched
+    with pytest.raises(ValueError, match="x"):
+        tr.predict_next(math.inf)
+    _same_snapshot(before, tr.snapshot())
+    assert tr.armed
+    tr.update(y[100])
+    with pytest.raises(RuntimeError):
+        tr.update(y[100])
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(prefix=st.integers(1, 300), seed=st.integers(0, 1000), table=st.booleans())
+def test_snapshot_restore_armed(prefix, seed, table):
+    t, y = _split_stream(400, seed=seed)
+    kw = dict(G1, budget=30, grid_step=TS if table else None, refresh_every=50, refine=True)
+    full = KRLST(g1_kernel(), **kw).learn_many(t, y)
+    tr = KRLST(g1_kernel(), **kw)
+    tr.learn_many(t[:prefix - 1], y[:prefix - 1])
+    tr.predict_next(t[prefix - 1])
+    again = KRLST.restore(tr.snapshot())
+    assert again.armed and again.get_params() == tr.get_params()
+    step = again.update(y[prefix - 1])
+    assert step.mean == full["mean"][prefix - 1] and step.size == full["size"][prefix - 1]
+    rest = again.learn_many(t[prefix:], y[prefix:])
+    for key in full:
+        np.testing.assert_array_equal(rest[key], full[key][prefix:], err_msg=key)
+
+
+def test_track_many_equals_split_calls():
+    t, y = _split_stream(900, seed=15)
+    rng = np.random.default_rng(0)
+    mask = rng.random(900) > 0.1
+    mask[0] = False                                        # nothing armed yet
+    ys = np.where(mask, np.roll(y, 1), np.nan)             # ys[j]: residual of the x armed before j
+    kw = dict(G1, budget=40, grid_step=TS, refresh_every=101, refine=True)
+    ref = KRLST(g1_kernel(), **kw)
+    rows = []
+    for j in range(900):
+        step = ref.update(ys[j]) if mask[j] else None
+        nxt = ref.predict_next(t[j])
+        rows.append((step, nxt, ref.s02, ref.size))
+    tr = KRLST(g1_kernel(), **kw)
+    out = {}
+    for lo, hi in [(0, 1), (1, 350), (350, 351), (351, 900)]:   # blocks continue the armed state
+        part = tr.track_many(t[lo:hi], ys[lo:hi], mask[lo:hi])
+        for k, v in part.items():
+            out.setdefault(k, []).append(v)
+    out = {k: np.concatenate(v) for k, v in out.items()}
+    np.testing.assert_array_equal(out["learned"], mask)
+    for j, (step, nxt, s02, size) in enumerate(rows):
+        assert (out["next_mean"][j], out["next_sigma_f2"][j], out["next_sigma_y2"][j], out["next_gamma2"][j]) == nxt
+        assert out["s02"][j] == s02 and out["size"][j] == size
+        if step is None:
+            assert math.isnan(out["mean"][j]) and out["removed"][j] == -1 and not out["reduced"][j]
+        else:
+            for f in ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced", "filtered", "filtered_var"):
+                assert out[f][j] == getattr(step, f), (j, f)
+    _same_snapshot(ref.snapshot(), tr.snapshot())
+    assert out["reduced"].any() and (out["removed"] >= 0).sum() > 100
+
+
+def test_track_many_input_checks():
+    tr = KRLST(g1_kernel(), **G1)
+    with pytest.raises(RuntimeError, match="armed"):
+        tr.track_many([0.0, 0.003], [0.1, 0.2], np.array([True, True]))
+    with pytest.raises(ValueError, match="learn_mask"):
+        tr.track_many([0.0], [0.1], [1])
+    with pytest.raises(ValueError, match="ys"):
+        tr.track_many([0.0, 0.003], [0.1, np.nan], np.array([False, True]))
+    with pytest.raises(ValueError, match="xs"):
+        tr.track_many([0.0, np.nan], [0.1, 0.1], np.array([False, False]))
+    assert tr.snapshot().keys() == KRLST(g1_kernel(), **G1).snapshot().keys()   # nothing started
+    res = tr.track_many([0.0, 0.003], [np.nan, 0.2], np.array([False, True]))
+    assert list(res["learned"]) == [False, True] and list(res["size"]) == [0, 1]
+
+
+def test_restore_snapshot_of_the_previous_format():
+    t, y = _stream(300, seed=16)
+    kw = dict(G1, budget=40)
+    a = KRLST(g1_kernel(), **kw)
+    a.learn_many(t[:200], y[:200])
+    snap = a.snapshot()
+    # the format before refresh_every/refine/predict_next: ist[:6], fst[:10], P[:3], no new keys
+    old = dict(snap)
+    for key in ("refresh_every", "refine"):
+        del old[key]
+    old["ist"] = snap["ist"][:6].copy()
+    old["fst"] = snap["fst"][:10].copy()
+    old["P"] = snap["P"][:3].copy()
+    b = KRLST.restore(old)
+    assert b.refresh_every == KRLST.REFRESH_EVERY and not b.refine and not b.armed
+    np.testing.assert_array_equal(b.learn_many(t[200:], y[200:])["mean"], a.learn_many(t[200:], y[200:])["mean"])
+
+
+def test_bad_refresh_and_refine():
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="refresh_every"):
+            KRLST(g1_kernel(), refresh_every=bad)
+    with pytest.raises(ValueError, match="refine"):
+        KRLST(g1_kernel(), refine=1)

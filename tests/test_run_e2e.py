@@ -242,7 +242,7 @@ def test_sigterm_during_replay_leaves_complete_mcap(work):
     stop = threading.Event()
     with T.open_session(connect=mon.endpoint) as session:
         th = threading.Thread(target=replay, args=(work / "trial20.mcap", session),
-                              kwargs=dict(rate=10.0, prefix=PREFIX, wait_for_subscriber=10.0, stop=stop, block=1))
+                              kwargs=dict(rate=2.0, prefix=PREFIX, wait_for_subscriber=10.0, stop=stop, block=1))
         th.start()
         try:
             wait_status(session, lambda s: s["axes"]["linear-drive/Z"]["samples_in"] > 500)
