@@ -176,7 +176,7 @@ def _run_offline(args) -> int:
 
 def _run_live(args) -> int:
     from .service import Monitor, StateStore, live_meta, load_axes, warm_up
-    from .transport import DEFAULT_ENDPOINT, session_from_args
+    from .transport import config_from_args, describe_config, open_session
 
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
@@ -214,9 +214,11 @@ def _run_live(args) -> int:
                 _say(f"Rerun recording: {args.rrd}")
             if rs_.server_uri:
                 _say(f"Rerun live: rerun --connect {rs_.server_uri}")
-        session = session_from_args(args)
-        listen = args.listen or ([] if args.connect else [DEFAULT_ENDPOINT])
-        endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in (args.connect or [])]
+        zconfig = config_from_args(args)
+        session = open_session(zconfig)
+        zdesc = describe_config(zconfig)  # what the session really does (also with --zenoh-config)
+        listen, connect = zdesc["listen"], zdesc["connect"]
+        endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in connect]
         monitor = Monitor(axes, session, prefix=args.prefix, sinks=sinks, queue_size=args.queue or 8192,
                           record_truth=args.record_truth, state=store, endpoints=endpoints)
         stop = threading.Event()
@@ -230,8 +232,8 @@ def _run_live(args) -> int:
         try:
             monitor.start()
             where = ", ".join(listen) if listen else "(no listen endpoint)"
-            conn = f", connected to {', '.join(args.connect)}" if args.connect else ""
-            _say(f"ready — listening on {where}{conn}; prefix {args.prefix!r}; axes "
+            conn = f", connected to {', '.join(connect)}" if connect else ""
+            _say(f"ready — Zenoh {zdesc['mode']}, listening on {where}{conn}; prefix {args.prefix!r}; axes "
                  f"{', '.join(a.status.name for a in axes.values())}; status: feedmon status; Ctrl-C to stop")
             while not stop.wait(0.5):
                 pass

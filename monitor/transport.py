@@ -230,8 +230,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, role: str = "connect
     parser.set_defaults(_zenoh_role=role)
 
 
-def session_from_args(args: argparse.Namespace) -> zenoh.Session:
-    """Open the session described by the :func:`add_zenoh_arguments` options."""
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    """The Zenoh configuration described by the :func:`add_zenoh_arguments` options."""
     role = getattr(args, "_zenoh_role", "connect")
     connect, listen, mode = args.connect, args.listen, args.mode
     cfg_file = getattr(args, "zenoh_config", None)
@@ -251,9 +251,33 @@ def session_from_args(args: argparse.Namespace) -> zenoh.Session:
             raise ValueError("--mode client needs --connect ENDPOINT")
         if mode == "client":
             listen = None
-    return open_session(
-        mode=mode, listen=listen, connect=connect, multicast_scouting=multicast, config_file=cfg_file
-    )
+    return zenoh_config(mode=mode, listen=listen, connect=connect, multicast_scouting=multicast, config_file=cfg_file)
+
+
+def session_from_args(args: argparse.Namespace) -> zenoh.Session:
+    """Open the session described by the :func:`add_zenoh_arguments` options."""
+    return open_session(config_from_args(args))
+
+
+def describe_config(config: zenoh.Config) -> dict:
+    """``{"mode", "listen", "connect"}`` as the configuration says (what a session opened from it does)."""
+    def get(key, default):
+        try:
+            value = json.loads(config.get_json(key))
+        except Exception:  # noqa: BLE001 - a key absent from the config
+            return default
+        return default if value is None else value
+
+    listen = get("listen/endpoints", [])
+    connect = get("connect/endpoints", [])
+    if isinstance(listen, dict):  # per-mode endpoint lists
+        listen = listen.get(get("mode", "peer"), [])
+    if isinstance(connect, dict):
+        connect = connect.get(get("mode", "peer"), [])
+    return {"mode": get("mode", "peer"), "listen": list(listen), "connect": list(connect)}
+
+
+
 
 
 # ---- key expressions -------------------------------------------------------------------------

@@ -66,14 +66,11 @@ def test_default_config_listens_on_loopback_only_and_multicast_is_off():
 
 
 @pytest.mark.parametrize("role", ["listen", "connect"])
-def test_cli_defaults_are_loopback_only(role, monkeypatch):
+def test_cli_defaults_are_loopback_only(role):
     """What ``feedmon run`` (listen) and publishers/tools (connect) open without options."""
-    seen = {}
-    monkeypatch.setattr(T, "open_session", lambda **kw: seen.update(kw) or "session")
     p = argparse.ArgumentParser()
     T.add_zenoh_arguments(p, role=role)
-    assert T.session_from_args(p.parse_args([])) == "session"
-    cfg = T.zenoh_config(**seen)
+    cfg = T.config_from_args(p.parse_args([]))  # exactly what session_from_args opens
     listen, connect = _cfg(cfg, "listen/endpoints"), _cfg(cfg, "connect/endpoints")
     assert listen and all(_loopback(ep) for ep in listen), listen
     assert all(_loopback(ep) for ep in connect), connect
