@@ -115,13 +115,16 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             carry[K_SEQ] = seq
             carry[K_CHAIN] = 0.0                   # the next good sample restarts the chain
             continue
-        cont = carry[K_HAS] != 0.0 and carry[K_CHAIN] != 0.0
-        if cont and seq > carry[K_SEQ] + 1:
+        # ordering is checked against the last sample seen (rejected ones included for seq,
+        # the last accepted one for time), whether or not the chain is intact
+        has = carry[K_HAS] != 0.0
+        cont = has and carry[K_CHAIN] != 0.0
+        if has and seq > carry[K_SEQ] + 1:
             counts[C_GAPS] += 1
             counts[C_MISSING] += seq - int(carry[K_SEQ]) - 1
             fl |= FLAG_GAP
             cont = False
-        elif cont and tj <= carry[K_T]:
+        elif has and tj <= carry[K_T]:            # False while no sample was accepted (NaN)
             counts[C_BACK] += 1
             fl |= FLAG_GAP
             cont = False

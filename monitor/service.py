@@ -68,6 +68,15 @@ log = logging.getLogger("monitor.service")
 
 STATE_FORMAT = 1
 _STOP = object()
+#: estimator counters that mean bad input; :meth:`Pipeline.estimate` logs them once per burst
+_LOGGED_REASONS = (
+    ("rejected_non_finite", "rejected: non-finite value"),
+    ("rejected_out_of_range", "rejected: absurd magnitude"),
+    ("duplicate", "dropped: duplicate sequence number"),
+    ("out_of_order", "dropped: out-of-order sequence number"),
+    ("gaps", "after a sequence gap: chain restarted"),
+    ("time_backwards", "with time going backwards: chain restarted"),
+)
 
 
 # ============================================================================================
@@ -236,6 +245,8 @@ class Pipeline:
             return None, None
         st = ax.status
         st.blocks += 1
+        c = ax.estimator.counters
+        before = [c.get(k, 0) for k, _ in _LOGGED_REASONS]
         try:
             est = ax.estimator.process(block)
         except ValueError as exc:  # e.g. the model's form needs a column the block lacks
@@ -246,6 +257,10 @@ class Pipeline:
             self.burst(f"error:{st.name}", "axis %s: estimator failed on a block: %s: %s", st.name,
                        type(exc).__name__, exc, level=logging.ERROR)
             return ax, None
+        for (k, what), b in zip(_LOGGED_REASONS, before):
+            d = c.get(k, 0) - b
+            if d:  # the estimator only counts; say it once per burst (per reason and axis)
+                self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name, d, what, k)
         if est is not None:
             st.last_seq = est.seq + len(est.t) - 1
             st.last_t = est.t[-1]

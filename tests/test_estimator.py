@@ -168,3 +168,21 @@ def test_force_input_form_scales_with_b():
     np.testing.assert_allclose(out.force_next, -np.array(out.f_next) / beta[0])
     with pytest.raises(ValueError, match="'u'"):
         est.process(S.SampleBlock(machine="m", axis="x", seq=n, t=[1.0], v_ref=[0.0], v_meas=[0.0]))
+
+
+def test_ordering_checked_after_a_rejected_sample():
+    t, v_ref, v, _ = _stream(300)
+    est = AxisEstimator(_model())
+    est.process(next(_blocks(t, v_ref, v, 100)))
+    est.process(S.SampleBlock(machine="m", axis="x", seq=100, t=[t[100]], v_ref=[v_ref[100]], v_meas=[None]))
+    # a duplicate of the rejected sample is dropped, not taken as a restart
+    assert est.process(S.SampleBlock(machine="m", axis="x", seq=100, t=[t[100]], v_ref=[v_ref[100]],
+                                     v_meas=[v[100]])) is None
+    assert est.counters["duplicate"] == 1
+    # a gap right after the rejected sample is counted
+    out = est.process(S.SampleBlock(machine="m", axis="x", seq=105, t=[t[105]], v_ref=[v_ref[105]], v_meas=[v[105]]))
+    assert out.flags[0] & S.GAP and est.counters["gaps"] == 1 and est.counters["missing_samples"] == 4
+    # time going backwards across a rejected sample is counted
+    est.process(S.SampleBlock(machine="m", axis="x", seq=106, t=[t[106]], v_ref=[v_ref[106]], v_meas=[math.inf]))
+    out = est.process(S.SampleBlock(machine="m", axis="x", seq=107, t=[t[10]], v_ref=[v_ref[107]], v_meas=[v[107]]))
+    assert out.flags[0] & S.GAP and est.counters["time_backwards"] == 1
