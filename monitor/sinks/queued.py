@@ -56,6 +56,10 @@ class QueuedSink:
         start the worker thread now (otherwise call :meth:`start`).
     """
 
+    #: True for sinks whose items are buffered and made durable by :meth:`tick` (a flush):
+    #: then only a successful tick clears the failed state
+    recover_on_tick = False
+
     def __init__(
         self,
         maxsize: int = 1024,
@@ -183,7 +187,7 @@ class QueuedSink:
     def handle_batch(self, items: Sequence[Any]) -> None:
         """Write several items; default: :meth:`handle` each (failures counted per item)."""
         for item in items:
-            self._guard(self.handle, item, count=True)
+            self._guard(self.handle, item, count=True, durable=not self.recover_on_tick)
 
     def start_worker(self) -> None:
         """Called once on the worker thread before the first item (open files here)."""
@@ -199,8 +203,13 @@ class QueuedSink:
         return {}
 
     # ---- worker ------------------------------------------------------------------------------
-    def _guard(self, fn, *args, count: bool = False) -> bool:
-        """Run a hook; count and log failures; True on success."""
+    def _guard(self, fn, *args, count: bool = False, durable: bool = True) -> bool:
+        """Run a hook; count and log failures; True on success.
+
+        A success clears the failed state only when ``durable`` (for sinks with
+        :attr:`recover_on_tick`, only the periodic :meth:`tick` — the flush — proves recovery:
+        an item buffered in memory says nothing about a disk that is still full).
+        """
         try:
             fn(*args)
         except Exception as exc:  # noqa: BLE001 - a sink must never kill the thread
@@ -209,7 +218,8 @@ class QueuedSink:
         if count:
             with self._lock:
                 self.written += 1
-        self._record_success()
+        if durable:
+            self._record_success()
         return True
 
     def _record_failure(self, exc: BaseException) -> None:
@@ -279,10 +289,11 @@ class QueuedSink:
         self.closed = True
 
     def _handle_items(self, items: list[Any]) -> None:
+        durable = not self.recover_on_tick
         if type(self).handle_batch is QueuedSink.handle_batch:
             for item in items:
-                self._guard(self.handle, item, count=True)
+                self._guard(self.handle, item, count=True, durable=durable)
             return
-        if self._guard(self.handle_batch, items):
+        if self._guard(self.handle_batch, items, durable=durable):
             with self._lock:
                 self.written += len(items)
