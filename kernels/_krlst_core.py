@@ -58,19 +58,22 @@ on ``x(k+1)`` as soon as it arrives and publishes the prediction, then calls
 update re-arms at the new ``x``; the forgetting is then applied once per :func:`arm`.
 :func:`track` runs ``[update(y_j)] + arm(x_j)`` over a block of arriving samples.
 
-Periodic re-inversion
----------------------
-The rank-one recursions keep ``Q ≈ K_D⁻¹`` only to rounding, amplified by
-``1/γ² ≲ 1/ε_j`` on every step; with ``ε_j = 1e-6`` ``max|Q K_D − I|`` wanders
-around 1e-6…1e-5 with excursions above. Every ``refresh_every`` steps (``ist``; 0 = never),
-at the end of :func:`update`, :func:`refresh_inverse` recomputes ``Q`` from the cached
-``K_D`` by a Cholesky factorisation and triangular inverse in a dense scratch
-matrix that is part of ``W`` (no allocation). The new ``Q`` supersedes a pending
-``Q`` update.
+Accuracy of Q: refinement and periodic re-inversion
+---------------------------------------------------
+kafbox's rank-one update multiplies the current error of ``Q`` by up to ~``|q|²/γ²``
+(``γ² ≳ ε_j``) in a single step: with ``ε_j = 1e-6`` ``max|Q K_D − I|`` is ~3e-6
+typically and exceeds 1e-5 on ~10 % of the steps (up to ~1e-3), and it is back at
+that level ~100 steps after an exact re-inversion, so re-inverting alone cannot hold
+it down. With ``ist[I_REFINE]`` the update uses ``q ← q + Q(k_t − K_D q)`` (one step
+of iterative refinement; ``K_D q`` comes from the h pass) and the error stays
+~1e-9. Every ``refresh_every`` steps (``ist``; 0 = never), at the end of
+:func:`update`, :func:`refresh_inverse` recomputes ``Q`` from the cached ``K_D`` by a
+Cholesky factorisation and triangular inverse in a dense scratch matrix that is
+part of ``W`` (no allocation); the new ``Q`` supersedes a pending ``Q`` update.
 
 Layout of the small arrays
 --------------------------
-``ist`` int64 ``[n, hw, M, steps, q_pending, s_pending, refresh_every, armed]``
+``ist`` int64 ``[n, hw, M, steps, q_pending, s_pending, refresh_every, armed, refine]``
 (``q_pending``: 0 none, 1 rank-one, 2 rank-one + removal downdate);
 ``fst`` float64 ``[λ, sn2, ε_j, num, den, s0², 1/γ², 1/[Q_new]_rr, 1/σ_y², 1/Ts,
 k_tt, ŷ, γ², σ_f², σ_y²]`` (the last five: the armed prediction);

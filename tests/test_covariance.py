@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kernels import Kernel, LocallyPeriodic, Periodic, Product, SquaredExponential
-from kernels.covariance import kernel_row, kernel_value
+from kernels.covariance import kernel_row, kernel_row_at, kernel_value, kernel_value_at
 
 KERNELS = [
     SquaredExponential(0.7),
@@ -36,6 +36,26 @@ def test_numpy_matrix_equals_njit_row(kernel):
         kernel_row(kinds, params, cols, X, len(X), X[j], out)
         np.testing.assert_allclose(out, K[:, j], rtol=1e-13, atol=1e-15)
         assert kernel_value(kinds, params, cols, X[j], X[j]) == 1.0
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)
+def test_njit_entry_points_agree_bitwise(kernel):
+    # kernel_row / kernel_row_at (factor-outer loops) and kernel_value / kernel_value_at
+    # (per pair) evaluate the same product ((1·f0)·f1)·… of the same compiled formulas
+    rng = np.random.default_rng(2)
+    X = _inputs(kernel, 30, rng)
+    x = _inputs(kernel, 1, rng)[0]
+    kinds, params, cols = kernel.spec()
+    row = np.empty(len(X))
+    kernel_row(kinds, params, cols, X, len(X), x, row)
+    idx = rng.permutation(len(X))[:20].astype(np.int64)
+    picked = np.full(len(X), -7.0)
+    kernel_row_at(kinds, params, cols, X, idx, len(idx), x, picked)
+    for i in range(len(X)):
+        v = kernel_value(kinds, params, cols, X[i], x)
+        assert kernel_value_at(kinds, params, cols, X, i, x) == v
+        assert row[i] == v
+        assert picked[i] == (v if i in idx else -7.0)
 
 
 @pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)

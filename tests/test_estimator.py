@@ -56,7 +56,8 @@ def test_matches_the_public_krlst_split_api_and_the_model_equations():
     t, v_ref, v, _ = _stream()
     est = _run(AxisEstimator(_model()), _blocks(t, v_ref, v, 50))
     # reference: the same timing written with KRLST.predict_next / KRLST.update (method §6)
-    tr = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), gamma=5.85, forgetting=0.996, budget=40, jitter=1e-6, grid_step=TS)
+    tr = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), gamma=5.85, forgetting=0.996, budget=40, jitter=1e-6, grid_step=TS,
+               refine=True)
     f_next = np.full(t.size, np.nan)
     f_filt = np.full(t.size, np.nan)
     resid = np.full(t.size, np.nan)
