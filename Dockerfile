@@ -1,0 +1,57 @@
+# feedmon live monitor (feedmon run) in a container.
+#
+#   docker build -t feedmon .
+#   docker run -d --name feedmon --stop-timeout 60 -p 127.0.0.1:7448:7448 \
+#       -v feedmon-data:/var/lib/feedmon -v feedmon-logs:/var/log/feedmon \
+#       -v "$PWD/monitor.toml:/etc/feedmon/monitor.toml:ro" feedmon
+#
+# * Configuration: /etc/feedmon/monitor.toml ([run] table of `feedmon run --config`; the image
+#   ships deploy/monitor.toml there). Model files go to /var/lib/feedmon/models (feedmon identify),
+#   tracker states to /var/lib/feedmon/state, MCAP logs to /var/log/feedmon.
+# * Zenoh: the monitor listens on tcp/0.0.0.0:7448 inside the container (loopback would be
+#   unreachable from outside it); publish the port only where the controller bridge runs, or
+#   use a router (`--connect tls/router:7447 --zenoh-config ...`, deploy/zenoh/).
+# * Stop: SIGTERM; the monitor drains its queue, finishes the MCAP file and saves the tracker
+#   state. Give it time: `docker run --stop-timeout 60` / compose `stop_grace_period: 60s`
+#   (Docker's default of 10 s can cut the MCAP short).
+# * Health: `feedmon status` asks the monitor's status queryable (<prefix>/monitor/status) over
+#   loopback; it exits 1 when no monitor answers within --timeout.
+# Tested without a Docker engine by tests/test_deploy.py (same files copied, same commands run).
+
+FROM python:3.11-slim-bookworm
+
+ENV PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    NUMBA_CACHE_DIR=/var/cache/feedmon/numba
+
+RUN groupadd --system --gid 10001 feedmon \
+ && useradd --system --uid 10001 --gid feedmon --home-dir /var/lib/feedmon --no-create-home \
+        --shell /usr/sbin/nologin feedmon \
+ && mkdir -p /var/lib/feedmon/models /var/lib/feedmon/state /var/log/feedmon /var/cache/feedmon/numba /etc/feedmon \
+ && chown -R feedmon:feedmon /var/lib/feedmon /var/log/feedmon /var/cache/feedmon
+
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY kernels ./kernels
+COPY monitor ./monitor
+COPY replay ./replay
+RUN pip install . \
+ && cd / && rm -rf /src
+COPY deploy/monitor.toml /etc/feedmon/monitor.toml
+
+USER feedmon
+# compile the Numba tracker core into NUMBA_CACHE_DIR now, not at every container start (a cold
+# compile takes up to a minute; the cache is reused when the host CPU matches the build's)
+RUN python -c "from monitor.model_file import AxisModel, TrackerConfig; from monitor.estimator import AxisEstimator; from monitor.schema import SampleBlock; m = AxisModel(machine='m', axis='x', form='velocity-loop', Ts=0.003, beta=[0.8, 0.16], omega=0.0, coulomb=False, tracker=TrackerConfig()); AxisEstimator(m).process(SampleBlock(machine='m', axis='x', seq=0, t=[0.003 * i for i in range(8)], v_ref=[0.001 * i for i in range(8)], v_meas=[0.001 * i for i in range(8)]))"
+WORKDIR /var/lib/feedmon
+VOLUME ["/var/lib/feedmon", "/var/log/feedmon"]
+EXPOSE 7448/tcp
+STOPSIGNAL SIGTERM
+
+HEALTHCHECK --interval=30s --timeout=15s --start-period=120s --retries=3 \
+    CMD ["feedmon", "status", "--timeout", "3", "--json"]
+
+ENTRYPOINT ["feedmon", "run"]
+CMD ["--config", "/etc/feedmon/monitor.toml", "--listen", "tcp/0.0.0.0:7448"]
