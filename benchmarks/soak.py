@@ -71,7 +71,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numba import njit
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -79,6 +78,7 @@ if str(ROOT) not in sys.path:
 
 from kernels.feed_drive import physical_to_beta  # noqa: E402
 from monitor import schema as S  # noqa: E402
+from replay.simulator import closed_loop_zoh  # noqa: E402  (the simulator's plant: one definition)
 
 RATE = 333.0
 MACHINE, AXIS = "soak", "X"
@@ -95,31 +95,6 @@ CUT = (1.1, 13.1)  # the disturbance acts during the constant-feed part of the p
 # ---------------------------------------------------------------------------------------------
 # the stream
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True)
-def _plant(v_ref, tc, noise, v0, Ts, J, B, K, dp, dn, omega):
-    """Exact ZOH closed loop (as replay.simulator._loop_zoh) from state v0; returns v_meas, u, v_end."""
-    n = v_ref.size
-    p = -B / J
-    pd = math.exp(p * Ts)
-    b = (1.0 - pd) / B
-    vm_out = np.empty(n)
-    u_out = np.empty(n)
-    v = v0
-    for k in range(n):
-        vm = v + noise[k]
-        uk = K * (v_ref[k] - vm)
-        if v > omega:
-            tf = dp
-        elif v < -omega:
-            tf = -dn
-        else:
-            tf = 0.0
-        vm_out[k] = vm
-        u_out[k] = uk
-        v = pd * v + b * (uk - tf - tc[k])
-    return vm_out, u_out, v
-
-
 @dataclass
 class Chunk:
     seq0: int
@@ -167,8 +142,9 @@ class DriveStream:
         tc = self.force(t + 0.5 * self.Ts)
         noise = self.rng.normal(0.0, self.noise_std, n)
         d = DRIVE
-        vm, _u, self.v = _plant(v_ref, tc, noise, self.v, self.Ts, d["inertia"], d["damping"], d["loop_gain"],
-                                d["coulomb_pos"], d["coulomb_neg"], d["omega"])
+        _, vm, _, _, self.v, _ = closed_loop_zoh(v_ref, tc, noise, self.Ts, d["inertia"], d["damping"],
+                                                 d["loop_gain"], d["coulomb_pos"], d["coulomb_neg"], d["omega"],
+                                                 self.v, 0.0)
         rec = vm.copy()
         glitch = np.flatnonzero(self.rng.random(n) < self.glitch_rate)
         for i in glitch:  # the recorder repeats the previous value (the loop is not affected)

@@ -380,6 +380,40 @@ class KRLST:
         v = out.tolist()
         return Step(v[0], v[1], v[2], v[3], int(v[4]), v[5] != 0.0, v[6], v[7], v[8], int(v[9]))
 
+    def core_arrays(self, x_example) -> tuple:
+        """The arrays the ``@njit`` core works on, in its argument order
+        ``(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab)``, for compiled loops that
+        drive the tracker (:func:`kernels.online.track_block`). Starts a new tracker with the input
+        dimension of ``x_example`` (a 1-D array)."""
+        if self._state is None:
+            self._start(x_example.shape[0], x_example)
+        return (*self._spec, *self._state, self._W, self._tab)
+
+    def _stream(self, X, y, mask, xname: str, yname: str) -> tuple[np.ndarray, np.ndarray]:
+        """Validated contiguous ``(N, d)`` inputs and ``(N,)`` targets; ``y`` must be finite where
+        ``mask`` is set (everywhere when ``mask`` is None). Raises ``ValueError`` naming the first bad index."""
+        Xa = np.asarray(X, dtype=np.float64)
+        if Xa.ndim == 1:
+            Xa = Xa.reshape(-1, 1)
+        if Xa.ndim != 2:
+            raise ValueError(f"{xname} must have shape (N,) or (N, d), got {np.shape(X)}")
+        N = Xa.shape[0]
+        ya = np.asarray(y, dtype=np.float64)
+        if ya.shape != (N,):
+            raise ValueError(f"{yname} must have shape ({N},), got {ya.shape}")
+        if mask is not None and (mask.shape != (N,) or mask.dtype != np.bool_):
+            raise ValueError(f"learn_mask must be a bool array of shape ({N},), got {mask.dtype} {mask.shape}")
+        bad_x = ~np.all(np.isfinite(Xa), axis=1)
+        if bad_x.any():
+            raise ValueError(f"{xname} must be finite; row {int(np.argmax(bad_x))} is not")
+        bad_y = ~np.isfinite(ya) if mask is None else mask & ~np.isfinite(ya)
+        if bad_y.any():
+            where = "" if mask is None else " where learn_mask is set"
+            raise ValueError(f"{yname} must be finite{where}; element {int(np.argmax(bad_y))} is not")
+        if self._dim and Xa.shape[1] != self._dim:
+            raise ValueError(f"{xname} has dimension {Xa.shape[1]}, the tracker was started with {self._dim}")
+        return np.ascontiguousarray(Xa), np.ascontiguousarray(ya)
+
     def learn_many(self, X, y) -> dict[str, np.ndarray]:
         """Train on a whole stream in one ``@njit`` loop; same results as repeated :meth:`learn_one`.
 
@@ -387,33 +421,11 @@ class KRLST:
         of 1-D arrays named like the fields of :class:`Step`. Non-finite input raises
         ``ValueError`` (naming the first bad index) before anything is learned.
         """
-        Xa = np.asarray(X, dtype=np.float64)
-        if Xa.ndim == 1:
-            Xa = Xa.reshape(-1, 1)
-        if Xa.ndim != 2:
-            raise ValueError(f"X must have shape (N,) or (N, d), got {np.shape(X)}")
-        ya = np.asarray(y, dtype=np.float64)
-        if ya.ndim != 1 or ya.shape[0] != Xa.shape[0]:
-            raise ValueError(f"y must have shape ({Xa.shape[0]},), got {ya.shape}")
-        bad_x = ~np.all(np.isfinite(Xa), axis=1)
-        if bad_x.any():
-            raise ValueError(f"X must be finite; row {int(np.argmax(bad_x))} is not")
-        bad_y = ~np.isfinite(ya)
-        if bad_y.any():
-            raise ValueError(f"y must be finite; element {int(np.argmax(bad_y))} is not")
-        if self._dim and Xa.shape[1] != self._dim:
-            raise ValueError(f"X has dimension {Xa.shape[1]}, the tracker was started with {self._dim}")
+        Xa, ya = self._stream(X, y, None, "X", "y")
         N = ya.shape[0]
         outs = np.zeros((N, core.N_OUT))
         if N:
-            Xa = np.ascontiguousarray(Xa)
-            ya = np.ascontiguousarray(ya)
-            if self._state is None:
-                self._start(Xa.shape[1], Xa[0])
-            kinds, params, cols = self._spec
-            Xs, Q, S, K, mu, order, ist, fst, P = self._state
-            core.learn_many(kinds, params, cols, Xs, Q, S, K, mu, order, ist, fst, P, self._W, self._tab,
-                            Xa, ya, outs)
+            core.learn_many(*self.core_arrays(Xa[0]), Xa, ya, outs)
         res = {name: outs[:, i].copy() for i, name in enumerate(_OUT_FIELDS)}
         res["removed"] = res["removed"].astype(np.int64)
         res["reduced"] = res["reduced"] != 0.0
@@ -488,38 +500,14 @@ class KRLST:
         non-finite ``ys`` where the mask is set, and ``RuntimeError`` when
         ``learn_mask[0]`` is set but nothing is armed.
         """
-        Xa = np.asarray(xs, dtype=np.float64)
-        if Xa.ndim == 1:
-            Xa = Xa.reshape(-1, 1)
-        if Xa.ndim != 2:
-            raise ValueError(f"xs must have shape (N,) or (N, d), got {np.shape(xs)}")
-        N = Xa.shape[0]
-        ya = np.asarray(ys, dtype=np.float64)
         mask = np.asarray(learn_mask)
-        if ya.shape != (N,):
-            raise ValueError(f"ys must have shape ({N},), got {ya.shape}")
-        if mask.shape != (N,) or mask.dtype != np.bool_:
-            raise ValueError(f"learn_mask must be a bool array of shape ({N},), got {mask.dtype} {mask.shape}")
-        bad_x = ~np.all(np.isfinite(Xa), axis=1)
-        if bad_x.any():
-            raise ValueError(f"xs must be finite; row {int(np.argmax(bad_x))} is not")
-        bad_y = mask & ~np.isfinite(ya)
-        if bad_y.any():
-            raise ValueError(f"ys must be finite where learn_mask is set; element {int(np.argmax(bad_y))} is not")
-        if self._dim and Xa.shape[1] != self._dim:
-            raise ValueError(f"xs has dimension {Xa.shape[1]}, the tracker was started with {self._dim}")
+        Xa, ya = self._stream(xs, ys, mask, "xs", "ys")
+        N = Xa.shape[0]
         if N and mask[0] and not self.armed:
             raise RuntimeError("track_many: learn_mask[0] is set but no prediction is armed")
         outs = np.zeros((N, core.N_TRACK))
         if N:
-            Xa = np.ascontiguousarray(Xa)
-            ya = np.ascontiguousarray(ya)
-            if self._state is None:
-                self._start(Xa.shape[1], Xa[0])
-            kinds, params, cols = self._spec
-            Xs, Q, S, K, mu, order, ist, fst, P = self._state
-            core.track(kinds, params, cols, Xs, Q, S, K, mu, order, ist, fst, P, self._W, self._tab,
-                       Xa, ya, np.ascontiguousarray(mask), outs)
+            core.track(*self.core_arrays(Xa[0]), Xa, ya, np.ascontiguousarray(mask), outs)
         learned = outs[:, 16] != 0.0
         res: dict[str, np.ndarray] = {"learned": learned}
         for i, name in enumerate(_TRACK_STEP_FIELDS):

@@ -341,6 +341,26 @@ def solve_spd_toeplitz(column, B, **kwargs) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _durbin_step(tn, a, e, k):
+    """Order ``k`` of the Durbin recursion (Golub & Van Loan §4.7) on the normalised column ``tn``:
+    updates the predictor ``a`` in place (reflection coefficient ``κ = a[k]``) and returns the new
+    prediction-error variance ``E_k = E_{k−1}(1 − κ²)``."""
+    acc = tn[k]
+    for j in range(1, k):
+        acc -= a[j] * tn[k - j]
+    kappa = acc / e
+    for j in range(1, k // 2 + 1):
+        i2 = k - j
+        aj = a[j]
+        ai = a[i2]
+        a[j] = aj - kappa * ai
+        if i2 != j:
+            a[i2] = ai - kappa * aj
+    a[k] = kappa
+    return e * (1.0 - kappa) * (1.0 + kappa)
+
+
+@njit(cache=True, nogil=True)
 def _levinson_logdet(t):
     """Levinson–Durbin on the normalised column; returns (log det, failing order or −1)."""
     n = t.shape[0]
@@ -352,19 +372,7 @@ def _levinson_logdet(t):
     e = 1.0  # prediction-error variance / r0
     logdet = n * math.log(r0)
     for k in range(1, n):
-        acc = tn[k]
-        for j in range(1, k):
-            acc -= a[j] * tn[k - j]
-        kappa = acc / e
-        for j in range(1, k // 2 + 1):
-            i2 = k - j
-            aj = a[j]
-            ai = a[i2]
-            a[j] = aj - kappa * ai
-            if i2 != j:
-                a[i2] = ai - kappa * aj
-        a[k] = kappa
-        e *= (1.0 - kappa) * (1.0 + kappa)
+        e = _durbin_step(tn, a, e, k)
         if not e > 0.0:
             return 0.0, k
         logdet += math.log(e)
@@ -390,19 +398,7 @@ def _levinson_whiten(t, X, lengths, W, logdets):
         for c in range(r):
             W[s, c, 0] = X[s, c, 0] * inv
     for k in range(1, n):
-        acc = tn[k]
-        for j in range(1, k):
-            acc -= a[j] * tn[k - j]
-        kappa = acc / e
-        for j in range(1, k // 2 + 1):
-            i2 = k - j
-            aj = a[j]
-            ai = a[i2]
-            a[j] = aj - kappa * ai
-            if i2 != j:
-                a[i2] = ai - kappa * aj
-        a[k] = kappa
-        e *= (1.0 - kappa) * (1.0 + kappa)
+        e = _durbin_step(tn, a, e, k)
         if not e > 0.0:
             return k
         inv = 1.0 / math.sqrt(e * r0)

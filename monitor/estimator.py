@@ -133,14 +133,9 @@ class AxisEstimator:
         flags = np.empty(n, dtype=np.int64)
         counts = self._counts
         counts[:] = 0
-        tr = self.tracker
-        if tr._state is None:
-            tr._start(1, np.zeros(1))
-        X, Q, S, K, mu, order, ist, fst, P = tr._state
-        kinds, params, cols = tr._spec
         m = self.model
         first = online.track_block(
-            kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, tr._W, tr._tab,
+            *self.tracker.core_arrays(self._xbuf),
             self.beta, m.coulomb, m.omega, m.form == "force-input", self._limits, self.stale_detection,
             self.warmup, self._carry, block.seq, t, e, v, rows, size, removed, flags, counts, self._xbuf, self._obuf,
         )

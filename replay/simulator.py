@@ -96,7 +96,13 @@ def true_beta(sc: dict) -> np.ndarray:
 # plant loops
 # ---------------------------------------------------------------------------------------------
 @njit(cache=True)
-def _loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega):
+def closed_loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega, v0=0.0, pos0=0.0):
+    """Exact ZOH closed loop of method §1, starting from the state ``(v0, pos0)``.
+
+    ``v_ref`` (m/s), ``tc`` disturbance force (N) and measurement ``noise`` (m/s) per sample.
+    Returns ``v_true, v_ctrl (= v_meas), u (N), x (m)`` per sample and the state after the last
+    sample, ``v_end, pos_end``, so a long stream can be generated in chunks (the soak benchmark).
+    """
     n = v_ref.size
     p = -B / J
     pd = math.exp(p * Ts)
@@ -106,8 +112,8 @@ def _loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega):
     v_ctrl = np.empty(n)
     u = np.empty(n)
     x = np.empty(n)
-    v = 0.0
-    pos = 0.0
+    v = v0
+    pos = pos0
     for k in range(n):
         vm = v + noise[k]
         uk = K * (v_ref[k] - vm)
@@ -125,7 +131,7 @@ def _loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega):
         vss = force / B
         pos += vss * Ts + (v - vss) * gx
         v = pd * v + b * force
-    return v_true, v_ctrl, u, x
+    return v_true, v_ctrl, u, x, v, pos
 
 
 @njit(cache=True)
@@ -251,7 +257,7 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
 
     if not fine:
         tc = _disturbance(sc, v_ref, Ts, 1)
-        v_true, v_ctrl, u, x = _loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega)
+        v_true, v_ctrl, u, x, _, _ = closed_loop_zoh(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega)
         v_rec = v_ctrl.copy()
         pos = x
     else:
