@@ -97,14 +97,14 @@ def _print_identification(air, cut, console) -> None:
 def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, console) -> int:
     from monitor.service import Monitor, live_meta, load_axes, warm_up
     from monitor.sinks.mcap_sink import McapSink
-    from monitor.sinks.rerun_sink import RerunSink
+    from monitor.sinks.rerun_process import RerunProcessSink
     from monitor.transport import free_tcp_port, open_session
     from replay.player import replay
 
     axes = load_axes([model_path])
     warm_up(axes)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    sinks = [McapSink(mcap_path, metas=[live_meta(a, source="demo") for a in axes.values()]), RerunSink(rrd_path)]
+    sinks = [McapSink(mcap_path, metas=[live_meta(a, source="demo") for a in axes.values()]), RerunProcessSink(rrd_path)]
     server = open_session(listen=endpoint)
     client = None
     monitor = Monitor(axes, server, sinks=sinks, record_truth=True)

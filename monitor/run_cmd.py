@@ -23,6 +23,7 @@ options on the command line win.
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import signal
 import sys
@@ -206,9 +207,9 @@ def _run_live(args) -> int:
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
         if args.rrd is not None or args.serve_rerun is not None:
-            from .sinks.rerun_sink import RerunSink
+            from .sinks.rerun_process import RerunProcessSink
 
-            rs_ = RerunSink(args.rrd, args.serve_rerun)
+            rs_ = RerunProcessSink(args.rrd, args.serve_rerun)  # own process: never holds our GIL
             sinks.append(rs_)
             if args.rrd:
                 _say(f"Rerun recording: {args.rrd}")
@@ -231,6 +232,10 @@ def _run_live(args) -> int:
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             monitor.start()
+            # everything allocated so far (modules, JIT, sessions, sinks) lives for the whole run:
+            # move it out of the collector's generations so full collections stay short
+            gc.collect()
+            gc.freeze()
             where = ", ".join(listen) if listen else "(no listen endpoint)"
             conn = f", connected to {', '.join(connect)}" if connect else ""
             _say(f"ready — Zenoh {zdesc['mode']}, listening on {where}{conn}; prefix {args.prefix!r}; axes "

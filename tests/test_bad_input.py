@@ -114,11 +114,15 @@ class MonitorProc:
         return rc
 
 
-def wait_status(session, pred, prefix: str = PREFIX, timeout: float = 30.0) -> dict:
+def wait_status(session, pred, prefix: str = PREFIX, timeout: float = 30.0, pid: int | None = None) -> dict:
+    """Poll the status queryable until ``pred(status)``; with ``pid``, only the reply of that monitor
+    counts (another monitor on the same prefix, e.g. one of an earlier test still stopping, may answer too)."""
     deadline = time.monotonic() + timeout
     last = None
     while time.monotonic() < deadline:
         replies = query_status(session, prefix, timeout=2.0)
+        if pid is not None:
+            replies = [r for r in replies if r.get("monitor", {}).get("pid") == pid]
         if replies:
             last = replies[0]
             try:

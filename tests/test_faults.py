@@ -60,7 +60,7 @@ def test_sigterm_then_sigint_finish_mcap_save_and_restore_state(work, trial):
             assert "tracker state restored" in mon.stderr, mon.stderr
         with T.open_session(connect=mon.endpoint) as s:
             replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0)
-            st = wait_status(s, lambda x: x["axes"][AXIS]["estimates_out"] == n)
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["estimates_out"] == n)
         assert st["axes"][AXIS]["state"]["origin"] == ("fresh" if i == 0 else "restored")
         rc = mon.stop(sig)
         assert rc == 0, mon.stderr
@@ -82,13 +82,13 @@ def test_publisher_restart_gap_reported(work, trial):
             pub = _publisher(s, trial)
             for b in blocks_of(trial, 0, 300):
                 pub.put(S.encode(b))
-            wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 299)
+            wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 299)
         # it disconnected; samples 300..399 are lost; a new session (a restarted process) continues at 400
         with T.open_session(connect=mon.endpoint) as s:
             pub = _publisher(s, trial)
             for b in blocks_of(trial, 400, 700):
                 pub.put(S.encode(b))
-            st = wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 699)
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 699)
     finally:
         rc = mon.stop()
     assert rc == 0, mon.stderr
@@ -130,7 +130,7 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
             pub = _publisher(s, trial)
             for b in blocks_of(trial, 0, 300):
                 pub.put(S.encode(b))
-            wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 299)
+            wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 299)
             router.kill()
             router.wait(10)
             for b in blocks_of(trial, 300, 400):  # published while the router is down: lost
@@ -143,7 +143,7 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
                 time.sleep(0.05)
             for b in blocks_of(trial, 400, 700):
                 pub.put(S.encode(b))
-            st = wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 699)
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 699)
         assert mon.proc.poll() is None  # survived the router restart
     finally:
         rc = mon.stop() if mon is not None else None
@@ -164,7 +164,7 @@ def test_no_rerun_viewer_nothing_blocks(work, trial):
         assert "rerun --connect" in mon.stderr
         with T.open_session(connect=mon.endpoint) as s:
             replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0, block=5)
-            st = wait_status(s, lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=20)
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=20)
     finally:
         t0 = time.monotonic()
         rc = mon.stop(timeout=30)
@@ -216,7 +216,7 @@ def test_full_disk_mcap_sink_fails_visibly_estimator_runs(work, trial, tiny_fs):
     try:
         with T.open_session(connect=mon.endpoint) as s:
             replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0, block=5)
-            st = wait_status(s, lambda x: x["axes"][AXIS]["estimates_out"] == n
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["estimates_out"] == n
                              and x["sinks"][0]["failures"] > 0, timeout=30)
     finally:
         rc = mon.stop()
@@ -274,7 +274,7 @@ def test_slow_disk_mcap_sink_never_stalls_estimation(work, trial, monkeypatch):
                 t0 = time.monotonic()
                 replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0,
                        block=1)
-                st = wait_status(s, lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=30)
+                st = wait_status(s, pid=os.getpid(), pred=lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=30)
                 took = time.monotonic() - t0
         finally:
             fast.set()
@@ -331,7 +331,7 @@ def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial)
     try:
         assert "unreadable" in mon.stderr and str(sf) in mon.stderr
         with T.open_session(connect=mon.endpoint) as s:
-            st = wait_status(s, lambda x: x["monitor"]["state"] == "running")
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["monitor"]["state"] == "running")
         assert st["axes"][AXIS]["state"]["origin"] == "unreadable"
     finally:
         assert mon.stop() == 0, mon.stderr

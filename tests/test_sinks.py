@@ -263,15 +263,18 @@ def _rerun_cli() -> str:
         return str(exe)
     found = shutil.which("rerun")
     if not found:
-        pytest.skip("rerun CLI not installed")
+        pytest.fail("the rerun CLI (installed with rerun-sdk) is missing: pip install -e '.[dev]'")
     return found
 
 
-def test_rerun_sink_rrd_verifies_and_has_the_entities(tmp_path):
+@pytest.mark.parametrize("where", ["in-process", "child-process"])
+def test_rerun_sink_rrd_verifies_and_has_the_entities(tmp_path, where):
+    from monitor.sinks.rerun_process import RerunProcessSink
     from monitor.sinks.rerun_sink import RerunSink
 
     rrd = tmp_path / "mon.rrd"
-    sink = RerunSink(rrd_path=rrd, psd_interval=0.1, batch_interval=0.05)
+    cls = RerunSink if where == "in-process" else RerunProcessSink
+    sink = cls(rrd_path=rrd, psd_interval=0.1, batch_interval=0.05)
     for k in range(60):
         for ax in "XY":
             sink.offer(samples(ax, 10 * k))
@@ -281,7 +284,12 @@ def test_rerun_sink_rrd_verifies_and_has_the_entities(tmp_path):
     assert sink.close(timeout=20)
     st = sink.status()
     assert st["failures"] == 0, st["last_error"]
-    assert st["written"] == 300 and st["psd_updates"] >= 2 and st["batches"] > 20
+    assert st["written"] == 300
+    if where == "child-process":  # the child's own RerunSink reports at the end
+        assert not st["process_alive"]
+        st = st["child"]
+        assert st["written"] == 300 and st["undecodable"] == 0 and st["failures"] == 0
+    assert st["psd_updates"] >= 2 and st["batches"] > 20
     cli = _rerun_cli()
     ver = subprocess.run([cli, "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=60)
     assert ver.returncode == 0, ver.stdout + ver.stderr
