@@ -323,7 +323,8 @@ class _Open:
             if size < 16 or tail != _MAGIC:
                 raise TrialFileError(
                     f"{self.path} is truncated: {size} bytes and no MCAP end magic — the recording "
-                    "was not closed properly (writer killed or disk full)"
+                    "was not closed properly (writer killed or disk full); salvage its complete chunks with "
+                    f"'feedmon recover {self.path} -o FIXED.mcap'"
                 )
             self.stream.seek(0)
             self.reader = make_reader(self.stream)

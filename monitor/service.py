@@ -570,18 +570,94 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     names = [f"{m}/{a}" for (m, a) in metas]
     samples = estimates = truth = 0
     t0 = time.perf_counter()
-    with TrialWriter(output, out_metas) as w:
-        for name, kind, block in _merged_blocks(trial, names):
+    with TrialWriter(output, out_metas) as w, _WriterThread(w) as out:
+        for name, kind, block in _prefetch(_merged_blocks(trial, names)):
             if kind == "truth":
                 m, a = name.split("/", 1)
-                w.write_truth(block, m, a)
+                out.put(w.write_truth, block, m, a)
                 truth += 1
                 continue
             samples += len(block.t)
             _, est = pipe.estimate(block)
-            w.write_samples(block)
+            out.put(w.write_samples, block)
             if est is not None:
-                w.write_estimates(est)
+                out.put(w.write_estimates, est)
                 estimates += len(est.t)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, samples, estimates, truth, seconds, names, skipped)
+
+
+def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
+    """Iterate ``items`` on a second thread (MCAP reading, zstd decompression and JSON decoding
+    overlap with the estimation); exceptions are re-raised here, order is kept."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def run() -> None:
+        try:
+            for item in items:
+                if stop.is_set():
+                    return
+                q.put((None, item))
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
+            q.put((exc, None))
+        q.put((None, done))
+
+    th = threading.Thread(target=run, name="offline-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            exc, item = q.get()
+            if exc is not None:
+                raise exc
+            if item is done:
+                return
+            yield item
+    finally:
+        stop.set()
+        while th.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                th.join(0.01)
+
+
+class _WriterThread:
+    """Runs the MCAP writes of :func:`run_offline` on a second thread, in order.
+
+    The tracker loop (``@njit(nogil=True)``) and zstd compression both release the GIL, so
+    estimating and encoding/compressing/writing overlap on two cores; one thread and a FIFO
+    keep the output byte-identical to writing inline. A write error is raised in the caller.
+    """
+
+    def __init__(self, writer, depth: int = 256) -> None:
+        self._q: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="offline-writer", daemon=True)
+
+    def __enter__(self) -> "_WriterThread":
+        self._thread.start()
+        return self
+
+    def put(self, fn, *args) -> None:
+        if self._error is not None:
+            raise self._error
+        self._q.put((fn, args))
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self._error is None:
+                try:
+                    item[0](*item[1])
+                except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
+                    self._error = exc
+
+    def __exit__(self, *exc) -> None:
+        self._q.put(None)
+        self._thread.join()
+        if self._error is not None and exc[0] is None:
+            raise self._error

@@ -143,3 +143,15 @@ def test_latency_ring_and_burst_log(caplog):
         for _ in range(50):
             b("k", "bad thing %s", 1)
     assert caplog.text.count("bad thing") == 1
+
+
+def test_offline_truncated_input_fails_clearly_without_hanging(work, capsys, tmp_path):
+    """Reading runs on a prefetch thread: its error must still reach the command, promptly."""
+    data = (work / "trial.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    t0 = time.monotonic()
+    assert _run("--from", cut, "-o", tmp_path / "o.mcap", "--model", work / "z.model.toml") == 2
+    err = capsys.readouterr().err
+    assert str(cut) in err and "truncated" in err and "feedmon recover" in err, err
+    assert time.monotonic() - t0 < 60
