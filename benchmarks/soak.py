@@ -328,7 +328,6 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
     ax = axes[(MACHINE, AXIS)]
     pipe = Pipeline(axes)
     key = f"feedmon/{MACHINE}/{AXIS}/samples"
-    b_gain = ax.model.force_gain
     writer = None
     if opts.mcap:
         from monitor.mcapio import TrialWriter

@@ -26,15 +26,12 @@ Layout of a trial file
 
 from __future__ import annotations
 
-import io
 import json
-import math
 import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
-import msgspec
 import numpy as np
 
 from . import schema as S

@@ -19,10 +19,8 @@ Two levels:
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -33,6 +31,7 @@ import zenoh
 
 from monitor import schema as S
 from monitor import transport as T
+from monitor_proc import MonitorProc
 from monitor.estimator import AxisEstimator
 from monitor.mcapio import iter_blocks, read_trial
 from monitor.model_file import AxisModel, TrackerConfig, load_model, save_model
@@ -43,7 +42,6 @@ from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
 PREFIX = "feedmon-bad"
-READY_TIMEOUT = 60.0
 AXIS = "linear-drive/Z"
 BLOCK = 10
 
@@ -60,58 +58,6 @@ def make_model(trial: Path, path: Path, period: float = 1 / 55) -> Path:
         provenance={"source": "simulated truth (test)"},
     ), path)
     return path
-
-
-class MonitorProc:
-    """``feedmon run`` as a subprocess on a free port; stderr collected by a thread."""
-
-    def __init__(self, args: list[str], cwd: Path, *, prefix: str = PREFIX, listen: bool = True,
-                 preexec_fn=None):
-        self.port = T.free_tcp_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "monitor.cli", "run", "--prefix", prefix, *args]
-        if listen:
-            cmd[4:4] = ["--listen", self.endpoint]
-        self.proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     preexec_fn=preexec_fn)
-        self.lines: list[str] = []
-        self._ready = threading.Event()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-        if not self._ready.wait(READY_TIMEOUT):
-            self.proc.kill()
-            raise AssertionError("monitor did not get ready:\n" + self.stderr)
-        if self.proc.poll() is not None:
-            self._reader.join(5)
-            raise AssertionError(f"monitor exited with {self.proc.returncode}:\n" + self.stderr)
-
-    def _read(self) -> None:
-        for line in self.proc.stderr:
-            self.lines.append(line)
-            if "ready" in line and "listening on" in line:
-                self._ready.set()
-        self._ready.set()  # EOF: the process ended
-
-    @property
-    def stderr(self) -> str:
-        return "".join(self.lines)
-
-    def count(self, text: str) -> int:
-        return sum(text in line for line in list(self.lines))
-
-    def stop(self, sig=None, timeout: float = 60.0) -> int:
-        import signal
-
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig or signal.SIGTERM)
-        try:
-            rc = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(10)
-            raise AssertionError("monitor did not stop within %.0f s:\n%s" % (timeout, self.stderr)) from None
-        self._reader.join(5)
-        return rc
 
 
 def wait_status(session, pred, prefix: str = PREFIX, timeout: float = 30.0, pid: int | None = None) -> dict:
@@ -412,7 +358,7 @@ def milling(work):
 def daemon(work, trial, milling):
     out = work / "daemon"
     out.mkdir()
-    mon = MonitorProc(["--model", "z.model.toml", "--model", "x.model.toml", "--mcap", str(out / "log.mcap"),
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--model", "x.model.toml", "--mcap", str(out / "log.mcap"),
                        "--fresh", "--state-dir", str(out / "state")], cwd=work)
     res: dict = {"mon": mon, "mcap": out / "log.mcap"}
     m = trial.machine, trial.axis

@@ -25,7 +25,6 @@ picked up, which the test asserts: ``monitor`` is imported from the fresh enviro
 
 from __future__ import annotations
 
-import configparser
 import fnmatch
 import json
 import os

@@ -3,14 +3,12 @@ bad model files. Real ``feedmon run`` subprocesses and real Zenoh on loopback (f
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -54,7 +52,7 @@ def test_sigterm_then_sigint_finish_mcap_save_and_restore_state(work, trial):
     state = work / "state-sig"
     for i, (sig, fresh) in enumerate(((signal.SIGTERM, ["--fresh"]), (signal.SIGINT, []))):
         out = work / f"sig{i}.mcap"
-        mon = MonitorProc(["--model", "z.model.toml", "--mcap", str(out), "--state-dir", str(state), *fresh],
+        mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--mcap", str(out), "--state-dir", str(state), *fresh],
                           cwd=work)
         if i == 1:
             assert "tracker state restored" in mon.stderr, mon.stderr
@@ -76,7 +74,7 @@ def test_sigterm_then_sigint_finish_mcap_save_and_restore_state(work, trial):
 
 # ---- Zenoh: a publisher restarts -------------------------------------------------------------
 def test_publisher_restart_gap_reported(work, trial):
-    mon = MonitorProc(["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-pub")], cwd=work)
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-pub")], cwd=work)
     try:
         with T.open_session(connect=mon.endpoint) as s:  # first life of the controller bridge
             pub = _publisher(s, trial)
@@ -123,7 +121,7 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
     router = _router(endpoint)
     mon = None
     try:
-        mon = MonitorProc(["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-router"),
+        mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-router"),
                            "--connect", endpoint], cwd=work, listen=False)
         assert "connected to " + endpoint in mon.stderr
         with T.open_session(mode="client", connect=endpoint) as s:
@@ -158,7 +156,7 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
 def test_no_rerun_viewer_nothing_blocks(work, trial):
     n = len(trial)
     port = T.free_tcp_port()
-    mon = MonitorProc(["--model", "z.model.toml", "--serve-rerun", str(port), "--mcap", str(work / "norr.mcap"),
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--serve-rerun", str(port), "--mcap", str(work / "norr.mcap"),
                        "--fresh", "--state-dir", str(work / "st-rr")], cwd=work)
     try:
         assert "rerun --connect" in mon.stderr
@@ -211,7 +209,7 @@ def test_full_disk_mcap_sink_fails_visibly_estimator_runs(work, trial, tiny_fs):
         out, pre, why = tiny_fs / "log.mcap", None, "No space left"
     else:  # mount refused: a 16 KiB file-size limit on the monitor process instead
         out, pre, why = work / "fsize.mcap", _limit_fsize, "File too large"
-    mon = MonitorProc(["--model", "z.model.toml", "--mcap", str(out), "--fresh",
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--mcap", str(out), "--fresh",
                        "--state-dir", str(work / "st-full")], cwd=work, preexec_fn=pre)
     try:
         with T.open_session(connect=mon.endpoint) as s:
@@ -327,7 +325,7 @@ def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial)
     state.mkdir()
     sf = state / "linear-drive_Z.state.npz"
     sf.write_bytes(b"PK\x03\x04 definitely not a zip")
-    mon = MonitorProc(["--model", "z.model.toml", "--state-dir", str(state)], cwd=work)
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--state-dir", str(state)], cwd=work)
     try:
         assert "unreadable" in mon.stderr and str(sf) in mon.stderr
         with T.open_session(connect=mon.endpoint) as s:
@@ -339,7 +337,7 @@ def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial)
         state_sha = str(z["meta.model_sha256"][()])
     other = work / "other.model.toml"  # same axis, other hyperparameters -> other hash
     other.write_text((work / "z.model.toml").read_text().replace("forgetting = 0.996", "forgetting = 0.99"))
-    mon = MonitorProc(["--model", str(other), "--state-dir", str(state)], cwd=work)
+    mon = MonitorProc(prefix=PREFIX, args=["--model", str(other), "--state-dir", str(state)], cwd=work)
     try:
         assert "saved with another model file" in mon.stderr and state_sha[:8] in mon.stderr, mon.stderr
     finally:

@@ -1,6 +1,5 @@
 """Importers: the real EMPS drive (key real-data check) and CSV exports."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from scipy.linalg import block_diag, toeplitz
+from scipy.linalg import block_diag
 
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
 from kernels.likelihood import log_marginal_likelihood, reml_terms, tune

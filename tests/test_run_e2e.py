@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -21,6 +20,7 @@ import pytest
 
 from monitor import cli
 from monitor import transport as T
+from monitor_proc import MonitorProc
 from monitor.mcapio import iter_blocks, read_trial
 from monitor.model_file import AxisModel, TrackerConfig, file_sha256, save_model
 from monitor.status_cmd import query_status
@@ -28,7 +28,6 @@ from replay.player import replay
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
-READY_TIMEOUT = 60.0
 RERUN = Path(sys.executable).with_name("rerun")
 PREFIX = "feedmon-e2e"
 
@@ -49,42 +48,6 @@ def model_from_truth(trial: Path, path: Path) -> Path:
         provenance={"source": "simulated truth (test)"},
     ), path)
     return path
-
-
-class MonitorProc:
-    """``feedmon run`` as a subprocess; stderr collected by a thread."""
-
-    def __init__(self, args: list[str], cwd: Path):
-        self.port = T.free_tcp_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "monitor.cli", "run", "--listen", self.endpoint, "--prefix", PREFIX, *args]
-        self.proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.lines: list[str] = []
-        self._ready = threading.Event()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-        if not self._ready.wait(READY_TIMEOUT):
-            self.proc.kill()
-            raise AssertionError("monitor did not get ready:\n" + self.stderr)
-        if self.proc.poll() is not None:
-            raise AssertionError(f"monitor exited with {self.proc.returncode}:\n" + self.stderr)
-
-    def _read(self) -> None:
-        for line in self.proc.stderr:
-            self.lines.append(line)
-            if "ready" in line and "listening on" in line:
-                self._ready.set()
-        self._ready.set()  # EOF: the process ended
-
-    @property
-    def stderr(self) -> str:
-        return "".join(self.lines)
-
-    def terminate(self, timeout: float = 60.0) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        rc = self.proc.wait(timeout)
-        self._reader.join(5)
-        return rc
 
 
 def estimates(path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -136,7 +99,7 @@ def live10(work):
     """The 20 s trial replayed at 10× to a monitor with MCAP and Rerun sinks; status queried before SIGTERM."""
     out = work / "live10"
     out.mkdir()
-    mon = MonitorProc(["--model", "z.model.toml", "--mcap", str(out / "live.mcap"), "--rrd", str(out / "live.rrd"),
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--mcap", str(out / "live.mcap"), "--rrd", str(out / "live.rrd"),
                        "--state-dir", str(work / "state"), "--fresh"], cwd=work)
     n = sample_count(work / "trial20.mcap")
     res: dict = {"n": n, "mcap": out / "live.mcap", "rrd": out / "live.rrd"}
@@ -151,7 +114,7 @@ def live10(work):
         res["status_table_cli"] = subprocess.run(cmd, capture_output=True, text=True, timeout=60,
                                                  env={**os.environ, "COLUMNS": "160"})
     finally:
-        res["rc"] = mon.terminate()
+        res["rc"] = mon.stop()
         res["stderr"] = mon.stderr
     return res
 
@@ -214,7 +177,7 @@ def test_1x_realtime_restores_state(live10, work):
     """Second start without --fresh: the state saved by the 10× run is restored; 10 s at real time."""
     out = work / "live1"
     out.mkdir()
-    mon = MonitorProc(["--model", "z.model.toml", "--mcap", str(out), "--state-dir", str(work / "state")], cwd=work)
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--mcap", str(out), "--state-dir", str(work / "state")], cwd=work)
     try:
         assert "tracker state restored" in mon.stderr
         with T.open_session(connect=mon.endpoint) as session:
@@ -222,7 +185,7 @@ def test_1x_realtime_restores_state(live10, work):
             n = stats.samples
             st = wait_status(session, lambda s: s["axes"]["linear-drive/Z"]["estimates_out"] >= n)
     finally:
-        rc = mon.terminate()
+        rc = mon.stop()
     assert rc == 0, mon.stderr
     assert stats.max_lateness < 0.5
     a = st["axes"]["linear-drive/Z"]
@@ -237,7 +200,7 @@ def test_1x_realtime_restores_state(live10, work):
 
 def test_sigterm_during_replay_leaves_complete_mcap(work):
     out = work / "sigterm.mcap"
-    mon = MonitorProc(["--model", "z.model.toml", "--mcap", str(out), "--fresh", "--state-dir", str(work / "st2")],
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--mcap", str(out), "--fresh", "--state-dir", str(work / "st2")],
                       cwd=work)
     stop = threading.Event()
     with T.open_session(connect=mon.endpoint) as session:
@@ -246,7 +209,7 @@ def test_sigterm_during_replay_leaves_complete_mcap(work):
         th.start()
         try:
             wait_status(session, lambda s: s["axes"]["linear-drive/Z"]["samples_in"] > 500)
-            rc = mon.terminate()
+            rc = mon.stop()
         finally:
             stop.set()
             th.join(30)

@@ -11,7 +11,7 @@ from monitor.cli import main
 from monitor.mcapio import read_trial
 from replay import scenarios as SC
 from replay.cutting import MillingTool, feed_force, mean_feed_force
-from replay.simulator import simulate, simulate_scenario, true_beta
+from replay.simulator import simulate_scenario, true_beta
 
 QUIET = {"noise": {"v_meas_std": 0.0, "glitch_rate": 0.0, "dynamometer_std": 0.0}}
 

@@ -27,7 +27,17 @@ from typing import Any
 from .. import schema as S
 from .queued import QueuedSink
 
-__all__ = ["RerunProcessSink"]
+__all__ = ["RerunProcessSink", "check_outputs"]
+
+
+def check_outputs(rrd_path, serve_port) -> None:
+    """Validate the Rerun outputs before anything starts (shared by both Rerun sinks)."""
+    if rrd_path is not None:
+        d = os.path.dirname(os.path.abspath(os.fspath(rrd_path)))
+        if not os.path.isdir(d):
+            raise FileNotFoundError(f"directory of the Rerun file {os.fspath(rrd_path)!r} does not exist")
+    if serve_port is not None and not (0 < int(serve_port) < 65536):
+        raise ValueError(f"serve_port must be a TCP port (1-65535), got {serve_port}")
 
 
 class RerunProcessSink(QueuedSink):
@@ -43,12 +53,7 @@ class RerunProcessSink(QueuedSink):
 
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
                  maxsize: int = 4096, name: str = "rerun", start_timeout: float = 60.0, **rerun_options) -> None:
-        if rrd_path is not None:
-            d = os.path.dirname(os.path.abspath(os.fspath(rrd_path)))
-            if not os.path.isdir(d):
-                raise FileNotFoundError(f"directory of the Rerun file {os.fspath(rrd_path)!r} does not exist")
-        if serve_port is not None and not (0 < int(serve_port) < 65536):
-            raise ValueError(f"serve_port must be a TCP port (1-65535), got {serve_port}")
+        check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)

@@ -206,12 +206,9 @@ class RerunSink(QueuedSink):
     ) -> None:
         import rerun as rr
 
-        if rrd_path is not None:
-            d = os.path.dirname(os.path.abspath(os.fspath(rrd_path)))
-            if not os.path.isdir(d):
-                raise FileNotFoundError(f"directory of the Rerun file {os.fspath(rrd_path)!r} does not exist")
-        if serve_port is not None and not (0 < int(serve_port) < 65536):
-            raise ValueError(f"serve_port must be a TCP port (1-65535), got {serve_port}")
+        from .rerun_process import check_outputs
+
+        check_outputs(rrd_path, serve_port)
         if psd_window < 16:
             raise ValueError(f"psd_window must be at least 16 samples, got {psd_window}")
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
