@@ -348,6 +348,14 @@ def replay(
             if stats.matched or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
                 break
             time.sleep(0.01)
+        if stats.matched and truth:
+            # truth subscribers are optional (a monitor records truth only with --record-truth), so do
+            # not wait for them the full time; but a recorder that is there usually matches within
+            # milliseconds of the samples subscriber: give it a moment before the first put
+            truth_pubs = [pubs[(a, "truth")] for a in scan.axes]
+            grace = min(deadline, time.monotonic() + 0.5)
+            while not all(p.matching_status.matching for p in truth_pubs) and time.monotonic() < grace:
+                time.sleep(0.01)
 
         total = None if passes is None else scan.total_samples * passes
         bar = _progress(progress, total, path)
