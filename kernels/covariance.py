@@ -383,23 +383,11 @@ def kernel_value_at(kinds, params, cols, X, i, x):
 
 @njit(cache=True, nogil=True)
 def kernel_value(kinds, params, cols, x1, x2):
-    """``k(x1, x2)`` for the factor table from :meth:`Kernel.spec` (x1, x2: 1-D float64)."""
-    v = 1.0
-    for f in range(kinds.shape[0]):
-        kind = kinds[f]
-        start = cols[f, 0]
-        stop = cols[f, 1]
-        if stop == -1:
-            stop = x1.shape[0]
-        if kind == KIND_SE:
-            r = 0.0
-            for j in range(start, stop):
-                d = x1[j] - x2[j]
-                r += d * d
-        else:
-            r = x1[start] - x2[start]
-        v *= _factor(kind, params, f, r)
-    return v
+    """``k(x1, x2)`` for the factor table from :meth:`Kernel.spec` (x1, x2: 1-D float64).
+
+    :func:`kernel_value_at` on a one-row view of ``x1`` (same arithmetic, same bits).
+    """
+    return kernel_value_at(kinds, params, cols, x1.reshape((1, x1.shape[0])), 0, x2)
 
 
 _ALL_ROWS = np.zeros(0, dtype=np.int64)
