@@ -39,6 +39,7 @@ from . import schema as S
 __all__ = [
     "TrialFileError",
     "TrialWriter",
+    "write_arrays",
     "Trial",
     "TruthArrays",
     "read_trial",
@@ -247,6 +248,24 @@ class TrialWriter:
         finally:
             self._closed = True
             self._stream.close()
+
+
+def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = None, *, block: int = 100) -> None:
+    """Write one axis given as arrays: ``samples`` maps :class:`SampleBlock` fields (``t``,
+    ``v_ref``, ``v_meas`` and optional columns; ``None`` = absent) to arrays, ``truth`` maps
+    :class:`TruthBlock` fields to arrays; both are cut into blocks of ``block`` samples with
+    ``seq`` from 0 (the one writer of the simulator and the importers)."""
+    n = len(samples["t"])
+
+    def cut(cols: dict, i: int, j: int) -> dict:
+        return {k: None if a is None else np.asarray(a[i:j]).tolist() for k, a in cols.items()}
+
+    with TrialWriter(os.fspath(path), meta) as w:
+        for i in range(0, n, block):
+            j = min(i + block, n)
+            w.write_samples(S.SampleBlock(machine=meta.machine, axis=meta.axis, seq=i, **cut(samples, i, j)))
+            if truth is not None:
+                w.write_truth(S.TruthBlock(seq=i, **cut(truth, i, j)), meta.machine, meta.axis)
 
 
 # ============================================================================================

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -345,23 +344,8 @@ def import_csv(path, output, mapping, units=None, **kw) -> ImportedTrial:
 # ============================================================================================
 def write_imported(tr: ImportedTrial, output, *, block: int = 100) -> None:
     """Write an imported trial (and pulse truth, if any) to an MCAP trial file."""
-    from monitor.mcapio import TrialWriter
+    from monitor.mcapio import write_arrays
 
-    m = tr.meta
-    n = len(tr)
-
-    def col(a, i, j):
-        return None if a is None else a[i:j].tolist()
-
-    with TrialWriter(os.fspath(output), m) as w:
-        for i in range(0, n, block):
-            j = min(i + block, n)
-            t = tr.t[i:j].tolist()
-            w.write_samples(S.SampleBlock(
-                machine=m.machine, axis=m.axis, seq=i, t=t, v_ref=tr.v_ref[i:j].tolist(),
-                v_meas=tr.v_meas[i:j].tolist(), u=col(tr.u, i, j), current=col(tr.current, i, j),
-                position=col(tr.position, i, j), spindle_rpm=col(tr.spindle_rpm, i, j),
-            ))
-            if tr.truth_force is not None:
-                w.write_truth(S.TruthBlock(seq=i, t=t, force=tr.truth_force[i:j].tolist(),
-                                           f=tr.truth_f[i:j].tolist()), m.machine, m.axis)
+    truth = None if tr.truth_force is None else dict(t=tr.t, force=tr.truth_force, f=tr.truth_f)
+    write_arrays(output, tr.meta, dict(t=tr.t, v_ref=tr.v_ref, v_meas=tr.v_meas, u=tr.u, current=tr.current,
+                                       position=tr.position, spindle_rpm=tr.spindle_rpm), truth, block=block)

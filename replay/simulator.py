@@ -343,27 +343,13 @@ def simulate_scenario(name: str, *, seed: int = 0, duration: float | None = None
 
 def write_trial(res: SimResult, path, *, block: int | None = None) -> None:
     """Write a simulated trial (samples + truth) to an MCAP trial file."""
-    from monitor.mcapio import TrialWriter
+    from monitor.mcapio import write_arrays
 
-    block = int(block or res.block)
-    m = res.meta
-    n = len(res)
-
-    def col(a, i, j):
-        return None if a is None else a[i:j].tolist()
-
-    with TrialWriter(path, m) as w:
-        for i in range(0, n, block):
-            j = min(i + block, n)
-            t = res.t[i:j].tolist()
-            w.write_samples(S.SampleBlock(
-                machine=m.machine, axis=m.axis, seq=i, t=t,
-                v_ref=res.v_ref[i:j].tolist(), v_meas=res.v_meas[i:j].tolist(),
-                u=col(res.u, i, j), current=col(res.current, i, j), position=col(res.position, i, j),
-                spindle_rpm=col(res.spindle_rpm, i, j),
-            ))
-            w.write_truth(S.TruthBlock(
-                seq=i, t=t, force=res.force[i:j].tolist(), f=res.f[i:j].tolist(),
-                dynamometer=col(res.dynamometer, i, j), v_true=res.v_true[i:j].tolist(),
-                glitch=res.glitch[i:j].tolist(),
-            ), m.machine, m.axis)
+    write_arrays(
+        path, res.meta,
+        dict(t=res.t, v_ref=res.v_ref, v_meas=res.v_meas, u=res.u, current=res.current,
+             position=res.position, spindle_rpm=res.spindle_rpm),
+        dict(t=res.t, force=res.force, f=res.f, dynamometer=res.dynamometer, v_true=res.v_true,
+             glitch=res.glitch),
+        block=int(block or res.block),
+    )
