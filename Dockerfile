@@ -35,8 +35,10 @@ RUN groupadd --system --gid 10001 feedmon \
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY kernels ./kernels
+COPY feedio ./feedio
 COPY monitor ./monitor
 COPY replay ./replay
+COPY feedmon ./feedmon
 RUN pip install . \
  && cd / && rm -rf /src
 COPY deploy/monitor.toml /etc/feedmon/monitor.toml
@@ -44,7 +46,7 @@ COPY deploy/monitor.toml /etc/feedmon/monitor.toml
 USER feedmon
 # compile the Numba tracker core into NUMBA_CACHE_DIR now, not at every container start (a cold
 # compile takes up to a minute; the cache is reused when the host CPU matches the build's)
-RUN python -c "from monitor.model_file import AxisModel, TrackerConfig; from monitor.estimator import AxisEstimator; from monitor.schema import SampleBlock; m = AxisModel(machine='m', axis='x', form='velocity-loop', Ts=0.003, beta=[0.8, 0.16], omega=0.0, coulomb=False, tracker=TrackerConfig()); AxisEstimator(m).process(SampleBlock(machine='m', axis='x', seq=0, t=[0.003 * i for i in range(8)], v_ref=[0.001 * i for i in range(8)], v_meas=[0.001 * i for i in range(8)]))"
+RUN python -c "from monitor.model_file import AxisModel, TrackerConfig; from monitor.estimator import AxisEstimator; from feedio.schema import SampleBlock; m = AxisModel(machine='m', axis='x', form='velocity-loop', Ts=0.003, beta=[0.8, 0.16], omega=0.0, coulomb=False, tracker=TrackerConfig()); AxisEstimator(m).process(SampleBlock(machine='m', axis='x', seq=0, t=[0.003 * i for i in range(8)], v_ref=[0.001 * i for i in range(8)], v_meas=[0.001 * i for i in range(8)]))"
 WORKDIR /var/lib/feedmon
 VOLUME ["/var/lib/feedmon", "/var/log/feedmon"]
 EXPOSE 7448/tcp

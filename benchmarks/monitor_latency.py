@@ -38,9 +38,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from monitor import schema as S  # noqa: E402
-from monitor import transport as T  # noqa: E402
-from monitor.status_cmd import query_status  # noqa: E402
+from feedio import schema as S  # noqa: E402
+from feedio import transport as T  # noqa: E402
+from feedio.transport import query_status  # noqa: E402
 
 PREFIX = "feedmon-bench"
 
@@ -70,7 +70,7 @@ class Stream:
     """The trial's samples as an endless stream (seq and t continue across passes)."""
 
     def __init__(self, trial: Path):
-        from monitor.mcapio import read_trial
+        from feedio.mcapio import read_trial
 
         tr = read_trial(trial)
         self.machine, self.axis = tr.machine, tr.axis
@@ -92,7 +92,7 @@ class Stream:
 class Monitor:
     def __init__(self, work: Path, extra: list[str]):
         self.endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
-        cmd = [sys.executable, "-m", "monitor.cli", "run", "--model", str(work / "z.model.toml"), "--fresh",
+        cmd = [sys.executable, "-m", "feedmon.cli", "run", "--model", str(work / "z.model.toml"), "--fresh",
                "--state-dir", str(work / "state"), "--listen", self.endpoint, "--prefix", PREFIX, *extra]
         self.proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
         self.lines: list[str] = []
@@ -233,7 +233,8 @@ def bench_rate(work: Path, stream: Stream, rates: list[float], seconds: float, b
 
 
 def bench_offline(work: Path) -> tuple[int, float]:
-    from monitor.service import load_axes, run_offline
+    from monitor.axes import load_axes
+    from monitor.offline import run_offline
 
     run_offline(work / "trial.mcap", work / "warm.mcap", load_axes([work / "z.model.toml"]))  # warm-up
     res = run_offline(work / "trial.mcap", work / "offline.mcap", load_axes([work / "z.model.toml"]))

@@ -39,11 +39,11 @@ def _maxrss_mb() -> float:
 
 def _case(kind: str, n: int) -> dict:
     import numpy as np
+    from streams import shaker_stream
 
     from kernels.covariance import LocallyPeriodic
     from kernels.likelihood import log_marginal_likelihood, tune
     from kernels.pl_lssvm import pl_lssvm
-    from streams import shaker_stream
 
     kernel = LocallyPeriodic(SIGMA1, SIGMA2, PSI)
     s = shaker_stream(n + 1, amplitude=10.0, seed=1)

@@ -27,7 +27,7 @@ What runs
   STALE rows), isolated non-finite readings (NaN v_meas: REJECTED rows), sequence gaps (the head
   of a block lost: GAP, chain restart) and re-sent blocks (duplicates: no rows).
 * **The monitor path**: the model file (true β, thesis tracker hyperparameters) is written with
-  ``save_model`` and loaded with ``monitor.service.load_axes``; ``warm_up`` compiles first. Every
+  ``save_model`` and loaded with ``monitor.axes.load_axes``; ``warm_up`` compiles first. Every
   SampleBlock is encoded to JSON and decoded by :meth:`Pipeline.decode` (the wire path of
   ``feedmon run``; ``--no-wire`` skips it), estimated by :meth:`Pipeline.estimate` (the
   :class:`~monitor.estimator.AxisEstimator` of ``feedmon run`` and ``feedmon run --from``) and the
@@ -76,8 +76,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from feedio import schema as S  # noqa: E402
 from kernels.feed_drive import physical_to_beta  # noqa: E402
-from monitor import schema as S  # noqa: E402
 from replay.simulator import closed_loop_zoh  # noqa: E402  (the simulator's plant: one definition)
 
 RATE = 333.0
@@ -306,7 +306,8 @@ def _fmt_row(r: Row) -> str:
 
 
 def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
-    from monitor.service import Pipeline, live_meta, load_axes, warm_up
+    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.pipeline import Pipeline
 
     def say(msg: str = "") -> None:
         print(msg, file=out, flush=True)
@@ -330,7 +331,7 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
     key = f"feedmon/{MACHINE}/{AXIS}/samples"
     writer = None
     if opts.mcap:
-        from monitor.mcapio import TrialWriter
+        from feedio.mcapio import TrialWriter
 
         writer = TrialWriter(opts.mcap, [live_meta(ax, source="soak")])
 

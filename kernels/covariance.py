@@ -185,7 +185,7 @@ class Kernel:
         return kinds, params, cols
 
     # -- composition and description ------------------------------------------------
-    def __mul__(self, other: "Kernel") -> "Product":
+    def __mul__(self, other: Kernel) -> Product:
         if not isinstance(other, Kernel):
             return NotImplemented
         return Product(self, other)
@@ -195,7 +195,7 @@ class Kernel:
         raise NotImplementedError
 
     @staticmethod
-    def from_dict(d: dict) -> "Kernel":
+    def from_dict(d: dict) -> Kernel:
         """Inverse of :meth:`to_dict`; raises ``ValueError`` naming the bad key."""
         if not isinstance(d, dict) or "type" not in d:
             raise ValueError("kernel description needs a 'type' key")

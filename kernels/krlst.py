@@ -573,7 +573,7 @@ class KRLST:
         return snap
 
     @classmethod
-    def restore(cls, snap: dict) -> "KRLST":
+    def restore(cls, snap: dict) -> KRLST:
         """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot.
 
         Snapshots written before ``refresh_every`` and the split step existed (shorter

@@ -264,7 +264,7 @@ def tune(Z, y, Ts, period, *, init=(0.59, 0.42, 50.0), bounds=None, progress=Non
 def _simplex(x0, log_bounds, step: float = 0.5):
     """Initial Nelder–Mead simplex: ±``step`` (log units) per coordinate, kept inside the bounds."""
     pts = [np.array(x0)]
-    for i, (lo, hi) in enumerate(log_bounds):
+    for i, (_lo, hi) in enumerate(log_bounds):
         p = np.array(x0)
         p[i] = p[i] + step if p[i] + step <= hi else p[i] - step
         pts.append(p)

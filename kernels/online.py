@@ -30,7 +30,7 @@ from . import _krlst_core as core
 __all__ = ["COUNTERS", "CARRY", "N_ROW", "new_carry", "track_block",
            "FLAG_STALE", "FLAG_GAP", "FLAG_REJECTED", "FLAG_WARMUP", "FLAG_REDUCED"]
 
-# flags (the same bits as monitor.schema)
+# flags (the same bits as feedio.schema)
 FLAG_STALE, FLAG_GAP, FLAG_REJECTED, FLAG_WARMUP, FLAG_REDUCED = 1, 2, 4, 8, 16
 
 #: counter slots of the ``counts`` array

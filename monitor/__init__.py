@@ -1,8 +1,2 @@
-"""The feedmon service: CLI, identification workflow, live monitor and sinks."""
-
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("feedmon")
-except PackageNotFoundError:  # running from a source tree without install
-    __version__ = "0.0.0+unknown"
+"""The feedmon service: identification workflow, model files, the per-axis estimator, the live
+monitor and its sinks. Uses :mod:`kernels` and :mod:`feedio`; never imports :mod:`replay` or the CLI."""

@@ -45,10 +45,10 @@ from collections import Counter
 
 import numpy as np
 
+from feedio.schema import EstimateBlock, SampleBlock
 from kernels import KRLST, online
 
 from .model_file import AxisModel
-from .schema import EstimateBlock, SampleBlock
 
 __all__ = ["AxisEstimator", "LIMITS"]
 

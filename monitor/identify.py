@@ -1,6 +1,6 @@
 """Offline identification of one axis: LS and PL-LSSVM on a recorded trial (method §2–4).
 
-:func:`identify` takes a :class:`monitor.mcapio.Trial` and returns an
+:func:`identify` takes a :class:`feedio.mcapio.Trial` and returns an
 :class:`Identification` with β per method, physical parameters, prediction
 errors, the disturbance estimate and, for simulated trials, the error against
 the recorded truth. :meth:`Identification.to_json` is the machine-readable
@@ -25,7 +25,8 @@ from kernels.feed_drive import (
     simulate_free_run,
 )
 from kernels.least_squares import least_squares
-from kernels.likelihood import log_marginal_likelihood, tune as tune_hyperparameters
+from kernels.likelihood import log_marginal_likelihood
+from kernels.likelihood import tune as tune_hyperparameters
 from kernels.pl_lssvm import pl_lssvm
 
 from .model_file import AxisModel, TrackerConfig, file_sha256
@@ -175,7 +176,7 @@ class Identification:
                 "source": self.trial_path,
                 "sha256": file_sha256(self.trial_path),
                 "method": method,
-                "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                 "feedmon_version": feedmon_version,
             },
         )

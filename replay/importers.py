@@ -1,4 +1,4 @@
-"""Importers: real recordings → MCAP trial files (:mod:`monitor.mcapio`).
+"""Importers: real recordings → MCAP trial files (:mod:`feedio.mcapio`).
 
 * :func:`import_emps` — the EMPS benchmark drive (Janot et al., nonlinearbenchmark.org),
   force-input form.
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor import schema as S
+from feedio import schema as S
 
 __all__ = [
     "ImportedTrial",
@@ -89,7 +89,7 @@ def load_emps(path, *, rate: int = 333, cutoff: float = 100.0, order: int = 4) -
         raise OSError(f"EMPS file {path} not found; {EMPS_HOWTO}")
     try:
         d = loadmat(path)
-    except Exception as exc:  # scipy raises ValueError/TypeError/MatReadError on non-.mat input
+    except Exception as exc:  # noqa: BLE001 - scipy raises ValueError/TypeError/MatReadError on non-.mat input
         raise ValueError(f"{path} is not a MATLAB .mat file readable by scipy.io.loadmat ({exc})") from None
     missing = [k for k in ("t", "qm", "qg", "vir", "gtau") if k not in d]
     if missing:
@@ -169,7 +169,7 @@ def load_emps(path, *, rate: int = 333, cutoff: float = 100.0, order: int = 4) -
 
 
 def _version() -> str:
-    from monitor import __version__
+    from feedio import __version__
 
     return __version__
 
@@ -344,7 +344,7 @@ def import_csv(path, output, mapping, units=None, **kw) -> ImportedTrial:
 # ============================================================================================
 def write_imported(tr: ImportedTrial, output, *, block: int = 100) -> None:
     """Write an imported trial (and pulse truth, if any) to an MCAP trial file."""
-    from monitor.mcapio import write_arrays
+    from feedio.mcapio import write_arrays
 
     truth = None if tr.truth_force is None else dict(t=tr.t, force=tr.truth_force, f=tr.truth_f)
     write_arrays(output, tr.meta, dict(t=tr.t, v_ref=tr.v_ref, v_meas=tr.v_meas, u=tr.u, current=tr.current,

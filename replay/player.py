@@ -4,11 +4,11 @@ What is published
 -----------------
 For every axis of the file (or the one chosen with ``axis=``):
 
-* each :class:`~monitor.schema.SampleBlock` on ``<prefix>/<machine>/<axis>/samples``;
-* each :class:`~monitor.schema.TruthBlock` (simulated trials) on
+* each :class:`~feedio.schema.SampleBlock` on ``<prefix>/<machine>/<axis>/samples``;
+* each :class:`~feedio.schema.TruthBlock` (simulated trials) on
   ``<prefix>/<machine>/<axis>/truth``.
 
-Payloads are the same JSON as in the file (``monitor.schema.encode``, encoding
+Payloads are the same JSON as in the file (``feedio.schema.encode``, encoding
 ``application/json``). With ``block=N`` the samples (and truth) are re-cut into
 blocks of N samples; a block never spans a sequence gap of the recording.
 
@@ -58,9 +58,9 @@ from typing import Any
 import msgspec
 import zenoh
 
-from monitor import schema as S
-from monitor.mcapio import iter_blocks, list_axes
-from monitor.transport import DEFAULT_PREFIX, samples_key, truth_key
+from feedio import schema as S
+from feedio.mcapio import iter_blocks, list_axes
+from feedio.transport import DEFAULT_PREFIX, samples_key, truth_key
 
 __all__ = ["ReplayStats", "replay", "scan_trial", "TrialScan"]
 
@@ -256,8 +256,14 @@ def _pass_stream(path: str, scan: TrialScan, block: int | None, k: int,
 def _progress(enabled: bool, total: int | None, path: str):
     if not enabled:
         return None
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     p = Progress(
         TextColumn("[bold]replay[/] {task.description}"),
@@ -297,7 +303,7 @@ def replay(
     axis' samples key before starting. ``stop``: a ``threading.Event`` that ends the
     replay early. Ctrl-C also ends it; both set ``interrupted``.
 
-    Raises ``ValueError`` (incl. :class:`monitor.mcapio.TrialFileError`) for a bad
+    Raises ``ValueError`` (incl. :class:`feedio.mcapio.TrialFileError`) for a bad
     file or arguments, ``OSError`` if it cannot be read.
     """
     path = os.fspath(path)

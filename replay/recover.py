@@ -12,7 +12,7 @@ into a new, complete MCAP file:
 * every message of every *complete* chunk (CRC of the uncompressed data checked
   when the writer stored one), with log time, publish time, sequence and data
   unchanged; chunk boundaries are kept (one output chunk per source chunk, the
-  same compression and maximum chunk size as :class:`monitor.mcapio.TrialWriter`);
+  same compression and maximum chunk size as :class:`feedio.mcapio.TrialWriter`);
 * one extra metadata record ``feedmon.recover`` saying what was done (source
   file, bytes read and dropped, where and why reading stopped).
 
@@ -166,7 +166,7 @@ def _unpack_chunk(chunk):
         raise ValueError(f"implausible uncompressed size {chunk.uncompressed_size}")
     try:
         records = breakup_chunk(chunk, validate_crc=True)
-    except Exception as exc:  # zstd/lz4 errors, CRCValidationError, EndOfFile, struct.error, UnicodeDecodeError
+    except Exception as exc:  # noqa: BLE001 - zstd/lz4 errors, CRCValidationError, EndOfFile, struct.error, UnicodeDecodeError
         raise ValueError(f"{type(exc).__name__}: {exc}") from None
     return records
 
@@ -261,7 +261,7 @@ def recover(
     """Copy every complete record of ``source`` (an MCAP file, possibly cut off) into ``output``.
 
     ``compression`` (zstd, lz4, none) and ``chunk_size`` (bytes, uncompressed) as in
-    :class:`monitor.mcapio.TrialWriter`; source chunks are kept as they are (split
+    :class:`feedio.mcapio.TrialWriter`; source chunks are kept as they are (split
     further only if larger than ``chunk_size``); messages written outside chunks are
     grouped into chunks of ``chunk_seconds`` of log time.
 
@@ -313,7 +313,7 @@ def recover(
                 rec = next(records)
             except StopIteration:
                 return None
-            except Exception as exc:  # EndOfFile, struct.error, UnicodeDecodeError, RecordLengthLimitExceeded...
+            except Exception as exc:  # noqa: BLE001 - EndOfFile, struct.error, UnicodeDecodeError, RecordLengthLimitExceeded...
                 cut = hdr is None or offset + 9 + hdr[1] > size or type(exc).__name__ == "EndOfFile"
                 why = "cut off" if cut else "corrupt"
                 detail = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
@@ -398,7 +398,7 @@ def recover(
 
 
 def _recover_metadata(report: RecoverReport) -> dict[str, str]:
-    from monitor import __version__
+    from feedio import __version__
 
     meta = {
         "source": os.path.basename(report.source),

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from kernels.feed_drive import force_to_disturbance, physical_to_beta, beta_names
-from monitor import schema as S
+from feedio import schema as S
+from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_beta
 
 from . import scenarios as SC
 from .cutting import MillingTool, feed_force
@@ -239,7 +239,7 @@ def _disturbance(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int) -> np.ndarr
 # ---------------------------------------------------------------------------------------------
 def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None = None) -> SimResult:
     """Simulate a scenario dict (from :func:`replay.scenarios.load_scenario`)."""
-    from monitor import __version__
+    from feedio import __version__
 
     SC.check(sc)
     if not (isinstance(seed, int) and seed >= 0):
@@ -343,7 +343,7 @@ def simulate_scenario(name: str, *, seed: int = 0, duration: float | None = None
 
 def write_trial(res: SimResult, path, *, block: int | None = None) -> None:
     """Write a simulated trial (samples + truth) to an MCAP trial file."""
-    from monitor.mcapio import write_arrays
+    from feedio.mcapio import write_arrays
 
     write_arrays(
         path, res.meta,

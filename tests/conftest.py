@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from monitor.cli import main
+from feedmon.cli import main
 from replay.importers import EMPS_HOWTO
 
 REPO = Path(__file__).resolve().parents[1]

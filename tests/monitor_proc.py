@@ -8,7 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
-from monitor import transport as T
+from feedio import transport as T
 
 READY_TIMEOUT = 60.0  # s: start-up includes loading the Numba cache (or compiling on a cold one)
 
@@ -19,7 +19,7 @@ class MonitorProc:
     def __init__(self, args: list[str], cwd: Path, *, prefix: str, listen: bool = True, preexec_fn=None):
         self.port = T.free_tcp_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "monitor.cli", "run", "--prefix", prefix, *args]
+        cmd = [sys.executable, "-m", "feedmon.cli", "run", "--prefix", prefix, *args]
         if listen:
             cmd[4:4] = ["--listen", self.endpoint]
         self.proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -58,6 +58,6 @@ class MonitorProc:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(10)
-            raise AssertionError("monitor did not stop within %.0f s:\n%s" % (timeout, self.stderr)) from None
+            raise AssertionError(f"monitor did not stop within {timeout:.0f} s:\n{self.stderr}") from None
         self._reader.join(5)
         return rc

@@ -28,15 +28,16 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
-
-from monitor import schema as S
-from monitor import transport as T
 from monitor_proc import MonitorProc
+
+from feedio import schema as S
+from feedio import transport as T
+from feedio.mcapio import iter_blocks, read_trial
+from feedio.transport import query_status
+from monitor.axes import load_axes, warm_up
+from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator
-from monitor.mcapio import iter_blocks, read_trial
 from monitor.model_file import AxisModel, TrackerConfig, load_model, save_model
-from monitor.service import Monitor, load_axes, warm_up
-from monitor.status_cmd import query_status
 from replay.player import replay
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
@@ -344,7 +345,7 @@ def milling(work):
     cfg = work / "glitchy.toml"
     cfg.write_text("[noise]\nglitch_rate = 0.01\n")
     out = work / "milling.mcap"
-    r = subprocess.run([sys.executable, "-m", "monitor.cli", "simulate", "milling-incdec", "-o", str(out),
+    r = subprocess.run([sys.executable, "-m", "feedmon.cli", "simulate", "milling-incdec", "-o", str(out),
                         "--seed", "3", "--duration", "8", "--config", str(cfg)], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0, r.stderr
@@ -397,7 +398,7 @@ def daemon(work, trial, milling):
             res["replay"] = replay(milling, s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0)
             n_mill = res["replay"].samples
             wait_status(s, lambda x: x["axes"]["cnc-mill/X"]["samples_in"] == n_mill)
-        cli = subprocess.run([sys.executable, "-m", "monitor.cli", "status", "--json", "--connect", mon.endpoint,
+        cli = subprocess.run([sys.executable, "-m", "feedmon.cli", "status", "--json", "--connect", mon.endpoint,
                               "--prefix", PREFIX, "--timeout", "10"], capture_output=True, text=True, timeout=60)
         assert cli.returncode == 0, cli.stderr
         res["status"] = json.loads(cli.stdout)[0]

@@ -3,13 +3,13 @@
 import subprocess
 import sys
 
-from monitor.mcapio import iter_blocks
+from feedio.mcapio import iter_blocks
 
 
 def test_demo_end_to_end(tmp_path):
     out = tmp_path / "demo"
     proc = subprocess.run(
-        [sys.executable, "-m", "monitor.cli", "demo", "--out", str(out), "--duration", "12", "--rate", "20"],
+        [sys.executable, "-m", "feedmon.cli", "demo", "--out", str(out), "--duration", "12", "--rate", "20"],
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr + proc.stdout

@@ -42,10 +42,10 @@ from pathlib import Path
 
 import pytest
 
-from monitor import transport as T
-from monitor.cli import build_parser
+from feedio import transport as T
+from feedmon.cli import build_parser
+from feedmon.run_cmd import _apply_config
 from monitor.model_file import AxisModel, TrackerConfig, save_model
-from monitor.run_cmd import _apply_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "Dockerfile"
@@ -139,7 +139,7 @@ def test_healthcheck_asks_the_status_queryable():
     opts, cmd = healthcheck()
     assert cmd[:2] == ["feedmon", "status"]
     args = build_parser().parse_args(cmd[1:])
-    assert args.func.__module__ == "monitor.status_cmd"
+    assert args.func.__module__ == "feedmon.status_cmd"
     # the query gives up before Docker kills the check; the start period covers a cold Numba compile
     assert args.timeout + 5 <= seconds(opts["timeout"])
     assert seconds(opts["start-period"]) >= 60 and seconds(opts["interval"]) >= 10 and int(opts["retries"]) >= 1
@@ -191,7 +191,7 @@ def test_example_config_is_accepted_by_run_config_loader(tmp_path):
     _apply_config(args)
     assert args.model == [str(model)] and args.state_dir == str(state) and args.mcap == str(logs)
     assert args.queue == 100  # the command line wins
-    from monitor.service import load_axes
+    from monitor.axes import load_axes
 
     axes = load_axes(args.model)  # the model file named by the config loads
     assert list(axes) == [("mill-1", "X")]
@@ -343,7 +343,7 @@ def test_dockerfile_commands_work_in_a_fresh_venv(tmp_path):
     assert where.returncode == 0, where.stderr
     mon_file, kern_file, ep_module = where.stdout.split()
     assert Path(mon_file).is_relative_to(purelib) and Path(kern_file).is_relative_to(purelib), where.stdout
-    assert ep_module == "monitor.cli"
+    assert ep_module == "feedmon.cli"
     assert (purelib / "replay" / "scenarios" / "shaker-constant.toml").is_file()  # package data made it
 
     # RUN python -c ... (Numba warm-up into NUMBA_CACHE_DIR)

@@ -13,17 +13,17 @@ import time
 import numpy as np
 import pytest
 import zenoh
+from test_bad_input import AXIS, PREFIX, MonitorProc, blocks_of, make_model, rows, wait_status
 
-from monitor import schema as S
-from monitor import transport as T
-from monitor.mcapio import iter_blocks, read_trial
-from monitor.service import Monitor, live_meta, load_axes, warm_up
+from feedio import schema as S
+from feedio import transport as T
+from feedio.mcapio import iter_blocks, read_trial
+from monitor.axes import live_meta, load_axes, warm_up
+from monitor.daemon import Monitor
 from monitor.sinks.mcap_sink import McapSink
 from replay.player import replay
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
-from test_bad_input import AXIS, PREFIX, MonitorProc, blocks_of, make_model, rows, wait_status
-
 
 
 @pytest.fixture(scope="module")
@@ -252,7 +252,7 @@ def test_slow_disk_mcap_sink_never_stalls_estimation(work, trial, monkeypatch):
     its drops are counted in the status; once the disk is fast again the file closes complete and readable."""
     import builtins
 
-    import monitor.mcapio as mcapio
+    import feedio.mcapio as mcapio
 
     fast = threading.Event()
     real_open = builtins.open
@@ -305,7 +305,7 @@ def test_bad_model_file_clear_error_nonzero_exit(work, name, edit, needle):
         changed = edit(src)
         assert changed != src
         path.write_text(changed)
-    r = subprocess.run([sys.executable, "-m", "monitor.cli", "run", "--model", str(path), "--listen",
+    r = subprocess.run([sys.executable, "-m", "feedmon.cli", "run", "--model", str(path), "--listen",
                         f"tcp/127.0.0.1:{T.free_tcp_port()}", "--prefix", PREFIX], capture_output=True, text=True,
                        timeout=60, cwd=work)
     assert r.returncode != 0

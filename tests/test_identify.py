@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from monitor.cli import main
+from feedmon.cli import main
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
 
@@ -60,7 +60,7 @@ def test_json_document_has_the_documented_keys(simulated, capsys):
 
 def test_without_loop_gain_only_ratios(simulated, tmp_path, capsys):
     # a CSV export carries no loop gain: the report must say only J/K and B/K are identifiable
-    from monitor.mcapio import read_trial
+    from feedio.mcapio import read_trial
     from monitor.identify import identify
 
     trial = read_trial(simulated("shaker-control"))

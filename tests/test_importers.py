@@ -4,10 +4,10 @@
 import numpy as np
 import pytest
 
+from feedio.mcapio import read_trial
+from feedmon.cli import main
 from kernels.feed_drive import beta_to_physical, regressors
 from kernels.least_squares import least_squares
-from monitor.cli import main
-from monitor.mcapio import read_trial
 from replay.importers import EMPS_REFERENCE, read_csv_trial
 
 OMEGA = 1e-3  # Coulomb dead band for the EMPS (m/s)

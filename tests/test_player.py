@@ -9,9 +9,9 @@ import time
 
 import pytest
 
-from monitor import schema as S
-from monitor import transport as T
-from monitor.mcapio import TrialWriter
+from feedio import schema as S
+from feedio import transport as T
+from feedio.mcapio import TrialWriter
 from replay.player import ReplayStats, _reblock, replay, scan_trial
 
 TS = 1.0 / 333.0
@@ -168,7 +168,7 @@ def test_reblock_never_glues_across_a_gap():
 
 
 def test_cli_replay_as_client_of_the_monitor_peer(trial, sessions, capsys):
-    from monitor.cli import main
+    from feedmon.cli import main
 
     mon, _, endpoint = sessions
     col = Collector(mon, prefix="cli")
@@ -186,7 +186,7 @@ def test_cli_replay_as_client_of_the_monitor_peer(trial, sessions, capsys):
 
 
 def test_cli_errors_are_clear(tmp_path, capsys):
-    from monitor.cli import main
+    from feedmon.cli import main
 
     rc = main(["replay", str(tmp_path / "missing.mcap"), "--connect", f"tcp/127.0.0.1:{T.free_tcp_port()}"])
     err = capsys.readouterr().err
@@ -205,7 +205,7 @@ def test_cli_errors_are_clear(tmp_path, capsys):
 
 def test_replay_of_a_simulated_trial(tmp_path, sessions):
     """The simulator's trial (samples + ground truth) arrives complete and equal to the file."""
-    from monitor.mcapio import read_trial
+    from feedio.mcapio import read_trial
     from replay.simulator import simulate_scenario, write_trial
 
     path = tmp_path / "sim.mcap"

@@ -18,8 +18,8 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from monitor.cli import main
-from monitor.mcapio import TrialFileError, read_trial
+from feedio.mcapio import TrialFileError, read_trial
+from feedmon.cli import main
 from replay.recover import RECOVER_METADATA_NAME, recover
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,8 +33,8 @@ BLOCK = 10  # samples per block; a block every 10 ms of wall time, so controller
 WRITER = textwrap.dedent(
     """
     import sys, time
-    from monitor import schema as S
-    from monitor.mcapio import TrialWriter
+    from feedio import schema as S
+    from feedio.mcapio import TrialWriter
 
     path, log_path = sys.argv[1], sys.argv[2]
     TS, BLOCK = {TS!r}, {BLOCK!r}
@@ -134,7 +134,7 @@ def test_recover_after_sigkill(tmp_path):
     # the killed file: no footer, so neither read_trial nor mcap's summary reader can use it
     with pytest.raises(TrialFileError, match="truncated"):
         read_trial(broken)
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - mcap raises several unrelated types here
         _messages_plain(broken)
 
     assert main(["recover", str(broken), "-o", str(fixed), "--json"]) == 0

@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from monitor import cli
-from monitor import transport as T
 from monitor_proc import MonitorProc
-from monitor.mcapio import iter_blocks, read_trial
+
+from feedio import transport as T
+from feedio.mcapio import iter_blocks, read_trial
+from feedio.transport import query_status
+from feedmon import cli
 from monitor.model_file import AxisModel, TrackerConfig, file_sha256, save_model
-from monitor.status_cmd import query_status
 from replay.player import replay
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
@@ -108,7 +108,7 @@ def live10(work):
             res["status_before"] = wait_status(session, lambda s: s["monitor"]["state"] == "running")
             res["replay"] = replay(work / "trial20.mcap", session, rate=10.0, prefix=PREFIX, wait_for_subscriber=10.0)
             res["status_after"] = wait_status(session, lambda s: s["axes"]["linear-drive/Z"]["estimates_out"] >= n)
-        cmd = [sys.executable, "-m", "monitor.cli", "status", "--connect", mon.endpoint, "--prefix", PREFIX,
+        cmd = [sys.executable, "-m", "feedmon.cli", "status", "--connect", mon.endpoint, "--prefix", PREFIX,
                "--timeout", "10"]
         res["status_json_cli"] = subprocess.run(cmd + ["--json"], capture_output=True, text=True, timeout=60)
         res["status_table_cli"] = subprocess.run(cmd, capture_output=True, text=True, timeout=60,

@@ -8,14 +8,16 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
-from monitor import cli
-from monitor import schema as S
-from monitor import transport as T
-from monitor.mcapio import iter_blocks, read_trial
-from monitor.service import Monitor, StateStore, load_axes
-from monitor.status import BurstLog, LatencyRing
 from test_run_e2e import make_trial, model_from_truth
+
+from feedio import schema as S
+from feedio import transport as T
+from feedio.mcapio import iter_blocks, read_trial
+from feedmon import cli
+from monitor.axes import load_axes
+from monitor.daemon import Monitor
+from monitor.state import StateStore
+from monitor.status import BurstLog, LatencyRing
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +83,7 @@ def test_state_roundtrip_and_mismatch_is_ignored(work, tmp_path, caplog):
     np.testing.assert_array_equal(again.estimator.tracker.mu, ax.estimator.tracker.mu)
     model.write_text(model.read_text() + "\n# edited\n")  # another model file: its state is meaningless
     edited = load_axes([model])[("linear-drive", "Z")]
-    with caplog.at_level(logging.WARNING, logger="monitor.service"):
+    with caplog.at_level(logging.WARNING, logger="monitor.state"):
         assert store.load(edited) == "ignored"
     assert "another model file" in caplog.text
     assert edited.estimator.tracker.size == 0

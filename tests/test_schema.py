@@ -1,4 +1,4 @@
-"""monitor.schema: one schema for samples, truth, estimates and trial metadata."""
+"""feedio.schema: one schema for samples, truth, estimates and trial metadata."""
 
 import json
 import math
@@ -6,7 +6,7 @@ import math
 import msgspec
 import pytest
 
-from monitor import schema as S
+from feedio import schema as S
 
 
 def _block(**kw):

@@ -25,8 +25,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from monitor import transport as T
-from monitor.status_cmd import query_status
+from feedio import transport as T
+from feedio.transport import query_status
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy" / "zenoh"
@@ -357,7 +357,7 @@ def test_acl_viewer_reads_disturbance_but_cannot_publish_samples(cell):
 
 def test_cli_status_with_the_viewer_config(cell, capsys):
     """As documented: ``feedmon status --zenoh-config viewer-client.json5`` works, with the controller's it gets nothing."""
-    from monitor.cli import main
+    from feedmon.cli import main
 
     monitor = cell.open("monitor")
     monitor.declare_queryable(T.status_key(), lambda q: q.reply(T.status_key(), b'{"monitor": "m1"}'))

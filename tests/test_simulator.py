@@ -5,10 +5,10 @@ import time
 import numpy as np
 import pytest
 
+from feedio.mcapio import read_trial
+from feedmon.cli import main
 from kernels.feed_drive import force_to_disturbance, physical_to_beta, regressors
 from kernels.least_squares import least_squares
-from monitor.cli import main
-from monitor.mcapio import read_trial
 from replay import scenarios as SC
 from replay.cutting import MillingTool, feed_force, mean_feed_force
 from replay.simulator import simulate_scenario, true_beta

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from monitor import schema as S
-from monitor.mcapio import read_trial
+from feedio import schema as S
+from feedio.mcapio import read_trial
+from feedio.transport import free_tcp_port
 from monitor.sinks import QueuedSink
-from monitor.transport import free_tcp_port
 
 TS = 1.0 / 333.0
 

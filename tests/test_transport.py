@@ -10,8 +10,8 @@ import time
 import pytest
 import zenoh
 
-from monitor import schema as S
-from monitor import transport as T
+from feedio import schema as S
+from feedio import transport as T
 
 WAIT = 10.0  # s, upper bound of every wait
 

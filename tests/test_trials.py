@@ -7,8 +7,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from monitor import schema as S
-from monitor.mcapio import METADATA_NAME, TrialFileError, TrialWriter, iter_blocks, list_axes, read_trial
+from feedio import schema as S
+from feedio.mcapio import METADATA_NAME, TrialFileError, TrialWriter, iter_blocks, list_axes, read_trial
 from replay.simulator import simulate_scenario, write_trial
 
 

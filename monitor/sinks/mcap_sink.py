@@ -1,9 +1,9 @@
 """``McapSink``: the monitor's MCAP log (samples + estimates of every axis, one file per run).
 
-The file is written with :class:`monitor.mcapio.TrialWriter`, so a monitor log
+The file is written with :class:`feedio.mcapio.TrialWriter`, so a monitor log
 *is* a trial file: same channels (``/<machine>/<axis>/samples|truth|disturbance``),
 same JSON + ``jsonschema`` schemas, zstd chunks, one ``feedmon.trial`` metadata
-record per axis. ``feedmon replay`` and :func:`monitor.mcapio.read_trial` read it.
+record per axis. ``feedmon replay`` and :func:`feedio.mcapio.read_trial` read it.
 
 * Flushing: a chunk is closed and flushed to the OS at least every
   ``flush_seconds`` (default 0.5 s) of wall time while data arrives, so a crash
@@ -14,7 +14,7 @@ record per axis. ``feedmon replay`` and :func:`monitor.mcapio.read_trial` read i
   ``<stem>-000.mcap``, ``<stem>-001.mcap``, ... next to ``path``; without
   rotation the single file is ``path`` itself. :attr:`McapSink.files` lists
   them; every file is complete and self-describing.
-* Axes: a TrialWriter needs the :class:`~monitor.schema.TrialMeta` of every
+* Axes: a TrialWriter needs the :class:`~feedio.schema.TrialMeta` of every
   axis up front. Pass ``metas`` (the monitor knows Ts and form from its model
   files). A block of an axis without meta gets one from ``meta_factory``
   (default: Ts inferred from the block's sample times, form "velocity-loop",
@@ -37,8 +37,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from .. import schema as S
-from ..mcapio import TrialWriter
+from feedio import schema as S
+from feedio.mcapio import TrialWriter
+
 from .queued import QueuedSink
 
 __all__ = ["McapSink", "infer_meta"]
@@ -46,7 +47,7 @@ __all__ = ["McapSink", "infer_meta"]
 
 def infer_meta(machine: str, axis: str, block: Any) -> S.TrialMeta:
     """A best-effort :class:`TrialMeta` for a live axis nobody declared."""
-    from .. import __version__
+    from feedio import __version__
 
     ts = None
     t = list(getattr(block, "t", []) or [])

@@ -24,7 +24,8 @@ import os
 import signal
 from typing import Any
 
-from .. import schema as S
+from feedio import schema as S
+
 from .queued import QueuedSink
 
 __all__ = ["RerunProcessSink", "check_outputs"]

@@ -51,15 +51,16 @@ import math
 import os
 import uuid
 from collections import deque
-from itertools import chain
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Any
 
 import numpy as np
 from scipy.signal import welch  # imported here, not on the worker: scipy.signal takes ~1 s to import
 
-from .. import schema as S
+from feedio import schema as S
+
 from .queued import QueuedSink
 
 __all__ = ["RerunSink", "axis_blueprint", "blueprint_for"]

@@ -40,7 +40,7 @@ def register(subparsers) -> None:
 
 
 def run_emps(args: argparse.Namespace) -> int:
-    from .importers import import_emps
+    from replay.importers import import_emps
 
     tr = import_emps(args.data, args.output, rate=args.rate)
     extra = ", pulse truth on the truth channel" if tr.truth_force is not None else ""
@@ -49,7 +49,7 @@ def run_emps(args: argparse.Namespace) -> int:
 
 
 def run_csv(args: argparse.Namespace) -> int:
-    from .importers import import_csv
+    from replay.importers import import_csv
 
     tr = import_csv(args.file, args.output, args.map, args.units, form=args.form, machine=args.machine,
                     axis=args.axis, loop_gain=args.loop_gain, Ts=args.Ts)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from . import scenarios as SC
+from replay import scenarios as SC
 
 
 def register(subparsers) -> None:
@@ -32,7 +32,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .simulator import simulate, write_trial
+    from replay.simulator import simulate, write_trial
 
     if args.seed < 0:
         raise ValueError(f"--seed must be ≥ 0, got {args.seed}")

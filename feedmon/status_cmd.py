@@ -15,9 +15,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
-from .transport import add_zenoh_arguments
+from feedio.transport import add_zenoh_arguments, query_status
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -34,28 +33,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def query_status(session, prefix: str = "feedmon", timeout: float = 5.0) -> list[dict]:
-    """Status dicts of every monitor answering within ``timeout`` s (retries: declarations take a moment)."""
-    from .transport import status_key
-
-    key = status_key(prefix)
-    deadline = time.monotonic() + max(0.0, timeout)
-    while True:
-        left = max(0.1, min(2.0, deadline - time.monotonic()))
-        out = []
-        for reply in session.get(key, timeout=left):
-            if reply.ok is not None:
-                try:
-                    out.append(json.loads(reply.ok.payload.to_bytes()))
-                except ValueError:
-                    out.append({"error": "unparseable status reply", "key": str(reply.ok.key_expr)})
-        if out or time.monotonic() >= deadline:
-            return out
-        time.sleep(0.1)
-
-
 def run(args: argparse.Namespace) -> int:
-    from .transport import session_from_args
+    from feedio.transport import session_from_args
 
     if not args.timeout > 0:
         raise ValueError(f"--timeout must be > 0, got {args.timeout}")
@@ -71,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(replies, indent=2))
         return 0
-    from .status import format_status
+    from monitor.status import format_status
 
     for st in replies:
         format_status(st)

@@ -14,14 +14,14 @@ import sys
 
 # name -> module providing register(subparsers); one line per sub-command
 COMMANDS: dict[str, str] = {
-    "simulate": "replay.simulate_cmd",
-    "import": "replay.import_cmd",
-    "replay": "replay.replay_cmd",
-    "identify": "monitor.identify_cmd",
-    "demo": "monitor.demo_cmd",
-    "run": "monitor.run_cmd",
-    "status": "monitor.status_cmd",
-    "recover": "replay.recover_cmd",
+    "simulate": "feedmon.simulate_cmd",
+    "import": "feedmon.import_cmd",
+    "replay": "feedmon.replay_cmd",
+    "identify": "feedmon.identify_cmd",
+    "demo": "feedmon.demo_cmd",
+    "run": "feedmon.run_cmd",
+    "status": "feedmon.status_cmd",
+    "recover": "feedmon.recover_cmd",
 }
 
 

@@ -33,9 +33,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from monitor import __version__
+    from feedio import __version__
+    from feedio.mcapio import read_trial
     from monitor.identify import identify
-    from monitor.mcapio import read_trial
     from monitor.model_file import save_model
     from replay.simulator import simulate_scenario, write_trial
 
@@ -95,10 +95,11 @@ def _print_identification(air, cut, console) -> None:
 
 
 def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, console) -> int:
-    from monitor.service import Monitor, live_meta, load_axes, warm_up
+    from feedio.transport import free_tcp_port, open_session
+    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.daemon import Monitor
     from monitor.sinks.mcap_sink import McapSink
     from monitor.sinks.rerun_process import RerunProcessSink
-    from monitor.transport import free_tcp_port, open_session
     from replay.player import replay
 
     axes = load_axes([model_path])
@@ -128,10 +129,10 @@ def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, conso
 
 
 def _score(mcap_path, trial) -> dict:
-    from monitor.mcapio import iter_blocks
+    from feedio.mcapio import iter_blocks
 
     seq, f_next, f_filt = [], [], []
-    for kind, block in iter_blocks(mcap_path, kinds=("disturbance",)):
+    for _kind, block in iter_blocks(mcap_path, kinds=("disturbance",)):
         seq.extend(range(block.seq, block.seq + len(block.t)))
         f_next.extend(block.force_next if block.force_next is not None else block.f_next)
         f_filt.extend(block.force if block.force is not None else block.f)

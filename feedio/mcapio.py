@@ -1,10 +1,10 @@
-"""MCAP trial files: one writer, one reader, one schema (:mod:`monitor.schema`).
+"""MCAP trial files: one writer, one reader, one schema (:mod:`feedio.schema`).
 
 Layout of a trial file
 ----------------------
 * Messages are JSON (``message_encoding = "json"``) encoded with ``msgspec``; every
   channel carries the ``jsonschema`` schema generated from the Struct
-  (:data:`monitor.schema.JSON_SCHEMAS`).
+  (:data:`feedio.schema.JSON_SCHEMAS`).
 * Channels per axis: ``/<machine>/<axis>/samples`` (:class:`SampleBlock`),
   ``/<machine>/<axis>/truth`` (:class:`TruthBlock`, simulated trials and pulse
   ground truth) and ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import schema as S
+from feedio import schema as S
 
 __all__ = [
     "TrialFileError",
@@ -149,7 +149,7 @@ class TrialWriter:
             self._channel(machine, axis, "samples")
 
     # -- context manager ------------------------------------------------------------------
-    def __enter__(self) -> "TrialWriter":
+    def __enter__(self) -> TrialWriter:
         return self
 
     def __exit__(self, *exc) -> None:

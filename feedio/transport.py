@@ -69,6 +69,7 @@ __all__ = [
     "parse_key",
     "free_tcp_port",
     "wait_for_matching",
+    "query_status",
 ]
 
 DEFAULT_PREFIX = "feedmon"
@@ -359,3 +360,22 @@ def wait_for_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
             return False
         time.sleep(0.01)
 
+
+def query_status(session, prefix: str = "feedmon", timeout: float = 5.0) -> list[dict]:
+    """Status dicts of every monitor answering within ``timeout`` s (retries: declarations take a moment)."""
+    from feedio.transport import status_key
+
+    key = status_key(prefix)
+    deadline = time.monotonic() + max(0.0, timeout)
+    while True:
+        left = max(0.1, min(2.0, deadline - time.monotonic()))
+        out = []
+        for reply in session.get(key, timeout=left):
+            if reply.ok is not None:
+                try:
+                    out.append(json.loads(reply.ok.payload.to_bytes()))
+                except ValueError:
+                    out.append({"error": "unparseable status reply", "key": str(reply.ok.key_expr)})
+        if out or time.monotonic() >= deadline:
+            return out
+        time.sleep(0.1)

@@ -8,7 +8,7 @@ Examples::
     feedmon replay trial.mcap --connect tcp/router:7447 --block 10
 
 By default the replay is a Zenoh peer connecting to the monitor's endpoint
-(``tcp/127.0.0.1:7448``, see :mod:`monitor.transport`); it waits up to
+(``tcp/127.0.0.1:7448``, see :mod:`feedio.transport`); it waits up to
 ``--wait`` seconds for the monitor to subscribe before it starts.
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from monitor.transport import add_zenoh_arguments, session_from_args
+from feedio.transport import add_zenoh_arguments, session_from_args
 
 
 def register(subparsers) -> argparse.ArgumentParser:

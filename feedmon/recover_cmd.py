@@ -41,7 +41,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .recover import recover
+    from replay.recover import recover
 
     rep = recover(args.input, args.output, compression=args.compression)
     if args.json:

@@ -8,7 +8,7 @@ Examples::
     feedmon run --config monitor.toml
     feedmon run --from trial.mcap -o estimates.mcap --model axis-x.model.toml
 
-Live: listens on tcp/127.0.0.1:7448 (see ``monitor.transport``), subscribes to
+Live: listens on tcp/127.0.0.1:7448 (see ``feedio.transport``), subscribes to
 ``<prefix>/*/*/samples``, publishes ``<prefix>/<machine>/<axis>/disturbance``,
 answers ``<prefix>/monitor/status`` (``feedmon status``). SIGINT/SIGTERM stop it
 cleanly (input stopped, queue drained, MCAP finished, tracker state saved), exit 0.
@@ -32,7 +32,7 @@ import time
 import tomllib
 from pathlib import Path
 
-from .transport import add_zenoh_arguments
+from feedio.transport import add_zenoh_arguments
 
 _CONFIG_KEYS = {
     "model": list, "mcap": str, "rrd": str, "serve_rerun": int, "state_dir": str, "fresh": bool,
@@ -155,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_offline(args) -> int:
-    from .service import load_axes, run_offline
+    from monitor.axes import load_axes
+    from monitor.offline import run_offline
 
     if args.output is None:
         raise ValueError("--from needs -o/--output FILE.mcap")
@@ -176,8 +177,10 @@ def _run_offline(args) -> int:
 
 
 def _run_live(args) -> int:
-    from .service import Monitor, StateStore, live_meta, load_axes, warm_up
-    from .transport import config_from_args, describe_config, open_session
+    from feedio.transport import config_from_args, describe_config, open_session
+    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.daemon import Monitor
+    from monitor.state import StateStore
 
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
@@ -199,7 +202,7 @@ def _run_live(args) -> int:
     monitor = None
     try:
         if args.mcap is not None:
-            from .sinks.mcap_sink import McapSink
+            from monitor.sinks.mcap_sink import McapSink
 
             path, rb, rs = _mcap_path(args.mcap, args)
             sinks.append(McapSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
@@ -207,7 +210,7 @@ def _run_live(args) -> int:
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
         if args.rrd is not None or args.serve_rerun is not None:
-            from .sinks.rerun_process import RerunProcessSink
+            from monitor.sinks.rerun_process import RerunProcessSink
 
             rs_ = RerunProcessSink(args.rrd, args.serve_rerun)  # own process: never holds our GIL
             sinks.append(rs_)

@@ -19,7 +19,7 @@ Non-finite values
 JSON has no NaN; ``msgspec`` writes NaN/±inf as ``null``. Measured columns are
 therefore typed ``list[float | None]``: a ``null`` is one missing or non-finite
 sample (a dropped encoder read, a NaN from the controller). It decodes to
-``None`` and becomes ``NaN`` in the NumPy arrays of :mod:`monitor.mcapio`, so
+``None`` and becomes ``NaN`` in the NumPy arrays of :mod:`feedio.mcapio`, so
 the monitor can reject that one sample (flag ``REJECTED``) instead of losing
 the whole block. ``t`` is strictly ``list[float]``: a sample without a time
 cannot be placed, so a block with a ``null`` time is rejected as a whole.
@@ -135,7 +135,7 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
     def __len__(self) -> int:
         return len(self.t)
 
-    def validate(self) -> "SampleBlock":
+    def validate(self) -> SampleBlock:
         """Re-run the checks (after in-place edits); returns ``self``; raises :class:`SchemaError`."""
         try:
             self.__post_init__()

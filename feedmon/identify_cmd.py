@@ -39,9 +39,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from monitor import __version__
+    from feedio import __version__
+    from feedio.mcapio import read_trial
     from monitor.identify import identify
-    from monitor.mcapio import read_trial
     from monitor.model_file import save_model
 
     if args.coulomb and args.no_coulomb:

@@ -1,0 +1,15 @@
+"""Shared I/O of feedmon, below both the service (``monitor``) and the trials (``replay``):
+
+* :mod:`feedio.schema` — the one message schema (samples, truth, estimates, trial metadata);
+* :mod:`feedio.mcapio` — MCAP trial and log files (one writer, one reader);
+* :mod:`feedio.transport` — Zenoh sessions and key expressions.
+
+Dependencies run one way: ``kernels`` (numerics) ← ``feedio`` ← ``monitor``, ``replay`` ← ``feedmon`` (CLI).
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("feedmon")
+except PackageNotFoundError:  # running from a source tree without install
+    __version__ = "0.0.0+unknown"

@@ -1,0 +1,7 @@
+"""``python -m feedmon`` = the ``feedmon`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

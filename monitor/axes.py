@@ -1,0 +1,77 @@
+"""The monitored axes: model file → :class:`AxisRuntime` (model, estimator, status), warm-up,
+and the MCAP metadata of a monitored axis."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from feedio import schema as S
+
+from .estimator import AxisEstimator
+from .model_file import AxisModel, file_sha256, load_model
+from .status import AxisStatus
+
+__all__ = ["AxisRuntime", "load_axes", "warm_up", "live_meta"]
+
+
+@dataclass
+class AxisRuntime:
+    """One monitored axis: its model, estimator and status."""
+
+    model: AxisModel
+    estimator: AxisEstimator
+    status: AxisStatus
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.model.machine, self.model.axis)
+
+
+def load_axes(model_paths: Sequence[str | os.PathLike]) -> dict[tuple[str, str], AxisRuntime]:
+    """Load model files (one per axis); two files for the same axis are an error."""
+    if not model_paths:
+        raise ValueError("at least one --model file is needed")
+    axes: dict[tuple[str, str], AxisRuntime] = {}
+    for p in model_paths:
+        path = Path(p)
+        model = load_model(path)
+        key = (model.machine, model.axis)
+        if key in axes:
+            raise ValueError(f"two model files for axis {model.machine}/{model.axis}: "
+                             f"{axes[key].status.model_path} and {path}")
+        st = AxisStatus(model.machine, model.axis, str(path), file_sha256(path))
+        axes[key] = AxisRuntime(model, AxisEstimator(model), st)
+    return axes
+
+
+def warm_up(axes: dict[tuple[str, str], AxisRuntime]) -> None:
+    """Run each axis' code path once on throw-away estimators, so that Numba compilation (or loading
+    its cache) happens before the monitor says it is ready, not on the first real sample."""
+    for ax in axes.values():
+        m = ax.model
+        n = 8
+        t = [i * m.Ts for i in range(n)]
+        v = [1e-3 * i for i in range(n)]
+        block = S.SampleBlock(machine=m.machine, axis=m.axis, seq=0, t=t, v_ref=v, v_meas=v,
+                              u=v if m.form == "force-input" else None)
+        est = AxisEstimator(m).process(block)
+        if est is not None:
+            S.encode(est)
+
+
+def live_meta(ax: AxisRuntime, source: str = "live") -> S.TrialMeta:
+    """TrialMeta of a monitored axis for the MCAP log (Ts and form from the model file)."""
+    from feedio import __version__
+
+    m = ax.model
+    return S.TrialMeta(
+        Ts=float(m.Ts), form=m.form, machine=m.machine, axis=m.axis, loop_gain=m.loop_gain,
+        units=dict(S.UNITS),
+        provenance=S.Provenance(source=source, tool="feedmon run", version=__version__,
+                                details={"model_file": ax.status.model_path, "model_sha256": ax.status.model_sha256,
+                                         "tracker_state": ax.status.state}),
+        description="feedmon monitor log: input samples and disturbance estimates",
+    )

@@ -1,0 +1,181 @@
+"""The offline twin of the monitor (``feedmon run --from``): a recorded trial through the same
+:class:`~monitor.pipeline.Pipeline`, as fast as the machine goes."""
+
+from __future__ import annotations
+
+import heapq
+import math
+import os
+import queue
+import threading
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from .axes import AxisRuntime
+from .pipeline import Pipeline
+
+__all__ = ["OfflineResult", "run_offline"]
+
+
+@dataclass
+class OfflineResult:
+    output: str
+    samples: int
+    estimates: int
+    truth_blocks: int
+    seconds: float
+    axes: list[str]
+    skipped_axes: list[str]
+
+    @property
+    def rate(self) -> float:
+        return self.samples / self.seconds if self.seconds > 0 else math.inf
+
+
+def _merged_blocks(path: str, axes: Iterable[str]) -> Iterator[tuple[str, str, Any]]:
+    """``(axis_name, kind, block)`` of several axes merged by the time of their last sample."""
+    from feedio.mcapio import iter_blocks
+
+    def one(idx: int, name: str):
+        for j, (kind, b) in enumerate(iter_blocks(path, name, kinds=("samples", "truth"))):
+            yield float(b.t[-1]), idx, j, name, kind, b
+
+    for _, _, _, name, kind, b in heapq.merge(*(one(i, a) for i, a in enumerate(axes)),
+                                              key=lambda x: (x[0], x[1], x[2])):
+        yield name, kind, b
+
+
+def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
+                axes: dict[tuple[str, str], AxisRuntime]) -> OfflineResult:
+    """Estimate a recorded trial without Zenoh, as fast as the machine goes.
+
+    Every samples block of the axes that have a model goes through the same
+    :class:`Pipeline` as in the live monitor; samples and estimates are written
+    with :class:`~feedio.mcapio.TrialWriter` (the writer of the MCAP sink) and the
+    truth blocks are copied through. The trial's own metadata (with its truth) is
+    kept, with the model file and hash added to the provenance details. Chunks
+    follow controller time only, so the same input gives the same bytes.
+    """
+    from feedio.mcapio import TrialWriter, _Open
+
+    trial, output = os.fspath(trial), os.fspath(output)
+    if os.path.abspath(trial) == os.path.abspath(output):
+        raise ValueError(f"output {output!r} would overwrite the input trial")
+    with _Open(trial) as f:
+        present = f.axes()
+        metas = {key: f.meta(*key) for key in present if key in axes}
+    missing = [f"{m}/{a}" for (m, a) in axes if (m, a) not in present]
+    if missing:
+        raise ValueError(f"{trial} has no axis {', '.join(missing)} (axes present: "
+                         f"{', '.join(f'{m}/{a}' for m, a in present) or 'none'}); check the --model files")
+    skipped = [f"{m}/{a}" for (m, a) in present if (m, a) not in axes]
+    out_metas = []
+    for key, meta in metas.items():
+        ax = axes[key]
+        if ax.model.form != meta.form:
+            raise ValueError(f"axis {key[0]}/{key[1]}: model form {ax.model.form!r} but the trial is {meta.form!r}")
+        details = dict(meta.provenance.details)
+        details.update(estimated_by="feedmon run --from", model_file=ax.status.model_path,
+                       model_sha256=ax.status.model_sha256, tracker_state=ax.status.state)
+        out_metas.append(msgspec.structs.replace(meta, provenance=msgspec.structs.replace(meta.provenance,
+                                                                                           details=details)))
+    pipe = Pipeline(axes)
+    names = [f"{m}/{a}" for (m, a) in metas]
+    samples = estimates = truth = 0
+    t0 = time.perf_counter()
+    with TrialWriter(output, out_metas) as w, _WriterThread(w) as out:
+        for name, kind, block in _prefetch(_merged_blocks(trial, names)):
+            if kind == "truth":
+                m, a = name.split("/", 1)
+                out.put(w.write_truth, block, m, a)
+                truth += 1
+                continue
+            samples += len(block.t)
+            _, est = pipe.estimate(block)
+            out.put(w.write_samples, block)
+            if est is not None:
+                out.put(w.write_estimates, est)
+                estimates += len(est.t)
+    seconds = time.perf_counter() - t0
+    return OfflineResult(output, samples, estimates, truth, seconds, names, skipped)
+
+
+def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
+    """Iterate ``items`` on a second thread (MCAP reading, zstd decompression and JSON decoding
+    overlap with the estimation); exceptions are re-raised here, order is kept."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def run() -> None:
+        try:
+            for item in items:
+                if stop.is_set():
+                    return
+                q.put((None, item))
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
+            q.put((exc, None))
+        q.put((None, done))
+
+    th = threading.Thread(target=run, name="offline-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            exc, item = q.get()
+            if exc is not None:
+                raise exc
+            if item is done:
+                return
+            yield item
+    finally:
+        stop.set()
+        while th.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                th.join(0.01)
+
+
+class _WriterThread:
+    """Runs the MCAP writes of :func:`run_offline` on a second thread, in order.
+
+    The tracker loop (``@njit(nogil=True)``) and zstd compression both release the GIL, so
+    estimating and encoding/compressing/writing overlap on two cores; one thread and a FIFO
+    keep the output byte-identical to writing inline. A write error is raised in the caller.
+    """
+
+    def __init__(self, writer, depth: int = 256) -> None:
+        self._q: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="offline-writer", daemon=True)
+
+    def __enter__(self) -> _WriterThread:
+        self._thread.start()
+        return self
+
+    def put(self, fn, *args) -> None:
+        if self._error is not None:
+            raise self._error
+        self._q.put((fn, args))
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self._error is None:
+                try:
+                    item[0](*item[1])
+                except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
+                    self._error = exc
+
+    def __exit__(self, *exc) -> None:
+        self._q.put(None)
+        self._thread.join()
+        if self._error is not None and exc[0] is None:
+            raise self._error
+
