@@ -282,6 +282,10 @@ class TruthArrays:
     dynamometer: np.ndarray | None = None
     v_true: np.ndarray | None = None
     glitch: np.ndarray | None = None  # bool
+    inertia: np.ndarray | None = None  # kg, true J(t)
+    damping: np.ndarray | None = None  # N·s/m, true B(t)
+    coulomb_pos: np.ndarray | None = None  # N, true Coulomb friction for v > Ω
+    coulomb_neg: np.ndarray | None = None  # N, magnitude for v < −Ω
 
 
 @dataclass
@@ -300,6 +304,7 @@ class Trial:
     current: np.ndarray | None = None
     position: np.ndarray | None = None
     spindle_rpm: np.ndarray | None = None
+    spindle_angle: np.ndarray | None = None  # rad, unwrapped
     truth: TruthArrays | None = None
     channels: list[str] = field(default_factory=list)
 
@@ -525,6 +530,7 @@ def read_trial(path, axis: str | None = None) -> Trial:
             current=_column(samples, "current", n),
             position=_column(samples, "position", n),
             spindle_rpm=_column(samples, "spindle_rpm", n),
+            spindle_angle=_column(samples, "spindle_angle", n),
             channels=sorted(f.channels),
         )
         if truths:
@@ -542,5 +548,9 @@ def read_trial(path, axis: str | None = None) -> Trial:
                 dynamometer=_column(truths, "dynamometer", m),
                 v_true=_column(truths, "v_true", m),
                 glitch=glitch,
+                inertia=_column(truths, "inertia", m),
+                damping=_column(truths, "damping", m),
+                coulomb_pos=_column(truths, "coulomb_pos", m),
+                coulomb_neg=_column(truths, "coulomb_neg", m),
             )
         return trial

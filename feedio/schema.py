@@ -128,9 +128,11 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
     current: Column | None = None
     position: Column | None = None
     spindle_rpm: Column | None = None
+    spindle_angle: Column | None = None  # rad, unwrapped spindle angle, finite
 
     def __post_init__(self) -> None:
         _check_columns(self, ("v_ref", "v_meas", "u", "current", "position", "spindle_rpm"))
+        _check_columns(self, ("spindle_angle",))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -162,9 +164,14 @@ class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
     dynamometer: Column | None = None
     v_true: Column | None = None
     glitch: list[bool] | None = None
+    inertia: Column | None = None  # kg, true J(t) (held over the sample interval)
+    damping: Column | None = None  # N·s/m, true B(t)
+    coulomb_pos: Column | None = None  # N, true Coulomb friction magnitude for v > Ω
+    coulomb_neg: Column | None = None  # N, true Coulomb friction magnitude for v < −Ω
 
     def __post_init__(self) -> None:
         _check_columns(self, ("force", "f", "dynamometer", "v_true", "glitch"))
+        _check_columns(self, ("inertia", "damping", "coulomb_pos", "coulomb_neg"))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -251,6 +258,7 @@ UNITS = {
     "current": "A",
     "position": "m",
     "spindle_rpm": "rpm",
+    "spindle_angle": "rad",
 }
 
 

@@ -8,18 +8,28 @@ import time
 from replay import scenarios as SC
 
 
+def _scenario_table() -> str:
+    desc = SC.describe()
+    width = max(map(len, desc))
+    return "\n".join(f"  {name:<{width}}  {text}" for name, text in desc.items())
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "simulate",
         help="simulate a feed-drive trial with known truth and write it as MCAP",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description=(
-            "Simulate a closed-loop feed-drive trial (method §1) after the thesis case studies and "
-            "write samples, ground truth and metadata to an MCAP trial file. "
-            f"Scenarios: {', '.join(SC.SCENARIOS)}."
+            "Simulate a closed-loop feed-drive trial (method §1) after the thesis case studies and\n"
+            "write samples, ground truth (disturbance force, true drive constants per sample) and\n"
+            "metadata to an MCAP trial file. An unstable closed loop or a non-finite/absurd result\n"
+            "is refused and nothing is written. Scenarios (--list):\n\n" + _scenario_table()
         ),
     )
-    p.add_argument("scenario", metavar="SCENARIO", choices=SC.SCENARIOS, help="built-in scenario")
-    p.add_argument("-o", "--output", required=True, help="output MCAP file")
+    p.add_argument("scenario", metavar="SCENARIO", nargs="?", choices=SC.SCENARIOS,
+                   help="built-in scenario (see --list)")
+    p.add_argument("-o", "--output", help="output MCAP file")
+    p.add_argument("--list", action="store_true", help="list the scenarios with their descriptions and exit")
     p.add_argument("--seed", type=int, default=0, help="random seed (noise, glitches); default 0")
     p.add_argument("--duration", type=float, default=None, help="trial length in seconds (default: scenario)")
     p.add_argument("--config", default=None, help="TOML file overriding any scenario constant")
@@ -34,6 +44,13 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from replay.simulator import simulate, write_trial
 
+    if args.list:
+        print(_scenario_table())
+        return 0
+    if args.scenario is None:
+        raise ValueError(f"give a SCENARIO (one of {', '.join(SC.SCENARIOS)}; --list describes them)")
+    if args.output is None and not args.show:
+        raise ValueError("give the output trial file with -o/--output")
     if args.seed < 0:
         raise ValueError(f"--seed must be ≥ 0, got {args.seed}")
     if args.duration is not None and not args.duration > 0:
@@ -48,8 +65,11 @@ def run(args: argparse.Namespace) -> int:
     res = simulate(sc, seed=args.seed, fine=args.fine, created=args.created)
     write_trial(res, args.output)
     beta = ", ".join(f"{n}={b:.6g}" for n, b in zip(res.meta.truth.beta_names, res.beta))
+    varying = res.meta.provenance.details.get("time_varying")
     print(
         f"wrote {args.output}: {args.scenario}, {len(res)} samples, Ts = {res.meta.Ts:.6g} s, "
-        f"seed {args.seed}{', fine' if args.fine else ''} ({time.perf_counter() - t0:.2f} s); true β: {beta}"
+        f"seed {args.seed}{', fine' if args.fine else ''} ({time.perf_counter() - t0:.2f} s); true β"
+        f"{' at t = 0' if varying else ''}: {beta}"
+        + (f"; time-varying: {', '.join(varying)} (per sample in the truth channel)" if varying else "")
     )
     return 0

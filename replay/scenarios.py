@@ -17,6 +17,21 @@ Scenarios after the thesis (chapter 3):
   study 2: CNC X axis, feed in one direction only with feed-rate steps; slotting
   7050 Al, 3000 rpm, 2 flutes, 16 mm, 1.5 mm depth (mechanistic force,
   :mod:`replay.cutting`).
+
+Scenarios for a monitor in production (conditions change while it runs):
+
+* ``milling-spindle-change`` — the spindle speed follows ``[spindle] schedule``
+  (``[[t_s, rpm], …]``, ramps at ``accel`` rpm/s); the cutting force follows the
+  integrated spindle angle; with ``feed = "per-tooth"`` the feed rate follows the
+  speed so that the programmed feed per tooth holds.
+* ``shaker-drift`` — viscous and Coulomb friction drift linearly over the trial
+  (``[drive_drift]``).
+* ``milling-payload`` — an inertia step at ``[drive_step] at`` (``[drive_step]``).
+* ``shaker-step`` — a non-periodic force step on and off (disturbance ``kind = "step"``).
+
+Drive constants that vary (``[drive_drift]``, ``[drive_step]``, in every scenario;
+zero = constant) are evaluated at each sample time ``t_k`` and held over the
+interval ``[t_k, t_k + Ts)``, like the controller output (:func:`drive_series`).
 """
 
 from __future__ import annotations
@@ -34,6 +49,9 @@ __all__ = [
     "list_scenarios",
     "load_scenario",
     "merge",
+    "describe",
+    "drive_series",
+    "spindle_profile",
     "reference_velocity",
     "engagement",
 ]
@@ -46,11 +64,25 @@ SCENARIOS = (
     "milling-incdec",
     "milling-inc",
     "milling-dec",
+    "milling-spindle-change",
+    "shaker-drift",
+    "milling-payload",
+    "shaker-step",
 )
+
+#: drive constants that may vary over a trial (``[drive_drift]``, ``[drive_step]``)
+VARYING = ("inertia", "damping", "coulomb_pos", "coulomb_neg")
+#: the highest spindle speed a scenario may command (rpm); beyond it the angular step count explodes
+MAX_SPINDLE_RPM = 100_000.0
 
 
 def list_scenarios() -> list[str]:
     return list(SCENARIOS)
+
+
+def describe() -> dict[str, str]:
+    """The one-line description of every built-in scenario, in the order of :data:`SCENARIOS`."""
+    return {name: str(_resolve(name).get("description", "")) for name in SCENARIOS}
 
 
 def _read_builtin(name: str) -> dict:
@@ -155,8 +187,114 @@ def check(sc: dict) -> None:
     if kind not in ("identification", "feed-steps"):
         raise ValueError(f"trajectory.kind must be identification or feed-steps, got {kind!r}")
     dk = sc["disturbance"]["kind"]
-    if dk not in ("none", "shaker", "milling"):
-        raise ValueError(f"disturbance.kind must be none, shaker or milling, got {dk!r}")
+    if dk not in ("none", "shaker", "milling", "step"):
+        raise ValueError(f"disturbance.kind must be none, shaker, milling or step, got {dk!r}")
+    if dk == "step":
+        _finite(sc, "disturbance.force")
+    if dk in ("shaker", "step"):
+        start, stop = _finite(sc, "disturbance.start"), _finite(sc, "disturbance.stop")
+        if not 0.0 <= start <= stop <= 1.0:
+            raise ValueError(f"disturbance.start and .stop are fractions of the duration with 0 ≤ start ≤ stop ≤ 1, "
+                             f"got {start!r} and {stop!r}")
+    _check_variation(sc)
+    if dk == "milling":
+        _check_spindle(sc)
+
+
+def _finite(sc: dict, path: str) -> float:
+    node = sc
+    for part in path.split("."):
+        node = node[part]
+    if isinstance(node, bool) or not isinstance(node, (int, float)) or not math.isfinite(node):
+        raise ValueError(f"scenario constant {path} must be a finite number, got {node!r}")
+    return float(node)
+
+
+def _check_variation(sc: dict) -> None:
+    """``[drive_drift]`` / ``[drive_step]``: relative changes keeping J, B > 0 and the friction ≥ 0."""
+    at = _finite(sc, "drive_step.at")
+    if not 0.0 <= at <= 1.0:
+        raise ValueError(f"drive_step.at is a fraction of the duration in [0, 1], got {at!r}")
+    for table in ("drive_drift", "drive_step"):
+        unknown = set(sc[table]) - set(VARYING) - ({"at"} if table == "drive_step" else set())
+        if unknown:
+            raise ValueError(f"{table} has no constant {sorted(unknown)[0]!r}; it varies {', '.join(VARYING)}")
+        for name in VARYING:
+            rel = _finite(sc, f"{table}.{name}")
+            positive = name in ("inertia", "damping")
+            if rel < -1.0 or (positive and rel == -1.0):
+                raise ValueError(
+                    f"{table}.{name} = {rel!r} would make drive.{name} {'≤' if positive else '<'} 0 "
+                    f"(a relative change must be {'>' if positive else '≥'} −1)"
+                )
+
+
+def _check_spindle(sc: dict) -> None:
+    d, sp = sc["disturbance"], sc["spindle"]
+    rpm0 = _pos(sc, "disturbance.spindle_rpm", allow_zero=True)
+    if rpm0 > MAX_SPINDLE_RPM:
+        raise ValueError(f"disturbance.spindle_rpm must be ≤ {MAX_SPINDLE_RPM:g} rpm, got {rpm0!r}")
+    _pos(sc, "spindle.accel", allow_zero=True)
+    if sp["feed"] not in ("per-tooth", "rate"):
+        raise ValueError(f"spindle.feed must be per-tooth or rate, got {sp['feed']!r}")
+    sched = sp["schedule"]
+    if not isinstance(sched, list):
+        raise ValueError("spindle.schedule must be a list of [t_s, rpm] pairs")
+    prev = -math.inf
+    for i, item in enumerate(sched):
+        ok = isinstance(item, list) and len(item) == 2 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in item
+        )
+        if not ok:
+            raise ValueError(f"spindle.schedule[{i}] must be a pair [t_s, rpm] of finite numbers, got {item!r}")
+        t_s, rpm = float(item[0]), float(item[1])
+        if not (prev < t_s < sc["duration"]) or t_s < 0:
+            raise ValueError(
+                f"spindle.schedule[{i}]: time {t_s!r} s must be ≥ 0, after the previous entry and inside the trial "
+                f"(duration {sc['duration']!r} s); shorten the schedule or lengthen the trial"
+            )
+        if not 0.0 < rpm <= MAX_SPINDLE_RPM:
+            raise ValueError(f"spindle.schedule[{i}]: speed must be in (0, {MAX_SPINDLE_RPM:g}] rpm, got {rpm!r}")
+        prev = t_s
+    if sched and (rpm0 <= 0 or not d.get("cutting", True)):
+        raise ValueError("spindle.schedule needs a turning spindle while cutting (disturbance.spindle_rpm > 0, "
+                         "disturbance.cutting = true)")
+
+
+def drive_series(sc: dict, t: np.ndarray) -> dict[str, np.ndarray]:
+    """The drive constants at the sample times ``t`` (s): ``inertia`` (kg), ``damping`` (N·s/m),
+    ``coulomb_pos``, ``coulomb_neg`` (N, magnitudes), each held over ``[t_k, t_k + Ts)``.
+
+    ``value(t) = drive.value · (1 + drift · t/duration) · (1 + step · [t ≥ at·duration])``.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    T = float(sc["duration"])
+    after = t >= float(sc["drive_step"]["at"]) * T
+    out = {}
+    for name in VARYING:
+        drift = float(sc["drive_drift"][name])
+        step = float(sc["drive_step"][name])
+        value = np.full(t.shape, float(sc["drive"][name]))
+        if drift:
+            value = value * (1.0 + drift * t / T)
+        if step:
+            value = np.where(after, value * (1.0 + step), value)
+        out[name] = value
+    return out
+
+
+def spindle_profile(sc: dict):
+    """The spindle speed and angle over the trial (:class:`replay.cutting.SpindleProfile`),
+    or None for scenarios without a spindle. ``disturbance.spindle_rpm`` until the first
+    entry of ``spindle.schedule``, from angle ``disturbance.phase``."""
+    from .cutting import SpindleProfile
+
+    d = sc["disturbance"]
+    if d["kind"] != "milling":
+        return None
+    rpm0 = float(d["spindle_rpm"]) if d.get("cutting", True) else 0.0
+    sp = sc["spindle"]
+    return SpindleProfile(rpm0, [tuple(x) for x in sp["schedule"]], accel=float(sp["accel"]), phase=float(d["phase"]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,7 +358,13 @@ def reference_velocity(sc: dict, n: int, Ts: float) -> np.ndarray:
     out = np.concatenate(parts)
     if out.size < n:
         out = np.concatenate([out, np.zeros(n - out.size)])
-    return out[:n].copy()
+    out = out[:n].copy()
+    spindle = sc.get("spindle", {})
+    if spindle.get("schedule") and spindle.get("feed") == "per-tooth":
+        # feed per revolution: the feed rate follows the spindle speed, the feed per tooth holds
+        rpm0 = float(sc["disturbance"]["spindle_rpm"])
+        out *= spindle_profile(sc).speed(np.arange(n) * Ts) / rpm0
+    return out
 
 
 def engagement(sc: dict, t: np.ndarray) -> np.ndarray:

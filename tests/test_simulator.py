@@ -11,7 +11,14 @@ from kernels.feed_drive import force_to_disturbance, physical_to_beta, regressor
 from kernels.least_squares import least_squares
 from replay import scenarios as SC
 from replay.cutting import MillingTool, feed_force, mean_feed_force
-from replay.simulator import simulate_scenario, true_beta
+from replay.simulator import (
+    SimulationError,
+    UnstableLoopError,
+    closed_loop_zoh,
+    simulate_scenario,
+    true_beta,
+    write_trial,
+)
 
 QUIET = {"noise": {"v_meas_std": 0.0, "glitch_rate": 0.0, "dynamometer_std": 0.0}}
 
@@ -27,8 +34,6 @@ def _ls(trial_like):
 def test_ls_recovers_true_beta_noise_free(name, tmp_path):
     res = simulate_scenario(name, seed=0, duration=20.0, config=QUIET)
     p = tmp_path / "q.mcap"
-    from replay.simulator import write_trial
-
     write_trial(res, p)
     tr = read_trial(p)
     beta = np.array(tr.meta.truth.beta)
@@ -147,8 +152,6 @@ def test_cli_simulate(tmp_path, capsys):
 
 
 def test_ten_minute_trial_speed(tmp_path):
-    from replay.simulator import write_trial
-
     simulate_scenario("shaker-sweep", duration=1.0)  # numba cache warm-up
     t0 = time.perf_counter()
     res = simulate_scenario("shaker-sweep", duration=600.0)
@@ -157,3 +160,82 @@ def test_ten_minute_trial_speed(tmp_path):
     t2 = time.perf_counter()
     print(f"\n10-minute shaker-sweep trial: simulate {t1 - t0:.2f} s, write MCAP {t2 - t1:.2f} s, {len(res)} samples")
     assert len(res) == 199800
+
+
+# ---------------------------------------------------------------------------------------------
+# refusing what cannot be a trial
+# ---------------------------------------------------------------------------------------------
+WEAK = {"drive": {"inertia": 60.0, "damping": 60.0}}  # the shaker drive at 0.2×, default loop gain
+
+
+def _pole_and_limit(J, B, K, Ts):
+    p_d = np.exp(-B * Ts / J)
+    return p_d - K * (1 - p_d) / B, B * (1 + p_d) / (1 - p_d)
+
+
+@pytest.mark.parametrize("fine", [False, True])
+def test_unstable_loop_is_refused_naming_the_pole(fine):
+    sc = SC.load_scenario("shaker-constant", WEAK)
+    Ts, K = 1 / sc["rate"], sc["drive"]["loop_gain"]
+    pole, k_max = _pole_and_limit(60.0, 60.0, K, Ts)
+    assert pole < -1
+    with pytest.raises(UnstableLoopError) as exc:
+        simulate_scenario("shaker-constant", duration=2.0, config=WEAK, fine=fine)
+    msg = str(exc.value)
+    assert f"p_d − K_d = {pole:.6g}" in msg and f"loop_gain < {k_max:.6g} N·s/m" in msg
+    assert ("10 kHz fine path (30 substeps" in msg) == fine and ("exact-ZOH loop" in msg) != fine
+    # the stable range it names is right: just inside runs (and rings down), just outside is refused
+    inside = {"drive": dict(WEAK["drive"], loop_gain=0.98 * k_max)}
+    res = simulate_scenario("shaker-constant", duration=2.0, config=inside, fine=fine)
+    assert np.all(np.isfinite(res.v_meas)) and np.abs(res.v_true).max() < 1.0
+    outside = {"drive": dict(WEAK["drive"], loop_gain=1.02 * k_max)}
+    with pytest.raises(UnstableLoopError):
+        simulate_scenario("shaker-constant", duration=2.0, config=outside, fine=fine)
+
+
+def test_unstable_after_a_drive_step_names_the_time():
+    cfg = {"drive_step": {"at": 0.5, "inertia": -0.8, "damping": -0.8}}
+    with pytest.raises(UnstableLoopError, match=r"from t = 1 s \(sample 333; the drive constants vary"):
+        simulate_scenario("shaker-constant", duration=2.0, config=cfg)
+    with pytest.raises(UnstableLoopError, match="unstable closed loop"):
+        closed_loop_zoh(np.zeros(10), np.zeros(10), np.zeros(10), 1 / 333, 60.0, 60.0, 83300.0, 9.0, 10.0, 5e-4)
+
+
+def test_closed_loop_zoh_constants_scalar_or_per_sample():
+    rng = np.random.default_rng(0)
+    v_ref = np.repeat([0.0, 0.05, -0.05, 0.0], 50)
+    tc, noise = rng.normal(0, 5, v_ref.size), rng.normal(0, 1e-6, v_ref.size)
+    a = closed_loop_zoh(v_ref, tc, noise, 1 / 333, 300.0, 300.0, 83300.0, 9.0, 10.0, 5e-4)
+    n = v_ref.size
+    b = closed_loop_zoh(v_ref, tc, noise, 1 / 333, np.full(n, 300.0), np.full(n, 300.0), 83300.0,
+                        np.full(n, 9.0), np.full(n, 10.0), 5e-4)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)  # one compiled loop, run twice
+    J = np.where(np.arange(n) < 100, 300.0, 600.0)
+    c = closed_loop_zoh(v_ref, tc, noise, 1 / 333, J, 300.0, 83300.0, 9.0, 10.0, 5e-4)
+    np.testing.assert_array_equal(c[0][:101], a[0][:101])  # v(100) is set by J(99)
+    assert not np.array_equal(c[0][101:], a[0][101:])
+    with pytest.raises(SimulationError, match="finite inertia > 0"):
+        closed_loop_zoh(v_ref, tc, noise, 1 / 333, np.where(J > 400, np.nan, J), 300.0, 83300.0, 9.0, 10.0, 5e-4)
+    with pytest.raises(ValueError, match="J has shape"):
+        closed_loop_zoh(v_ref, tc, noise, 1 / 333, J[:5], 300.0, 83300.0, 9.0, 10.0, 5e-4)
+
+
+@pytest.mark.parametrize(("amplitude", "fine"), [(float("inf"), False), (float("nan"), True), (1e300, False)])
+def test_non_finite_or_absurd_samples_are_never_written(amplitude, fine):
+    with pytest.raises(SimulationError, match="nothing written") as exc:
+        simulate_scenario("shaker-constant", duration=2.0, config={"disturbance": {"amplitude": amplitude}}, fine=fine)
+    assert "non-finite or beyond" in str(exc.value)
+
+
+def test_cli_refuses_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "never.mcap"
+    cfg = tmp_path / "weak.toml"
+    cfg.write_text("[drive]\ninertia = 60.0\ndamping = 60.0\n")
+    assert main(["simulate", "shaker-constant", "-o", str(out), "--config", str(cfg), "--duration", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "unstable closed loop" in err and "drive.loop_gain <" in err and not out.exists()
+    cfg.write_text("[disturbance]\namplitude = nan\n")
+    assert main(["simulate", "shaker-constant", "-o", str(out), "--config", str(cfg), "--duration", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "force = nan N" in err and not out.exists()
