@@ -118,6 +118,7 @@ class AxisEstimator:
         self._state = online.new_state()
         self._xbuf = np.zeros(1)
         self._obuf = np.zeros(16)
+        self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
     def _new_tracker(self) -> KRLST:
         cfg = self.model.tracker
@@ -213,13 +214,16 @@ class AxisEstimator:
     def snapshot_templates(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """What a valid snapshot of this model looks like: the snapshots of a fresh tracker with the
         model's hyperparameters before any sample and after one step (keys, shapes, dtypes and the
-        hyperparameter values; they follow the core's layout, whatever it is)."""
-        tracker = self._new_tracker()
-        before = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
-        tracker.learn_one(0.0, 0.0)
-        after = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
-        before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
-        return before, after
+        hyperparameter values; they follow the core's layout, whatever it is). Made once per
+        estimator; treat them as read only."""
+        if self._templates is None:
+            tracker = self._new_tracker()
+            before = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
+            tracker.learn_one(0.0, 0.0)
+            after = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
+            before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
+            self._templates = (before, after)
+        return self._templates
 
     def restore(self, snap: dict[str, np.ndarray]) -> None:
         """Continue from :meth:`snapshot` (the regressor chain restarts at the next sample).
