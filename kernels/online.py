@@ -16,10 +16,13 @@ for each arriving sample ``j`` of a block,
    steps 1–2), reused by the next update.
 
 :func:`track_block` runs that loop without allocation; ``monitor.estimator`` is the thin
-Python API around it (stumpy-style split). Its arguments are grouped in NamedTuples of typed
-arrays (Numba passes them through): :class:`OnlineConfig` (the model, read only),
-:class:`OnlineState` (what links consecutive blocks, updated in place) and :class:`BlockRows`
-(the output of one block). To extend the loop (e.g. online β estimation), add fields there.
+Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
+what links consecutive blocks is :class:`OnlineState` (``int64`` sequence numbers and counters,
+``float64`` for the rest): NamedTuples the loop builds from a few plain typed buffers
+(:class:`ConfigBuffers`, :class:`StateBuffers`), since a tuple argument costs ~1.5 µs per call to
+type; the output of a
+block is ``rows``/``irows`` with one named row per quantity (:data:`ROWS`, :data:`IROWS`) and
+``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β estimation), add fields there.
 
 Sequence numbers and time
 -------------------------
@@ -62,14 +65,16 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
 from . import _krlst_core as core
 from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
 
-__all__ = ["COUNTERS", "SEQ_LIMIT", "REORDER_WINDOW", "OnlineConfig", "OnlineState", "BlockRows", "new_state",
-           "new_rows", "track_block"]
+__all__ = ["COUNTERS", "ROWS", "IROWS", "SEQ_LIMIT", "REORDER_WINDOW", "OnlineConfig", "ConfigBuffers", "config_of",
+           "new_config", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows", "new_scratch",
+           "track_block"]
 
-#: counters of :attr:`BlockRows.counts`, in slot order (each a number of samples unless said)
+#: counters of the ``counts`` output, in slot order (each a number of samples unless said)
 COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of_range", "rejected_seq_range",
             "gaps", "missing_samples", "seq_resets", "time_backwards", "restarts", "stale", "trained")
 (C_DUP, C_OOO, C_NONFINITE, C_RANGE, C_SEQ_RANGE, C_GAPS, C_MISSING, C_RESET, C_BACK, C_RESTART, C_STALE,
@@ -90,7 +95,8 @@ _ARM_MEAN, _ARM_SIGMA_F2 = 0, 1
 
 
 class OnlineConfig(NamedTuple):
-    """What the loop reads of the axis model (SI units); built once per axis."""
+    """What the loop reads of the axis model (SI units): named values of :class:`ConfigBuffers`
+    (:func:`config_of`)."""
 
     beta: np.ndarray        #: float64 (p,): β in the order of the model's ``beta_names``
     coulomb: bool           #: β has the Coulomb columns −σ_p, −σ_n (β[2], β[3])
@@ -105,17 +111,44 @@ class OnlineConfig(NamedTuple):
     reorder_window: int     #: W ≥ 1 (samples), see the module docstring
 
 
-class OnlineState(NamedTuple):
-    """What links consecutive blocks of one axis; every field a 1-element array updated in place."""
+class ConfigBuffers(NamedTuple):
+    """The storage of an :class:`OnlineConfig`, as the compiled loop takes it: β, then the integer
+    (``coulomb, intercept, stale_detection, warmup, reorder_window``) and float
+    (``omega, inv_ts, v_max, e_max, t_max``) values."""
 
-    seen: np.ndarray        #: bool: a sample was seen (``last_seq`` is valid)
+    beta: np.ndarray
+    ints: np.ndarray
+    floats: np.ndarray
+
+
+def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: float, v_max: float, e_max: float,
+               t_max: float, stale_detection: bool, warmup: int, reorder_window: int) -> ConfigBuffers:
+    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`)."""
+    return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64),
+                         np.array([coulomb, intercept, stale_detection, warmup, reorder_window], dtype=np.int64),
+                         np.array([omega, inv_ts, v_max, e_max, t_max], dtype=np.float64))
+
+
+@register_jitable
+def config_of(beta, ints, floats):
+    """The :class:`OnlineConfig` stored in ``(beta, ints, floats)``; works in Python and inside ``@njit``."""
+    return OnlineConfig(beta, ints[0] != 0, ints[1] != 0, floats[0], floats[1], floats[2], floats[3], floats[4],
+                        ints[2] != 0, ints[3], ints[4])
+
+
+class OnlineState(NamedTuple):
+    """What links consecutive blocks of one axis, as named 1-element views (:func:`state_of`) of the
+    two buffers of :class:`StateBuffers`. (Numba types a tuple argument element by element on every
+    call, ~1.5 µs each: the compiled loop is handed plain arrays and names them inside.)"""
+
+    seen: np.ndarray        #: int64: 1 once a sample was seen (``last_seq`` is valid)
     last_seq: np.ndarray    #: int64: L, sequence number of the last sample seen (rejected ones included)
     ref_seq: np.ndarray     #: int64: s_r, sequence number of the last sample seen with a usable time
-    ref_t: np.ndarray       #: float64: t_r, its time (s); NaN: none
     run_seq: np.ndarray     #: int64: last sample of the current run of dropped samples that continue each other
     run_len: np.ndarray     #: int64: length of that run (0: none)
-    chain: np.ndarray       #: bool: the last sample was accepted: the next one can form a residual
+    chain: np.ndarray       #: int64: 1 when the last sample was accepted: the next one can form a residual
     trained: np.ndarray     #: int64: samples the tracker learned from
+    ref_t: np.ndarray       #: float64: t_r, time of sample s_r (s); NaN: none
     last_t: np.ndarray      #: float64: time of the last accepted sample (s); NaN: none
     last_e: np.ndarray      #: float64: its exogenous input v_ref (m/s) or u (N)
     last_v_raw: np.ndarray  #: float64: its measured velocity as received (m/s)
@@ -124,39 +157,57 @@ class OnlineState(NamedTuple):
     f_next_var: np.ndarray  #: float64: its variance ((m/s)²)
 
 
-class BlockRows(NamedTuple):
-    """Output of one block: one row per sample (rows of dropped samples are not written), and counters."""
-
-    v_pred: np.ndarray      #: float64: βᵀz(j−1) + f̂(j−1), the velocity predicted for sample j (m/s)
-    residual: np.ndarray    #: float64: v(j−1) = v_m(j) − βᵀz(j−1) (m/s), eq. 2.13
-    f: np.ndarray           #: float64: filtered disturbance of the step that ended at j (m/s)
-    f_var: np.ndarray       #: float64: its variance ((m/s)²)
-    f_next: np.ndarray      #: float64: one-step-ahead prediction of f(j) from x(j) (m/s)
-    f_next_var: np.ndarray  #: float64: its variance ((m/s)²)
-    dict_size: np.ndarray   #: int64: dictionary size after the sample
-    removed: np.ndarray     #: int64: pruned dictionary index (−1: none)
-    flags: np.ndarray       #: int64: kernels.flags.EstimateFlag bits
-    counts: np.ndarray      #: int64 (len(COUNTERS),): what happened in this block, slots C_*
+#: how many fields of :class:`OnlineState` live in :attr:`StateBuffers.ints` (the rest: ``floats``)
+_N_INT_FIELDS = 7
 
 
-def new_state(trained: int = 0) -> OnlineState:
-    """State of an axis that has seen no sample (the tracker may have learned ``trained`` before)."""
-    nan = lambda: np.full(1, np.nan)  # noqa: E731
-    zero = lambda: np.zeros(1, dtype=np.int64)  # noqa: E731
-    st = OnlineState(seen=np.zeros(1, dtype=np.bool_), last_seq=zero(), ref_seq=zero(), ref_t=nan(),
-                     run_seq=zero(), run_len=zero(), chain=np.zeros(1, dtype=np.bool_), trained=zero(),
-                     last_t=nan(), last_e=nan(), last_v_raw=nan(), last_v_used=nan(), f_next=nan(),
-                     f_next_var=nan())
-    st.trained[0] = trained
-    return st
+class StateBuffers(NamedTuple):
+    """The storage of an :class:`OnlineState`: ``int64`` and ``float64`` slots in field order."""
+
+    ints: np.ndarray
+    floats: np.ndarray
 
 
-def new_rows(n: int) -> BlockRows:
-    """Output buffers for a block of ``n`` samples."""
-    f = lambda: np.empty(n)  # noqa: E731
-    i = lambda: np.empty(n, dtype=np.int64)  # noqa: E731
-    return BlockRows(v_pred=f(), residual=f(), f=f(), f_var=f(), f_next=f(), f_next_var=f(), dict_size=i(),
-                     removed=i(), flags=i(), counts=np.zeros(len(COUNTERS), dtype=np.int64))
+@register_jitable
+def state_of(i, f):
+    """The named views of the buffers ``(ints, floats)`` (:class:`StateBuffers`); works in Python and
+    inside ``@njit``."""
+    return OnlineState(i[0:1], i[1:2], i[2:3], i[3:4], i[4:5], i[5:6], i[6:7],
+                       f[0:1], f[1:2], f[2:3], f[3:4], f[4:5], f[5:6], f[6:7])
+
+
+def new_state(trained: int = 0) -> StateBuffers:
+    """State of an axis that has seen no sample (its tracker may have learned ``trained`` samples before)."""
+    n_float = len(OnlineState._fields) - _N_INT_FIELDS
+    buf = StateBuffers(np.zeros(_N_INT_FIELDS, dtype=np.int64), np.full(n_float, np.nan))
+    state_of(*buf).trained[0] = trained
+    return buf
+
+
+#: rows of the float output of :func:`track_block` (``rows``, shape (N_ROWS, n)), one column per sample
+ROWS = ("v_pred", "residual", "f", "f_var", "f_next", "f_next_var")
+R_VPRED, R_RESID, R_F, R_FVAR, R_FNEXT, R_FNEXTVAR = range(len(ROWS))
+#: rows of the integer output (``irows``, shape (N_IROWS, n))
+IROWS = ("dict_size", "removed", "flags")
+R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
+# What each row holds, for sample j (emitted when it arrives; m/s and (m/s)²):
+#   v_pred      βᵀz(j−1) + f̂(j−1): the velocity the model predicted for sample j
+#   residual    v(j−1) = v_m(j) − βᵀz(j−1), eq. 2.13 (NaN when the chain (re)starts or j is stale)
+#   f, f_var    the filtered disturbance of the step that ended at j (its prediction for a stale j)
+#   f_next, f_next_var   the one-step-ahead prediction of f(j) from x(j)
+#   dict_size   dictionary size after sample j;  removed  pruned dictionary index (−1: none)
+#   flags       kernels.flags.EstimateFlag bits
+
+
+def new_scratch() -> tuple[np.ndarray, np.ndarray]:
+    """The scratch buffers ``xbuf`` (1,) and ``obuf`` (the core's ``out``) of :func:`track_block`."""
+    return np.zeros(1), np.zeros(core.N_OUT)
+
+
+def new_rows(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Output buffers ``rows`` (:data:`ROWS`), ``irows`` (:data:`IROWS`) and ``counts`` (:data:`COUNTERS`)
+    for a block of ``n`` samples."""
+    return np.empty((len(ROWS), n)), np.empty((len(IROWS), n), dtype=np.int64), np.zeros(len(COUNTERS), np.int64)
 
 
 @njit(cache=True, nogil=True)
@@ -204,40 +255,38 @@ def _place(cfg, st, s, t, t_ok):
 
 
 @njit(cache=True, nogil=True)
-def _clear(out, j, ist):
-    out.v_pred[j] = np.nan
-    out.residual[j] = np.nan
-    out.f[j] = np.nan
-    out.f_var[j] = np.nan
-    out.f_next[j] = np.nan
-    out.f_next_var[j] = np.nan
-    out.removed[j] = -1
-    out.dict_size[j] = ist[core.I_N]
+def _clear(rows, irows, j, ist):
+    for r in range(rows.shape[0]):
+        rows[r, j] = np.nan
+    irows[R_REMOVED, j] = -1
+    irows[R_SIZE, j] = ist[core.I_N]
 
 
 @njit(cache=True, nogil=True)
 def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
-                cfg, st, seq0, t, e, v, out, xbuf, obuf):
+                beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e, v, rows, irows, counts, xbuf, obuf):
     """Process one block of samples (method §6); returns the number of leading samples dropped.
 
-    ``kinds … tab``: the tracker's arrays (:meth:`kernels.krlst.KRLST.core_arrays`); ``cfg``
-    :class:`OnlineConfig`; ``st`` :class:`OnlineState` (updated); ``seq0`` the sequence number of
-    sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64 (n,),
-    NaN = missing. ``out`` :class:`BlockRows` of at least ``n`` rows receives one row per sample
-    from index ``first`` on (the return value: dropped samples — duplicates and late re-sends —
-    always form a prefix, since the sample after an accepted one is its successor); ``out.counts``
-    accumulates :data:`COUNTERS`. ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``) are scratch.
+    ``kinds … tab``: the tracker's arrays (:meth:`kernels.krlst.KRLST.core_arrays`); ``beta …
+    cfg_floats`` a :class:`ConfigBuffers`; ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number
+    of sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64
+    (n,), NaN = missing. ``rows`` (:data:`ROWS`, ≥ n) and ``irows`` (:data:`IROWS`, ≥ n) receive one
+    column per sample from index ``first`` on (the return value: dropped samples — duplicates and
+    late re-sends — always form a prefix, since the sample after an accepted one is its successor);
+    ``counts`` accumulates :data:`COUNTERS`. ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``) are scratch.
     """
     n = t.shape[0]
-    counts = out.counts
-    if (e.shape[0] != n or v.shape[0] != n or out.v_pred.shape[0] < n or out.flags.shape[0] < n
+    if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) or rows.shape[1] < n
+            or irows.shape[0] != len(IROWS) or irows.shape[1] < n or counts.shape[0] != len(COUNTERS)
             or xbuf.shape[0] != 1 or obuf.shape[0] < core.N_OUT):
-        raise ValueError("track_block: inconsistent array lengths")
+        raise ValueError("track_block: inconsistent array shapes")
     if n == 0:
         return 0
     if seq0 < 0 or seq0 > SEQ_LIMIT - (n - 1):
         counts[C_SEQ_RANGE] += n                  # sequence numbers beyond int64: refused whole
         return n
+    cfg = config_of(beta, cfg_ints, cfg_floats)
+    st = state_of(st_ints, st_floats)
     first = 0
     for j in range(n):
         s = seq0 + j
@@ -257,7 +306,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
         elif where == _RESET:
             counts[C_RESET] += 1
             fl |= GAP_BIT
-        st.seen[0] = True
+        st.seen[0] = 1
         st.last_seq[0] = s
         st.run_len[0] = 0
         if t_ok:
@@ -265,7 +314,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             st.ref_t[0] = tj
         elif where == _RESET:
             st.ref_t[0] = np.nan                  # no clock reference in the new session yet
-        _clear(out, j, ist)
+        _clear(rows, irows, j, ist)
         # ---- 2. classify its values --------------------------------------------------------------
         if not (math.isfinite(tj) and math.isfinite(ej) and math.isfinite(vj)):
             counts[C_NONFINITE] += 1
@@ -274,12 +323,12 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             counts[C_RANGE] += 1
             fl |= REJECTED_BIT
         if fl & REJECTED_BIT:
-            out.flags[j] = fl
-            st.chain[0] = False                   # the next good sample restarts the chain
+            irows[R_FLAGS, j] = fl
+            st.chain[0] = 0                       # the next good sample restarts the chain
             if where == _RESET:
                 st.last_t[0] = np.nan             # time order is judged within a session
             continue
-        cont = st.chain[0] and where == _NEXT
+        cont = st.chain[0] != 0 and where == _NEXT
         if where == _NEXT and tj <= st.last_t[0]:  # False while no sample was accepted (NaN)
             counts[C_BACK] += 1
             fl |= GAP_BIT
@@ -292,21 +341,22 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             # ---- 3. residual of the previous step, eq. 2.13 ----------------------------------------
             base = _linear(cfg, st.last_e[0], st.last_v_used[0])
             f_pred = st.f_next[0]
-            out.v_pred[j] = base + (f_pred if math.isfinite(f_pred) else 0.0)
+            v_pred = base + (f_pred if math.isfinite(f_pred) else 0.0)
+            rows[R_VPRED, j] = v_pred
             if stale:
                 counts[C_STALE] += 1
                 fl |= STALE_BIT
-                out.f[j] = f_pred                 # predict only
-                out.f_var[j] = st.f_next_var[0]
-                v_used = out.v_pred[j]            # the model's velocity stands in for the repeat
+                rows[R_F, j] = f_pred             # predict only
+                rows[R_FVAR, j] = st.f_next_var[0]
+                v_used = v_pred                   # the model's velocity stands in for the repeat
             else:
                 resid = vj - base
-                out.residual[j] = resid
+                rows[R_RESID, j] = resid
                 # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) ---------------------
                 if core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, obuf):
-                    out.f[j] = obuf[_UPD_FILTERED]                          # ŷ + σ_f²(y − ŷ)/σ_y²
-                    out.f_var[j] = obuf[_UPD_FILTERED_VAR] * obuf[_UPD_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
-                    out.removed[j] = int(obuf[_UPD_REMOVED])
+                    rows[R_F, j] = obuf[_UPD_FILTERED]                          # ŷ + σ_f²(y − ŷ)/σ_y²
+                    rows[R_FVAR, j] = obuf[_UPD_FILTERED_VAR] * obuf[_UPD_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    irows[R_REMOVED, j] = int(obuf[_UPD_REMOVED])
                     if obuf[_UPD_REDUCED] != 0.0:
                         fl |= REDUCED_BIT
                     st.trained[0] += 1
@@ -323,15 +373,17 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
         was_empty = ist[core.I_N] == 0
         xbuf[0] = tj
         core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, obuf)
-        out.f_next[j] = obuf[_ARM_MEAN]
-        out.f_next_var[j] = np.nan if was_empty else obuf[_ARM_SIGMA_F2] * fst[core.F_S02]
-        out.flags[j] = fl
-        out.dict_size[j] = ist[core.I_N]
-        st.chain[0] = True
+        f_next = obuf[_ARM_MEAN]
+        f_next_var = np.nan if was_empty else obuf[_ARM_SIGMA_F2] * fst[core.F_S02]
+        rows[R_FNEXT, j] = f_next
+        rows[R_FNEXTVAR, j] = f_next_var
+        irows[R_FLAGS, j] = fl
+        irows[R_SIZE, j] = ist[core.I_N]
+        st.chain[0] = 1
         st.last_t[0] = tj
         st.last_e[0] = ej
         st.last_v_raw[0] = vj
         st.last_v_used[0] = v_used
-        st.f_next[0] = out.f_next[j]
-        st.f_next_var[0] = out.f_next_var[j]
+        st.f_next[0] = f_next
+        st.f_next_var[0] = f_next_var
     return first

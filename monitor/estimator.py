@@ -109,15 +109,14 @@ class AxisEstimator:
                              f"{len(names)} names {names}; the online residual uses e, v"
                              f"{', −σ_p, −σ_n' if model.coulomb else ''}{', one' if intercept else ''}")
         e_max = LIMITS["u"] if model.form == "force-input" else LIMITS["v"]
-        self._cfg = online.OnlineConfig(
+        self._cfg = online.new_config(
             beta=self.beta, coulomb=bool(model.coulomb), intercept=intercept, omega=float(model.omega),
             inv_ts=1.0 / float(model.Ts), v_max=LIMITS["v"], e_max=float(e_max), t_max=LIMITS["t"],
             stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window))
         self.tracker = self._new_tracker()
         self.counters: Counter[str] = Counter()
         self._state = online.new_state()
-        self._xbuf = np.zeros(1)
-        self._obuf = np.zeros(16)
+        self._xbuf, self._obuf = online.new_scratch()
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
     def _new_tracker(self) -> KRLST:
@@ -136,14 +135,14 @@ class AxisEstimator:
         )
 
     @property
-    def config(self) -> online.OnlineConfig:
-        """What the compiled loop reads of the model (read only)."""
+    def config(self) -> online.ConfigBuffers:
+        """What the compiled loop reads of the model (read only; named by :func:`kernels.online.config_of`)."""
         return self._cfg
 
     @property
     def trained(self) -> int:
         """Samples the tracker has learned from."""
-        return int(self._state.trained[0])
+        return int(online.state_of(*self._state).trained[0])
 
     # ------------------------------------------------------------------ main entry
     def process(self, block: SampleBlock) -> EstimateBlock | None:
@@ -165,44 +164,27 @@ class AxisEstimator:
         t = np.asarray(block.t, dtype=np.float64)
         e = _as_column(exo)
         v = _as_column(block.v_meas)
-        out = online.new_rows(n)
-        first = online.track_block(*self.tracker.core_arrays(self._xbuf), self._cfg, self._state, seq0,
-                                   t, e, v, out, self._xbuf, self._obuf)
-        for name, count in zip(online.COUNTERS, out.counts.tolist()):
+        rows, irows, counts = online.new_rows(n)
+        first = online.track_block(*self.tracker.core_arrays(self._xbuf), *self._cfg, *self._state, seq0,
+                                   t, e, v, rows, irows, counts, self._xbuf, self._obuf)
+        for name, count in zip(online.COUNTERS, counts.tolist()):
             if count:
                 self.counters[name] += count
         if first == n:
             return None
         self.counters["estimates_out"] += n - first
-        return self._block(block.machine, block.axis, seq0 + first, t[first:], v[first:], out, first)
+        return self._block(block.machine, block.axis, seq0 + first, t[first:], v[first:], rows[:, first:],
+                           irows[:, first:])
 
-    def _block(self, machine, axis, seq0, t, v, out: online.BlockRows, first: int) -> EstimateBlock:
-        f, f_var, f_next = out.f[first:], out.f_var[first:], out.f_next[first:]
-        force = force_var = force_next = None
+    def _block(self, machine, axis, seq0, t, v, rows, irows) -> EstimateBlock:
+        cols = dict(zip(online.ROWS, rows.tolist()))
+        cols.update(zip(online.IROWS, irows.tolist()))
         b = self.force_gain
         if b is not None:
-            force = (-f / b).tolist()
-            force_var = (f_var / (b * b)).tolist()
-            force_next = (-f_next / b).tolist()
-        return EstimateBlock(
-            machine=machine,
-            axis=axis,
-            seq=int(seq0),
-            t=t.tolist(),
-            v_meas=v.tolist(),
-            v_pred=out.v_pred[first:].tolist(),
-            residual=out.residual[first:].tolist(),
-            f=f.tolist(),
-            f_var=f_var.tolist(),
-            f_next=f_next.tolist(),
-            f_next_var=out.f_next_var[first:].tolist(),
-            dict_size=out.dict_size[first:].tolist(),
-            removed=out.removed[first:].tolist(),
-            flags=out.flags[first:].tolist(),
-            force=force,
-            force_var=force_var,
-            force_next=force_next,
-        )
+            f, f_var, f_next = rows[online.R_F], rows[online.R_FVAR], rows[online.R_FNEXT]
+            cols.update(force=(-f / b).tolist(), force_var=(f_var / (b * b)).tolist(),
+                        force_next=(-f_next / b).tolist())
+        return EstimateBlock(machine=machine, axis=axis, seq=int(seq0), t=t.tolist(), v_meas=v.tolist(), **cols)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -25,6 +25,7 @@ import contextlib
 import logging
 import math
 import os
+import stat
 import time
 import zipfile
 from dataclasses import dataclass
@@ -95,11 +96,24 @@ def read_state_file(path: str | os.PathLike, layout: dict[str, tuple[np.dtype, t
               for key, (dtype, shape) in layout.items()}
     total_cap = sum(cap for _, _, cap in limits.values())
     file_cap = total_cap + ZIP_OVERHEAD_MEMBER * len(limits) + ZIP_OVERHEAD_FILE
-    size = os.stat(path).st_size
-    if size > file_cap:
-        raise StateError(f"the file has {size} bytes; a state of this model has at most {file_cap}")
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block the start
     try:
-        zf = zipfile.ZipFile(path)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise StateError("it is not a regular file")
+        if st.st_size > file_cap:
+            raise StateError(f"the file has {st.st_size} bytes; a state of this model has at most {file_cap}")
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    with fh:
+        return _read_zip(fh, limits, total_cap, optional)
+
+
+def _read_zip(fh, limits: dict, total_cap: int, optional: frozenset[str]) -> dict[str, np.ndarray]:
+    try:
+        zf = zipfile.ZipFile(fh)
     except Exception as exc:  # noqa: BLE001 - whatever a crafted zip directory makes zipfile raise
         raise StateError(f"not an npz (zip) file: {exc}") from None
     with zf:
@@ -200,7 +214,7 @@ class StateStore:
                 os.fsync(fh.fileno())
             os.replace(tmp, path)
         except BaseException:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, ValueError):
                 tmp.unlink()
             raise
         with contextlib.suppress(OSError):  # make the rename itself durable (best effort)

@@ -233,11 +233,11 @@ def test_compiled_loop_refuses_any_int64_that_does_not_fit(seq0):
     """Defence in depth: the ``@njit`` loop itself, handed an int64 the Python layer would refuse."""
     t, v_ref, v, _ = _stream(10)
     est = AxisEstimator(_model())
-    xbuf, obuf = np.zeros(1), np.zeros(16)
-    out = online.new_rows(10)
-    first = online.track_block(*est.tracker.core_arrays(xbuf), est.config, online.new_state(), np.int64(seq0), t,
-                               v_ref, v, out, xbuf, obuf)
-    assert first == 10 and out.counts[online.COUNTERS.index("rejected_seq_range")] == 10
+    xbuf, obuf = online.new_scratch()
+    rows, irows, counts = online.new_rows(10)
+    first = online.track_block(*est.tracker.core_arrays(xbuf), *est.config, *online.new_state(), np.int64(seq0), t,
+                               v_ref, v, rows, irows, counts, xbuf, obuf)
+    assert first == 10 and counts[online.COUNTERS.index("rejected_seq_range")] == 10
 
 
 # ---- sequence numbers and time together: gaps, re-sends, new bridge sessions --------------------------------

@@ -268,6 +268,21 @@ def test_too_many_entries_or_a_huge_file_are_refused_unread(work, saved, tmp_pat
     assert res.origin == "unreadable" and "a state of this model has at most" in res.detail, res.detail
 
 
+@pytest.mark.parametrize("kind", ["fifo", "directory", "device"])
+def test_a_state_path_that_is_not_a_regular_file_is_refused_without_blocking(kind, work, tmp_path):
+    import os
+
+    target = _axis_state_path(tmp_path)
+    if kind == "fifo":
+        os.mkfifo(target)  # opening it for reading would wait for a writer forever
+    elif kind == "directory":
+        target.mkdir()
+    else:
+        target.symlink_to("/dev/zero")  # endless zeros
+    ax, res = _load_fresh(work, tmp_path)
+    assert res.origin == "unreadable" and "not a regular file" in res.detail, res.detail
+
+
 def test_read_state_file_needs_every_entry_of_the_layout(saved):
     path, _ = saved
     arrays = _arrays(path)
