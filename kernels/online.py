@@ -19,10 +19,10 @@ for each arriving sample ``j`` of a block,
 Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
 what links consecutive blocks is :class:`OnlineState` (``int64`` sequence numbers and counters,
 ``float64`` for the rest): NamedTuples the loop builds from a few plain typed buffers
-(:class:`ConfigBuffers`, :class:`StateBuffers`), since a tuple argument costs ~1.5 µs per call to
-type; the output of a
-block is ``rows``/``irows`` with one named row per quantity (:data:`ROWS`, :data:`IROWS`) and
-``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β estimation), add fields there.
+(:class:`ConfigBuffers`, :class:`StateBuffers`; a tuple argument would cost ~1.5 µs per call to
+type). The output of a block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`,
+:data:`IROWS`), and ``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β
+estimation), add fields to these.
 
 Sequence numbers and time
 -------------------------
@@ -44,7 +44,7 @@ sample seen with a usable time (finite, ``|t| ≤ t_max``), ``W`` the reorder wi
 * otherwise (``s ≤ L``, time not newer) a **duplicate** (``s = L``) or a **late re-send**
   (``s < L``): dropped, no row — unless ``W`` such samples in a row continue each other
   (``s`` = previous + 1): then the bridge restarted both its count and its clock, and the
-  ``W``-th of them starts a new session (at most ``W`` samples are lost).
+  ``W``-th of them starts a new session (``W − 1`` samples are lost).
 
 A sample without a usable time is judged by its sequence number alone. So a genuine gap
 (``seq`` and ``t`` jump together) stays a gap, duplicates and re-sends are dropped, and a far
@@ -138,8 +138,7 @@ def config_of(beta, ints, floats):
 
 class OnlineState(NamedTuple):
     """What links consecutive blocks of one axis, as named 1-element views (:func:`state_of`) of the
-    two buffers of :class:`StateBuffers`. (Numba types a tuple argument element by element on every
-    call, ~1.5 µs each: the compiled loop is handed plain arrays and names them inside.)"""
+    two buffers of :class:`StateBuffers`."""
 
     seen: np.ndarray        #: int64: 1 once a sample was seen (``last_seq`` is valid)
     last_seq: np.ndarray    #: int64: L, sequence number of the last sample seen (rejected ones included)
@@ -184,10 +183,10 @@ def new_state(trained: int = 0) -> StateBuffers:
     return buf
 
 
-#: rows of the float output of :func:`track_block` (``rows``, shape (N_ROWS, n)), one column per sample
+#: rows of the float output of :func:`track_block` (``rows``, shape ``(len(ROWS), n)``), one column per sample
 ROWS = ("v_pred", "residual", "f", "f_var", "f_next", "f_next_var")
 R_VPRED, R_RESID, R_F, R_FVAR, R_FNEXT, R_FNEXTVAR = range(len(ROWS))
-#: rows of the integer output (``irows``, shape (N_IROWS, n))
+#: rows of the integer output (``irows``, shape ``(len(IROWS), n)``)
 IROWS = ("dict_size", "removed", "flags")
 R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
 # What each row holds, for sample j (emitted when it arrives; m/s and (m/s)²):
