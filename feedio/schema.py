@@ -40,6 +40,8 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
+from kernels.flags import EstimateFlag
+
 __all__ = [
     "SchemaError",
     "SampleBlock",
@@ -48,6 +50,7 @@ __all__ = [
     "Provenance",
     "TrialTruth",
     "TrialMeta",
+    "EstimateFlag",
     "STALE",
     "GAP",
     "REJECTED",
@@ -68,17 +71,19 @@ __all__ = [
 ]
 
 # ---- flags of EstimateBlock.flags (bitmask) -------------------------------------------------
-STALE = 1  # the estimate was produced from data older than the freshness limit
-GAP = 2  # one or more samples missing before this one (sequence gap)
-REJECTED = 4  # sample rejected (non-finite value, out of range); tracker not updated
-WARMUP = 8  # tracker still warming up (dictionary not filled / variance not settled)
-REDUCED = 16  # KRLS-T reduced update (the newest element was pruned at once)
-FLAG_NAMES = {STALE: "STALE", GAP: "GAP", REJECTED: "REJECTED", WARMUP: "WARMUP", REDUCED: "REDUCED"}
+# One definition: kernels.flags.EstimateFlag (an IntFlag; what each bit means is in
+# kernels.flags.DESCRIPTIONS and the README). The names below are that IntFlag's members.
+STALE = EstimateFlag.STALE  # repeated v_meas while the axis moves: predicted, not learned from
+GAP = EstimateFlag.GAP  # the chain restarts: samples missing, time backwards, or a new bridge session
+REJECTED = EstimateFlag.REJECTED  # non-finite or absurd value: NaN estimates, tracker not updated
+WARMUP = EstimateFlag.WARMUP  # chain (re)start, or fewer samples learned than the budget M
+REDUCED = EstimateFlag.REDUCED  # KRLS-T reduced update (the newest sample not added to the dictionary)
+FLAG_NAMES = {flag: flag.name for flag in EstimateFlag}
 
 
 def flag_names(flags: int) -> list[str]:
-    """Names of the bits set in ``flags``."""
-    return [name for bit, name in FLAG_NAMES.items() if flags & bit]
+    """Names of the bits set in ``flags`` (unknown bits are ignored)."""
+    return [flag.name for flag in EstimateFlag if int(flags) & flag]
 
 
 class SchemaError(ValueError):
@@ -185,7 +190,7 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
     variances in (m/s)². Force units (N, N²) only when the model can scale
     (force-input form, or velocity-loop with known K); otherwise ``None``.
     ``dict_size`` KRLS-T dictionary size, ``removed`` index of the pruned element
-    (-1 none), ``flags`` bitmask of STALE, GAP, REJECTED, WARMUP, REDUCED.
+    (-1 none), ``flags`` bitmask of :class:`EstimateFlag` (STALE, GAP, REJECTED, WARMUP, REDUCED).
     """
 
     machine: str

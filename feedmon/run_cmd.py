@@ -189,11 +189,7 @@ def _run_live(args) -> int:
     warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     store = StateStore(args.state_dir)
     for ax in axes.values():
-        if args.fresh:
-            how = "fresh (--fresh)"
-            ax.status.state_path = str(store.path_for(ax))  # still saved there on exit
-        else:
-            how = store.load(ax)
+        how = store.load(ax, fresh=args.fresh).detail  # restored (when saved, samples learned) / why not
         _say(f"axis {ax.status.name}: model {ax.status.model_path} (sha256 {ax.status.model_sha256[:12]}…), "
              f"tracker state {how}: {ax.status.state_path}")
 

@@ -1,14 +1,38 @@
 """Pure numerics of feedmon: covariance functions, the feed-drive model, least squares,
-PL-LSSVM and the KRLS-T tracker. No I/O, no networking."""
+PL-LSSVM and the KRLS-T tracker. No I/O, no networking.
 
-from .covariance import Kernel, LocallyPeriodic, Periodic, Product, SquaredExponential
-from .krlst import KRLST, Step
-from .least_squares import LSResult, least_squares
-from .likelihood import TuneResult, log_marginal_likelihood, tune
-from .pl_lssvm import PLLSSVMResult, pl_lssvm
-from .toeplitz import SymmetricToeplitz, ToeplitzSolver, toeplitz_logdet
+Submodules are imported on first use (PEP 562): ``from kernels.flags import EstimateFlag``
+(what ``feedio.schema`` needs) does not load Numba; ``from kernels import KRLST`` loads
+:mod:`kernels.krlst` and what it needs.
+"""
 
-__all__ = [
-    "LSResult", "least_squares", "TuneResult", "log_marginal_likelihood", "tune", "PLLSSVMResult",
-    "pl_lssvm", "SymmetricToeplitz", "ToeplitzSolver", "toeplitz_logdet",
-    "KRLST", "Kernel", "LocallyPeriodic", "Periodic", "Product", "SquaredExponential", "Step"]
+from __future__ import annotations
+
+import importlib
+
+#: public name -> submodule that defines it
+_EXPORTS = {
+    "LSResult": "least_squares", "least_squares": "least_squares",
+    "TuneResult": "likelihood", "log_marginal_likelihood": "likelihood", "tune": "likelihood",
+    "PLLSSVMResult": "pl_lssvm", "pl_lssvm": "pl_lssvm",
+    "SymmetricToeplitz": "toeplitz", "ToeplitzSolver": "toeplitz", "toeplitz_logdet": "toeplitz",
+    "KRLST": "krlst", "Step": "krlst",
+    "Kernel": "covariance", "LocallyPeriodic": "covariance", "Periodic": "covariance", "Product": "covariance",
+    "SquaredExponential": "covariance",
+    "EstimateFlag": "flags",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

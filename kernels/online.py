@@ -3,182 +3,386 @@
 The numerics of the monitor's per-sample path (method §6, "Timing in the monitor"):
 for each arriving sample ``j`` of a block,
 
-1. classify it: non-finite or absurd values are *rejected*; the first sample, one
-   after a gap, a rejected sample or time going backwards *restarts* the regressor
-   chain; a repeated measured velocity while the axis moves is *stale* (the
-   thesis' recording glitch);
-2. residual of the previous step, eq. 2.13: ``v(j−1) = v_m(j) − βᵀ z(j−1)``, with
+1. place it in the stream from its sequence number and time (below): drop it (duplicate,
+   late re-send), or take it as the next sample, the first after a gap, or the first of a
+   new bridge session;
+2. classify its values: non-finite or absurd values are *rejected*; a repeated measured
+   velocity while the axis moves is *stale* (the thesis' recording glitch);
+3. residual of the previous step, eq. 2.13: ``v(j−1) = v_m(j) − βᵀ z(j−1)``, with
    ``z`` of method §2 (the model's prediction stands in for a stale ``v_m``);
-3. KRLS-T update with that residual (:func:`kernels._krlst_core.update`, steps 3–5)
-   unless the sample restarts the chain or is stale;
-4. forgetting and one-step-ahead prediction at ``x(j)`` (:func:`kernels._krlst_core.arm`,
+4. KRLS-T update with that residual (:func:`kernels._krlst_core.update`, steps 3–5)
+   unless the chain restarts at this sample or it is stale;
+5. forgetting and one-step-ahead prediction at ``x(j)`` (:func:`kernels._krlst_core.arm`,
    steps 1–2), reused by the next update.
 
-:func:`track_block` runs that loop without allocation; ``monitor.estimator`` is
-the thin Python API around it (stumpy-style split).
+:func:`track_block` runs that loop without allocation; ``monitor.estimator`` is the thin
+Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
+what links consecutive blocks is :class:`OnlineState` (``int64`` sequence numbers and counters,
+``float64`` for the rest): NamedTuples the loop builds from a few plain typed buffers
+(:class:`ConfigBuffers`, :class:`StateBuffers`; a tuple argument would cost ~1.5 µs per call to
+type). The output of a block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`,
+:data:`IROWS`), and ``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β
+estimation), add fields to these.
+
+Sequence numbers and time
+-------------------------
+Sequence numbers are ``int64`` throughout (never floats: ``2**53 + 1`` has no float64). Let
+``L`` be the last sequence number seen (rejected samples included), ``(s_r, t_r)`` the last
+sample seen with a usable time (finite, ``|t| ≤ t_max``), ``W`` the reorder window
+(:attr:`OnlineConfig.reorder_window`, samples) and ``Ts`` the sampling period. A sample
+``(s, t)``, after the first one, is
+
+* the **next** sample when ``s = L + 1`` (time going backwards still restarts the chain: GAP);
+* after a **gap** of ``s − L − 1`` samples when ``s > L + 1`` and either the jump is small
+  (``s − L − 1 ≤ W``) or the clock advanced with it — ``2 (t − t_r)/Ts + W ≥ s − s_r``, i.e.
+  at least half the time the missing samples take (rate tolerance ×2). Counted in
+  ``gaps`` and ``missing_samples``, flag GAP;
+* the start of a **new session** (``seq_resets``, flag GAP, the chain restarts; nothing counted
+  as missing) when the sequence number jumped ahead of the clock (``s > L + 1`` beyond the
+  rule above, e.g. a bridge that restarts with another base, or one absurd ``seq``), or went
+  back while the clock moved on (``s ≤ L`` and ``t > t_r``: a bridge that counts from 0 again);
+* otherwise (``s ≤ L``, time not newer) a **duplicate** (``s = L``) or a **late re-send**
+  (``s < L``): dropped, no row — unless ``W`` such samples in a row continue each other
+  (``s`` = previous + 1): then the bridge restarted both its count and its clock, and the
+  ``W``-th of them starts a new session (``W − 1`` samples are lost).
+
+A sample without a usable time is judged by its sequence number alone. So a genuine gap
+(``seq`` and ``t`` jump together) stays a gap, duplicates and re-sends are dropped, and a far
+jump of ``seq`` either way costs one chain restart instead of silencing the axis.
+
+Every index the compiled code uses is checked: a block whose sequence numbers do not fit
+in ``int64`` (``seq0 < 0`` or ``seq0 + n − 1 > 2**63 − 1``) is refused whole (counted
+``rejected_seq_range``); the differences of two sequence numbers are formed only between
+non-negative ``int64`` values (no overflow). The KRLS-T buffers are indexed by the core
+with ``ist[I_N]``/``ist[I_HW]``/``order``, which :mod:`monitor.state_check` validates
+before a saved state is restored.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
 from . import _krlst_core as core
+from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
 
-__all__ = ["COUNTERS", "CARRY", "N_ROW", "new_carry", "track_block",
-           "FLAG_STALE", "FLAG_GAP", "FLAG_REJECTED", "FLAG_WARMUP", "FLAG_REDUCED"]
+__all__ = ["COUNTERS", "ROWS", "IROWS", "SEQ_LIMIT", "REORDER_WINDOW", "OnlineConfig", "ConfigBuffers", "config_of",
+           "new_config", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows", "new_scratch",
+           "track_block"]
 
-# flags (the same bits as feedio.schema)
-FLAG_STALE, FLAG_GAP, FLAG_REJECTED, FLAG_WARMUP, FLAG_REDUCED = 1, 2, 4, 8, 16
+#: counters of the ``counts`` output, in slot order (each a number of samples unless said)
+COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of_range", "rejected_seq_range",
+            "gaps", "missing_samples", "seq_resets", "time_backwards", "restarts", "stale", "trained")
+(C_DUP, C_OOO, C_NONFINITE, C_RANGE, C_SEQ_RANGE, C_GAPS, C_MISSING, C_RESET, C_BACK, C_RESTART, C_STALE,
+ C_TRAINED) = range(len(COUNTERS))
 
-#: counter slots of the ``counts`` array
-COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of_range", "gaps",
-            "missing_samples", "time_backwards", "restarts", "stale", "trained")
-(C_DUP, C_OOO, C_NONFINITE, C_RANGE, C_GAPS, C_MISSING, C_BACK, C_RESTART, C_STALE, C_TRAINED) = range(10)
+#: largest sequence number the compiled loop can form (``int64``); the schema's bound is far lower
+SEQ_LIMIT = 2**63 - 1
 
-#: slots of the ``carry`` array (state between blocks)
-CARRY = ("has_prev", "seq", "t", "e", "v_raw", "v_used", "chain", "f_next", "f_next_var", "trained")
-(K_HAS, K_SEQ, K_T, K_E, K_VRAW, K_VUSED, K_CHAIN, K_FNEXT, K_FNEXTVAR, K_TRAINED) = range(10)
+#: default reorder window W (samples): how far back a sample may be and still be a duplicate / re-send
+REORDER_WINDOW = 256
 
-#: columns of the float output rows
-N_ROW = 6  # v_pred, residual, f, f_var, f_next, f_next_var
-R_VPRED, R_RESID, R_F, R_FVAR, R_FNEXT, R_FNEXTVAR = range(N_ROW)
+# where a sample stands in the stream (see the module docstring)
+_FIRST, _NEXT, _GAP, _RESET, _DUPLICATE, _LATE = range(6)
+
+# slots of the core's ``out`` buffer (kernels._krlst_core: ``_write_out`` after ``update``, ``arm``)
+_UPD_REMOVED, _UPD_REDUCED, _UPD_FILTERED, _UPD_FILTERED_VAR, _UPD_S02 = 4, 5, 6, 7, 8
+_ARM_MEAN, _ARM_SIGMA_F2 = 0, 1
 
 
-def new_carry() -> np.ndarray:
-    """Carry for a fresh axis: no previous sample."""
-    c = np.full(len(CARRY), np.nan)
-    c[K_HAS] = 0.0
-    c[K_CHAIN] = 0.0
-    c[K_TRAINED] = 0.0
-    return c
+class OnlineConfig(NamedTuple):
+    """What the loop reads of the axis model (SI units): named values of :class:`ConfigBuffers`
+    (:func:`config_of`)."""
+
+    beta: np.ndarray        #: float64 (p,): β in the order of the model's ``beta_names``
+    coulomb: bool           #: β has the Coulomb columns −σ_p, −σ_n (β[2], β[3])
+    intercept: bool         #: β ends with the constant column "one"
+    omega: float            #: Coulomb dead band Ω (m/s)
+    inv_ts: float           #: 1/Ts (1/s)
+    v_max: float            #: |v_m| beyond which a sample is absurd (m/s)
+    e_max: float            #: |v_ref| (m/s) or |u| (N) beyond which a sample is absurd
+    t_max: float            #: |t| beyond which a controller time is absurd (s)
+    stale_detection: bool   #: detect repeated measured velocities
+    warmup: int             #: rows flagged WARMUP while the tracker has learned ≤ this many samples
+    reorder_window: int     #: W ≥ 1 (samples), see the module docstring
+
+
+class ConfigBuffers(NamedTuple):
+    """The storage of an :class:`OnlineConfig`, as the compiled loop takes it: β, then the integer
+    (``coulomb, intercept, stale_detection, warmup, reorder_window``) and float
+    (``omega, inv_ts, v_max, e_max, t_max``) values."""
+
+    beta: np.ndarray
+    ints: np.ndarray
+    floats: np.ndarray
+
+
+def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: float, v_max: float, e_max: float,
+               t_max: float, stale_detection: bool, warmup: int, reorder_window: int) -> ConfigBuffers:
+    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`)."""
+    return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64),
+                         np.array([coulomb, intercept, stale_detection, warmup, reorder_window], dtype=np.int64),
+                         np.array([omega, inv_ts, v_max, e_max, t_max], dtype=np.float64))
+
+
+@register_jitable
+def config_of(beta, ints, floats):
+    """The :class:`OnlineConfig` stored in ``(beta, ints, floats)``; works in Python and inside ``@njit``."""
+    return OnlineConfig(beta, ints[0] != 0, ints[1] != 0, floats[0], floats[1], floats[2], floats[3], floats[4],
+                        ints[2] != 0, ints[3], ints[4])
+
+
+class OnlineState(NamedTuple):
+    """What links consecutive blocks of one axis, as named 1-element views (:func:`state_of`) of the
+    two buffers of :class:`StateBuffers`."""
+
+    seen: np.ndarray        #: int64: 1 once a sample was seen (``last_seq`` is valid)
+    last_seq: np.ndarray    #: int64: L, sequence number of the last sample seen (rejected ones included)
+    ref_seq: np.ndarray     #: int64: s_r, sequence number of the last sample seen with a usable time
+    run_seq: np.ndarray     #: int64: last sample of the current run of dropped samples that continue each other
+    run_len: np.ndarray     #: int64: length of that run (0: none)
+    chain: np.ndarray       #: int64: 1 when the last sample was accepted: the next one can form a residual
+    trained: np.ndarray     #: int64: samples the tracker learned from
+    ref_t: np.ndarray       #: float64: t_r, time of sample s_r (s); NaN: none
+    last_t: np.ndarray      #: float64: time of the last accepted sample (s); NaN: none
+    last_e: np.ndarray      #: float64: its exogenous input v_ref (m/s) or u (N)
+    last_v_raw: np.ndarray  #: float64: its measured velocity as received (m/s)
+    last_v_used: np.ndarray  #: float64: the velocity that entered its regressor (the model's for a stale one)
+    f_next: np.ndarray      #: float64: the prediction of f made at the last accepted sample (m/s)
+    f_next_var: np.ndarray  #: float64: its variance ((m/s)²)
+
+
+#: how many fields of :class:`OnlineState` live in :attr:`StateBuffers.ints` (the rest: ``floats``)
+_N_INT_FIELDS = 7
+
+
+class StateBuffers(NamedTuple):
+    """The storage of an :class:`OnlineState`: ``int64`` and ``float64`` slots in field order."""
+
+    ints: np.ndarray
+    floats: np.ndarray
+
+
+@register_jitable
+def state_of(i, f):
+    """The named views of the buffers ``(ints, floats)`` (:class:`StateBuffers`); works in Python and
+    inside ``@njit``."""
+    return OnlineState(i[0:1], i[1:2], i[2:3], i[3:4], i[4:5], i[5:6], i[6:7],
+                       f[0:1], f[1:2], f[2:3], f[3:4], f[4:5], f[5:6], f[6:7])
+
+
+def new_state(trained: int = 0) -> StateBuffers:
+    """State of an axis that has seen no sample (its tracker may have learned ``trained`` samples before)."""
+    n_float = len(OnlineState._fields) - _N_INT_FIELDS
+    buf = StateBuffers(np.zeros(_N_INT_FIELDS, dtype=np.int64), np.full(n_float, np.nan))
+    state_of(*buf).trained[0] = trained
+    return buf
+
+
+#: rows of the float output of :func:`track_block` (``rows``, shape ``(len(ROWS), n)``), one column per sample
+ROWS = ("v_pred", "residual", "f", "f_var", "f_next", "f_next_var")
+R_VPRED, R_RESID, R_F, R_FVAR, R_FNEXT, R_FNEXTVAR = range(len(ROWS))
+#: rows of the integer output (``irows``, shape ``(len(IROWS), n)``)
+IROWS = ("dict_size", "removed", "flags")
+R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
+# What each row holds, for sample j (emitted when it arrives; m/s and (m/s)²):
+#   v_pred      βᵀz(j−1) + f̂(j−1): the velocity the model predicted for sample j
+#   residual    v(j−1) = v_m(j) − βᵀz(j−1), eq. 2.13 (NaN when the chain (re)starts or j is stale)
+#   f, f_var    the filtered disturbance of the step that ended at j (its prediction for a stale j)
+#   f_next, f_next_var   the one-step-ahead prediction of f(j) from x(j)
+#   dict_size   dictionary size after sample j;  removed  pruned dictionary index (−1: none)
+#   flags       kernels.flags.EstimateFlag bits
+
+
+def new_scratch() -> tuple[np.ndarray, np.ndarray]:
+    """The scratch buffers ``xbuf`` (1,) and ``obuf`` (the core's ``out``) of :func:`track_block`."""
+    return np.zeros(1), np.zeros(core.N_OUT)
+
+
+def new_rows(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Output buffers ``rows`` (:data:`ROWS`), ``irows`` (:data:`IROWS`) and ``counts`` (:data:`COUNTERS`)
+    for a block of ``n`` samples."""
+    return np.empty((len(ROWS), n)), np.empty((len(IROWS), n), dtype=np.int64), np.zeros(len(COUNTERS), np.int64)
 
 
 @njit(cache=True, nogil=True)
-def _linear(beta, coulomb, omega, force_input, e, v):
-    """``βᵀ z(k)`` of method §2 for one sample (velocity-loop or force-input form)."""
-    acc = beta[0] * e + beta[1] * v
-    if coulomb:
-        if v > omega:
-            acc -= beta[2]                        # −σ_p column
-        elif v < -omega:
-            acc -= beta[3]                        # −σ_n column
-    if force_input:
-        acc += beta[beta.shape[0] - 1]            # constant column (force offset)
+def _linear(cfg, e, v):
+    """``βᵀ z(k)`` of method §2 for one sample, ``z = [e, v, −σ_p, −σ_n, 1]`` with the Coulomb
+    columns and the constant only when the model has them (either input form)."""
+    b = cfg.beta
+    acc = b[0] * e + b[1] * v
+    if cfg.coulomb:
+        if v > cfg.omega:
+            acc -= b[2]                           # −σ_p column
+        elif v < -cfg.omega:
+            acc -= b[3]                           # −σ_n column
+    if cfg.intercept:
+        acc += b[b.shape[0] - 1]                  # constant column "one" (offset)
     return acc
 
 
 @njit(cache=True, nogil=True)
+def _place(cfg, st, s, t, t_ok):
+    """Where sample ``(s, t)`` stands in the stream (module docstring); updates the run of dropped samples."""
+    if not st.seen[0]:
+        return _FIRST
+    last = st.last_seq[0]
+    window = cfg.reorder_window
+    clock = t_ok and math.isfinite(st.ref_t[0])   # both times usable
+    if s > last:                                  # s − last ≥ 1, no overflow: both in [0, 2**63)
+        if s - last == 1:
+            return _NEXT
+        if s - last - 1 <= window:
+            return _GAP
+        if clock and 2.0 * (t - st.ref_t[0]) * cfg.inv_ts + window >= float(s - st.ref_seq[0]):
+            return _GAP                           # seq and time jumped together: samples lost
+        return _RESET                             # seq ran ahead of the clock: a new session
+    if clock and t > st.ref_t[0]:
+        return _RESET                             # seq went back while time moved on: a new session
+    if st.run_len[0] > 0 and s - 1 == st.run_seq[0]:      # s ≥ 0: no overflow
+        st.run_len[0] += 1
+    else:
+        st.run_len[0] = 1
+    st.run_seq[0] = s
+    if st.run_len[0] >= window:
+        return _RESET                             # W old-looking samples in a row: count and clock restarted
+    return _DUPLICATE if s == last else _LATE
+
+
+@njit(cache=True, nogil=True)
+def _clear(rows, irows, j, ist):
+    for r in range(rows.shape[0]):
+        rows[r, j] = np.nan
+    irows[R_REMOVED, j] = -1
+    irows[R_SIZE, j] = ist[core.I_N]
+
+
+@njit(cache=True, nogil=True)
 def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
-                beta, coulomb, omega, force_input, limits, stale_detection, warmup,
-                carry, seq0, t, e, v, rows, dict_size, removed, flags, counts, xbuf, obuf):
+                beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e, v, rows, irows, counts, xbuf, obuf):
     """Process one block of samples (method §6); returns the number of leading samples dropped.
 
-    ``limits = [v_max, e_max, t_max]``; ``rows`` (n, :data:`N_ROW`), ``dict_size``,
-    ``removed``, ``flags`` (n,) receive one row per sample from index ``first`` on
-    (the return value: samples whose sequence number is not newer than the last one
-    seen are dropped — duplicates and out-of-order). ``counts`` accumulates the
-    :data:`COUNTERS`; ``carry`` (:data:`CARRY`) links consecutive blocks.
-    ``xbuf`` (1,) and ``obuf`` (≥ 10,) are scratch.
+    ``kinds … tab``: the tracker's arrays (:meth:`kernels.krlst.KRLST.core_arrays`); ``beta …
+    cfg_floats`` a :class:`ConfigBuffers`; ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number
+    of sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64
+    (n,), NaN = missing. ``rows`` (:data:`ROWS`, ≥ n) and ``irows`` (:data:`IROWS`, ≥ n) receive one
+    column per sample from index ``first`` on (the return value: dropped samples — duplicates and
+    late re-sends — always form a prefix, since the sample after an accepted one is its successor);
+    ``counts`` accumulates :data:`COUNTERS`. ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``) are scratch.
     """
     n = t.shape[0]
+    if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) or rows.shape[1] < n
+            or irows.shape[0] != len(IROWS) or irows.shape[1] < n or counts.shape[0] != len(COUNTERS)
+            or xbuf.shape[0] != 1 or obuf.shape[0] < core.N_OUT):
+        raise ValueError("track_block: inconsistent array shapes")
+    if n == 0:
+        return 0
+    if seq0 < 0 or seq0 > SEQ_LIMIT - (n - 1):
+        counts[C_SEQ_RANGE] += n                  # sequence numbers beyond int64: refused whole
+        return n
+    cfg = config_of(beta, cfg_ints, cfg_floats)
+    st = state_of(st_ints, st_floats)
     first = 0
-    if carry[K_HAS] != 0.0 and seq0 <= carry[K_SEQ]:
-        last_seen = int(carry[K_SEQ])
-        first = min(n, last_seen + 1 - seq0)
-        if seq0 + first - 1 == last_seen:
-            counts[C_DUP] += 1
-            counts[C_OOO] += first - 1
-        else:
-            counts[C_OOO] += first
-    for j in range(first, n):
-        seq = seq0 + j
+    for j in range(n):
+        s = seq0 + j
         tj, ej, vj = t[j], e[j], v[j]
-        r = rows[j]
-        for c in range(N_ROW):
-            r[c] = np.nan
-        removed[j] = -1
+        t_ok = math.isfinite(tj) and abs(tj) <= cfg.t_max
+        # ---- 1. place it in the stream ---------------------------------------------------------
+        where = _place(cfg, st, s, tj, t_ok)
+        if where == _DUPLICATE or where == _LATE:
+            counts[C_DUP if where == _DUPLICATE else C_OOO] += 1
+            first = j + 1                         # a prefix (see the docstring)
+            continue
         fl = 0
-        # ---- 1. classify ------------------------------------------------------------------
+        if where == _GAP:
+            counts[C_GAPS] += 1
+            counts[C_MISSING] += s - st.last_seq[0] - 1
+            fl |= GAP_BIT
+        elif where == _RESET:
+            counts[C_RESET] += 1
+            fl |= GAP_BIT
+        st.seen[0] = 1
+        st.last_seq[0] = s
+        st.run_len[0] = 0
+        if t_ok:
+            st.ref_seq[0] = s
+            st.ref_t[0] = tj
+        elif where == _RESET:
+            st.ref_t[0] = np.nan                  # no clock reference in the new session yet
+        _clear(rows, irows, j, ist)
+        # ---- 2. classify its values --------------------------------------------------------------
         if not (math.isfinite(tj) and math.isfinite(ej) and math.isfinite(vj)):
             counts[C_NONFINITE] += 1
-            fl = FLAG_REJECTED
-        elif abs(vj) > limits[0] or abs(ej) > limits[1] or abs(tj) > limits[2]:
+            fl |= REJECTED_BIT
+        elif abs(vj) > cfg.v_max or abs(ej) > cfg.e_max or not t_ok:
             counts[C_RANGE] += 1
-            fl = FLAG_REJECTED
-        if fl == FLAG_REJECTED:
-            flags[j] = fl
-            dict_size[j] = ist[core.I_N]
-            carry[K_HAS] = 1.0
-            carry[K_SEQ] = seq
-            carry[K_CHAIN] = 0.0                   # the next good sample restarts the chain
+            fl |= REJECTED_BIT
+        if fl & REJECTED_BIT:
+            irows[R_FLAGS, j] = fl
+            st.chain[0] = 0                       # the next good sample restarts the chain
+            if where == _RESET:
+                st.last_t[0] = np.nan             # time order is judged within a session
             continue
-        # ordering is checked against the last sample seen (rejected ones included for seq,
-        # the last accepted one for time), whether or not the chain is intact
-        has = carry[K_HAS] != 0.0
-        cont = has and carry[K_CHAIN] != 0.0
-        if has and seq > carry[K_SEQ] + 1:
-            counts[C_GAPS] += 1
-            counts[C_MISSING] += seq - int(carry[K_SEQ]) - 1
-            fl |= FLAG_GAP
-            cont = False
-        elif has and tj <= carry[K_T]:            # False while no sample was accepted (NaN)
+        cont = st.chain[0] != 0 and where == _NEXT
+        if where == _NEXT and tj <= st.last_t[0]:  # False while no sample was accepted (NaN)
             counts[C_BACK] += 1
-            fl |= FLAG_GAP
+            fl |= GAP_BIT
             cont = False
         stale = False
-        if cont and stale_detection and vj == carry[K_VRAW]:
-            stale = abs(vj) > omega or ej != carry[K_E]   # repeated while moving
+        if cont and cfg.stale_detection and vj == st.last_v_raw[0]:
+            stale = abs(vj) > cfg.omega or ej != st.last_e[0]   # repeated while moving
         v_used = vj
         if cont:
-            # ---- 2. residual of the previous step, eq. 2.13 -------------------------------------
-            base = _linear(beta, coulomb, omega, force_input, carry[K_E], carry[K_VUSED])
-            f_pred = carry[K_FNEXT]
-            r[R_VPRED] = base + (f_pred if math.isfinite(f_pred) else 0.0)
+            # ---- 3. residual of the previous step, eq. 2.13 ----------------------------------------
+            base = _linear(cfg, st.last_e[0], st.last_v_used[0])
+            f_pred = st.f_next[0]
+            v_pred = base + (f_pred if math.isfinite(f_pred) else 0.0)
+            rows[R_VPRED, j] = v_pred
             if stale:
                 counts[C_STALE] += 1
-                fl |= FLAG_STALE
-                r[R_F] = f_pred                    # predict only
-                r[R_FVAR] = carry[K_FNEXTVAR]
-                v_used = r[R_VPRED]                # the model's velocity stands in for the repeat
+                fl |= STALE_BIT
+                rows[R_F, j] = f_pred             # predict only
+                rows[R_FVAR, j] = st.f_next_var[0]
+                v_used = v_pred                   # the model's velocity stands in for the repeat
             else:
                 resid = vj - base
-                r[R_RESID] = resid
-                # ---- 3. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) -------------
+                rows[R_RESID, j] = resid
+                # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) ---------------------
                 if core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, obuf):
-                    s02 = obuf[8]
-                    r[R_F] = obuf[6]               # filtered f: ŷ + σ_f²(y − ŷ)/σ_y²
-                    r[R_FVAR] = obuf[7] * s02      # (σ_f² − σ_f⁴/σ_y²)·s0²
-                    removed[j] = int(obuf[4])
-                    if obuf[5] != 0.0:
-                        fl |= FLAG_REDUCED
-                    carry[K_TRAINED] += 1.0
+                    rows[R_F, j] = obuf[_UPD_FILTERED]                          # ŷ + σ_f²(y − ŷ)/σ_y²
+                    rows[R_FVAR, j] = obuf[_UPD_FILTERED_VAR] * obuf[_UPD_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    irows[R_REMOVED, j] = int(obuf[_UPD_REMOVED])
+                    if obuf[_UPD_REDUCED] != 0.0:
+                        fl |= REDUCED_BIT
+                    st.trained[0] += 1
                     counts[C_TRAINED] += 1
-                    if carry[K_TRAINED] <= warmup:
-                        fl |= FLAG_WARMUP
+                    if st.trained[0] <= cfg.warmup:
+                        fl |= WARMUP_BIT
                 else:                              # nothing armed (e.g. right after a restore)
                     counts[C_RESTART] += 1
-                    fl |= FLAG_WARMUP
+                    fl |= WARMUP_BIT
         else:
             counts[C_RESTART] += 1
-            fl |= FLAG_WARMUP
-        # ---- 4. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------
+            fl |= WARMUP_BIT
+        # ---- 5. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------------
         was_empty = ist[core.I_N] == 0
         xbuf[0] = tj
         core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, obuf)
-        r[R_FNEXT] = obuf[0]
-        r[R_FNEXTVAR] = np.nan if was_empty else obuf[1] * fst[core.F_S02]
-        flags[j] = fl
-        dict_size[j] = ist[core.I_N]
-        carry[K_HAS] = 1.0
-        carry[K_SEQ] = seq
-        carry[K_T] = tj
-        carry[K_E] = ej
-        carry[K_VRAW] = vj
-        carry[K_VUSED] = v_used
-        carry[K_CHAIN] = 1.0
-        carry[K_FNEXT] = r[R_FNEXT]
-        carry[K_FNEXTVAR] = r[R_FNEXTVAR]
+        f_next = obuf[_ARM_MEAN]
+        f_next_var = np.nan if was_empty else obuf[_ARM_SIGMA_F2] * fst[core.F_S02]
+        rows[R_FNEXT, j] = f_next
+        rows[R_FNEXTVAR, j] = f_next_var
+        irows[R_FLAGS, j] = fl
+        irows[R_SIZE, j] = ist[core.I_N]
+        st.chain[0] = 1
+        st.last_t[0] = tj
+        st.last_e[0] = ej
+        st.last_v_raw[0] = vj
+        st.last_v_used[0] = v_used
+        st.f_next[0] = f_next
+        st.f_next_var[0] = f_next_var
     return first

@@ -19,6 +19,9 @@ regressor of the previous sample and ``β`` from the model file:
 * ``force, force_var, force_next``  the same in newtons (``F = −f/b``) when the
   model can scale (force-input form, or known loop gain K)
 
+``z`` holds ``v_ref`` (velocity-loop) or ``u`` (force-input), ``v_m``, the Coulomb columns
+when the model has them, and the constant 1 when ``beta_names`` ends with ``"one"`` (either form).
+
 Per accepted sample the tracker runs the split KRLS-T step of method §6: the
 update with the residual of the previous sample, then the forgetting and
 prediction at the new sample, which the next update reuses. The whole block goes
@@ -29,9 +32,13 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
 
 * non-finite or absurd values (:data:`LIMITS`): the sample is REJECTED (row
   emitted, NaN estimates, tracker untouched); the chain restarts at the next good sample;
-* duplicate or out-of-order sequence numbers: dropped, no row;
-* a sequence gap or time going backwards: the chain restarts (GAP flag); no
-  residual is formed across the gap;
+* sequence numbers (integers; see :mod:`kernels.online` for the rule): a duplicate or a
+  late re-send (older ``seq`` and no newer time, within the reorder window ``W``) is dropped,
+  no row; a gap (``seq`` and ``t`` jump together), time going backwards, or a new bridge
+  session (``seq`` jumps ahead of the clock, or goes back while the clock moves on, or ``W``
+  old-looking samples continue each other) restarts the chain (GAP flag; counted ``gaps`` +
+  ``missing_samples``, ``time_backwards`` or ``seq_resets``); no residual is formed across it;
+* a block whose sequence numbers do not fit in int64 is refused whole (``rejected_seq_range``);
 * stale samples — the controller repeated the previous measured velocity while
   the axis moves (the thesis' recording glitch): STALE flag, the tracker is not
   trained on them (predict only) and the model's velocity prediction stands in
@@ -42,6 +49,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from numbers import Integral
 
 import numpy as np
 
@@ -49,12 +57,16 @@ from feedio.schema import EstimateBlock, SampleBlock
 from kernels import KRLST, online
 
 from .model_file import AxisModel
+from .state_check import StateError, check_snapshot
 
-__all__ = ["AxisEstimator", "LIMITS"]
+__all__ = ["AxisEstimator", "LIMITS", "StateError"]
 
 #: magnitudes beyond which a value is physically absurd for a machine-tool axis (SI):
 #: velocities (m/s), force command (N), controller time (s)
 LIMITS = {"v": 50.0, "u": 1e7, "t": 1e10}
+
+#: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
+_TRAINED = "estimator.trained"
 
 
 def _as_column(values) -> np.ndarray:
@@ -73,48 +85,68 @@ class AxisEstimator:
         Number of trained samples flagged WARMUP (default: the dictionary budget M).
     stale_detection : bool
         Detect repeated measured velocities (default True).
+    reorder_window : int
+        W ≥ 1 (samples): how far behind the newest sequence number a sample is still taken
+        as a duplicate or late re-send (dropped) — beyond, or when W of them continue each
+        other, the bridge is taken to have restarted (default :data:`kernels.online.REORDER_WINDOW`).
     """
 
-    def __init__(self, model: AxisModel, *, warmup: int | None = None, stale_detection: bool = True):
+    def __init__(self, model: AxisModel, *, warmup: int | None = None, stale_detection: bool = True,
+                 reorder_window: int = online.REORDER_WINDOW):
         self.model = model
         self.beta = np.asarray(model.beta, dtype=np.float64)
         self.force_gain = model.force_gain
         self.warmup = model.tracker.budget if warmup is None else int(warmup)
         self.stale_detection = stale_detection
-        cfg = model.tracker
+        if isinstance(reorder_window, bool) or not isinstance(reorder_window, int) or reorder_window < 1:
+            raise ValueError(f"reorder_window must be an integer >= 1 (samples), got {reorder_window!r}")
+        self.reorder_window = reorder_window
+        names = tuple(model.beta_names)
+        intercept = names[-1:] == ("one",)
+        expected = 2 + 2 * bool(model.coulomb) + intercept
+        if self.beta.shape != (len(names),) or len(names) != expected:
+            raise ValueError(f"axis {model.machine}/{model.axis}: beta has {self.beta.size} values for "
+                             f"{len(names)} names {names}; the online residual uses e, v"
+                             f"{', −σ_p, −σ_n' if model.coulomb else ''}{', one' if intercept else ''}")
+        e_max = LIMITS["u"] if model.form == "force-input" else LIMITS["v"]
+        self._cfg = online.new_config(
+            beta=self.beta, coulomb=bool(model.coulomb), intercept=intercept, omega=float(model.omega),
+            inv_ts=1.0 / float(model.Ts), v_max=LIMITS["v"], e_max=float(e_max), t_max=LIMITS["t"],
+            stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window))
+        self.tracker = self._new_tracker()
+        self.counters: Counter[str] = Counter()
+        self._state = online.new_state()
+        self._xbuf, self._obuf = online.new_scratch()
+        self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
+
+    def _new_tracker(self) -> KRLST:
+        cfg = self.model.tracker
         kernel = cfg.build_kernel()
-        self.tracker = KRLST(
+        return KRLST(
             kernel,
             gamma=cfg.gamma,
             forgetting=cfg.forgetting,
             budget=cfg.budget,
             jitter=cfg.jitter,
-            grid_step=model.Ts if kernel.is_stationary_1d else None,
+            grid_step=self.model.Ts if kernel.is_stationary_1d else None,
             # one refinement step of q per update keeps ‖Q·K_D − I‖ ~1e-8 over millions of steps
             # (kafbox's rank-one update amplifies its error to ~1e-5); ~20 % more per step
             refine=True,
         )
-        self.counters: Counter[str] = Counter()
-        self._carry = online.new_carry()
-        self._limits = np.array([LIMITS["v"], LIMITS["u"] if model.form == "force-input" else LIMITS["v"], LIMITS["t"]])
-        self._counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
-        self._xbuf = np.zeros(1)
-        self._obuf = np.zeros(16)
 
-    def reset(self) -> None:
-        """Forget the regressor chain (not the tracker): the next sample starts afresh."""
-        trained = self._carry[online.K_TRAINED]
-        self._carry = online.new_carry()
-        self._carry[online.K_TRAINED] = trained
+    @property
+    def config(self) -> online.ConfigBuffers:
+        """What the compiled loop reads of the model (read only; named by :func:`kernels.online.config_of`)."""
+        return self._cfg
 
     @property
     def trained(self) -> int:
         """Samples the tracker has learned from."""
-        return int(self._carry[online.K_TRAINED])
+        return int(online.state_of(*self._state).trained[0])
 
     # ------------------------------------------------------------------ main entry
     def process(self, block: SampleBlock) -> EstimateBlock | None:
-        """Estimates for the samples of ``block`` (None when every sample was dropped)."""
+        """Estimates for the samples of ``block`` (None when every sample was dropped or refused)."""
         n = len(block.t)
         exo = block.u if self.model.form == "force-input" else block.v_ref
         if exo is None:
@@ -124,72 +156,70 @@ class AxisEstimator:
                 f"'{'u' if self.model.form == 'force-input' else 'v_ref'}' in every sample block"
             )
         self.counters["samples_in"] += n
+        seq0 = block.seq
+        if isinstance(seq0, bool) or not isinstance(seq0, Integral) or not 0 <= seq0 <= online.SEQ_LIMIT - (n - 1):
+            self.counters["rejected_seq_range"] += n  # cannot be an int64: never handed to compiled code
+            return None
+        seq0 = int(seq0)
         t = np.asarray(block.t, dtype=np.float64)
         e = _as_column(exo)
         v = _as_column(block.v_meas)
-        rows = np.empty((n, online.N_ROW))
-        size = np.empty(n, dtype=np.int64)
-        removed = np.empty(n, dtype=np.int64)
-        flags = np.empty(n, dtype=np.int64)
-        counts = self._counts
-        counts[:] = 0
-        m = self.model
-        first = online.track_block(
-            *self.tracker.core_arrays(self._xbuf),
-            self.beta, m.coulomb, m.omega, m.form == "force-input", self._limits, self.stale_detection,
-            self.warmup, self._carry, block.seq, t, e, v, rows, size, removed, flags, counts, self._xbuf, self._obuf,
-        )
+        rows, irows, counts = online.new_rows(n)
+        first = online.track_block(*self.tracker.core_arrays(self._xbuf), *self._cfg, *self._state, seq0,
+                                   t, e, v, rows, irows, counts, self._xbuf, self._obuf)
         for name, count in zip(online.COUNTERS, counts.tolist()):
             if count:
                 self.counters[name] += count
         if first == n:
             return None
         self.counters["estimates_out"] += n - first
-        return self._block(block.machine, block.axis, block.seq + first, t[first:], v[first:], rows[first:],
-                           size[first:], removed[first:], flags[first:])
+        return self._block(block.machine, block.axis, seq0 + first, t[first:], v[first:], rows[:, first:],
+                           irows[:, first:])
 
-    def _block(self, machine, axis, seq0, t, v, rows, size, removed, flags) -> EstimateBlock:
-        f, f_var, f_next = rows[:, online.R_F], rows[:, online.R_FVAR], rows[:, online.R_FNEXT]
-        force = force_var = force_next = None
+    def _block(self, machine, axis, seq0, t, v, rows, irows) -> EstimateBlock:
+        cols = dict(zip(online.ROWS, rows.tolist()))
+        cols.update(zip(online.IROWS, irows.tolist()))
         b = self.force_gain
         if b is not None:
-            force = (-f / b).tolist()
-            force_var = (f_var / (b * b)).tolist()
-            force_next = (-f_next / b).tolist()
-        return EstimateBlock(
-            machine=machine,
-            axis=axis,
-            seq=int(seq0),
-            t=t.tolist(),
-            v_meas=v.tolist(),
-            v_pred=rows[:, online.R_VPRED].tolist(),
-            residual=rows[:, online.R_RESID].tolist(),
-            f=f.tolist(),
-            f_var=f_var.tolist(),
-            f_next=f_next.tolist(),
-            f_next_var=rows[:, online.R_FNEXTVAR].tolist(),
-            dict_size=size.tolist(),
-            removed=removed.tolist(),
-            flags=flags.tolist(),
-            force=force,
-            force_var=force_var,
-            force_next=force_next,
-        )
+            f, f_var, f_next = rows[online.R_F], rows[online.R_FVAR], rows[online.R_FNEXT]
+            cols.update(force=(-f / b).tolist(), force_var=(f_var / (b * b)).tolist(),
+                        force_next=(-f_next / b).tolist())
+        return EstimateBlock(machine=machine, axis=axis, seq=int(seq0), t=t.tolist(), v_meas=v.tolist(), **cols)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:
         """Tracker state plus the counters needed to resume (plain arrays, no pickle)."""
         snap = {f"tracker.{k}": v for k, v in self.tracker.snapshot().items()}
-        snap["estimator.trained"] = np.array(self.trained, dtype=np.int64)
+        snap[_TRAINED] = np.array(self.trained, dtype=np.int64)
         return snap
 
+    def snapshot_templates(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """What a valid snapshot of this model looks like: the snapshots of a fresh tracker with the
+        model's hyperparameters before any sample and after one step (keys, shapes, dtypes and the
+        hyperparameter values; they follow the core's layout, whatever it is). Made once per
+        estimator; treat them as read only."""
+        if self._templates is None:
+            tracker = self._new_tracker()
+            before = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
+            tracker.learn_one(0.0, 0.0)
+            after = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
+            before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
+            self._templates = (before, after)
+        return self._templates
+
     def restore(self, snap: dict[str, np.ndarray]) -> None:
-        """Continue from :meth:`snapshot` (the regressor chain restarts at the next sample)."""
+        """Continue from :meth:`snapshot` (the regressor chain restarts at the next sample).
+
+        The snapshot is checked first (:func:`monitor.state_check.check_snapshot`: keys, shapes,
+        dtypes, finiteness, the model's hyperparameters, the tracker's invariants); a snapshot that
+        fails raises :class:`StateError` naming the reason and leaves this estimator as it was.
+        """
+        before, after = self.snapshot_templates()
+        check_snapshot(snap, before, after, counters=(_TRAINED,))
         tracker_part = {k[len("tracker."):]: v for k, v in snap.items() if k.startswith("tracker.")}
-        restored = KRLST.restore(tracker_part)
-        if restored.kernel != self.tracker.kernel or restored.gamma != self.tracker.gamma:
-            raise ValueError("saved tracker state was made with other hyperparameters than the model file; "
-                             "start without the state (--fresh) or use the matching model file")
+        try:
+            restored = KRLST.restore(tracker_part)
+        except ValueError as exc:
+            raise StateError(str(exc)) from None
         self.tracker = restored
-        self._carry = online.new_carry()
-        self._carry[online.K_TRAINED] = float(snap.get("estimator.trained", 0))
+        self._state = online.new_state(trained=int(snap[_TRAINED]))

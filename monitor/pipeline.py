@@ -24,6 +24,9 @@ _LOGGED_REASONS = (
     ("out_of_order", "dropped: out-of-order sequence number"),
     ("gaps", "after a sequence gap: chain restarted"),
     ("time_backwards", "with time going backwards: chain restarted"),
+    ("seq_resets", "with sequence numbers restarted (new bridge session, or seq jumped inconsistently with time): "
+                   "chain restarted"),
+    ("rejected_seq_range", "refused: sequence numbers beyond int64"),
 )
 
 

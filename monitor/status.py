@@ -32,6 +32,7 @@ DROP_REASONS = (
     "rejected_non_finite",
     "rejected_out_of_range",
     "rejected_missing_field",
+    "rejected_seq_range",
     "malformed",
     "input_queue_full",
     "estimator_error",

@@ -1,13 +1,16 @@
 """The per-axis estimator (sample → residual → tracker → estimate), checked against the public
-KRLS-T split API, against the model equations, and for its handling of bad samples."""
+KRLS-T split API, against the model equations, and for its handling of bad samples and of
+sequence numbers (integers up to int64, gaps, duplicates, re-sends, new bridge sessions)."""
 
+import dataclasses
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
 from feedio import schema as S
-from kernels import KRLST, LocallyPeriodic
+from kernels import KRLST, LocallyPeriodic, online
 from kernels.feed_drive import physical_to_beta
 from monitor.estimator import AxisEstimator
 from monitor.model_file import AxisModel, TrackerConfig
@@ -191,3 +194,174 @@ def test_ordering_checked_after_a_rejected_sample():
     est.process(S.SampleBlock(machine="m", axis="x", seq=106, t=[t[106]], v_ref=[v_ref[106]], v_meas=[math.inf]))
     out = est.process(S.SampleBlock(machine="m", axis="x", seq=107, t=[t[10]], v_ref=[v_ref[107]], v_meas=[v[107]]))
     assert out.flags[0] & S.GAP and est.counters["time_backwards"] == 1
+
+
+# ---- sequence numbers are integers: exact up to int64, refused beyond -----------------------------------
+@pytest.mark.parametrize("offset", [2**53 - 1000, 2**53 + 1, 2**60, online.SEQ_LIMIT - 1499])
+def test_sequence_numbers_stay_exact_up_to_int64(offset):
+    """Consecutive blocks near 2**53 … 2**63 − 1: the numbers are those of the same stream at seq 0
+    (one code path run twice: bit for bit), counters exact (a float64 seq broke from 2**53 and crashed at 2**60)."""
+    t, v_ref, v, _ = _stream(1500)
+    ref_est, est = AxisEstimator(_model()), AxisEstimator(_model())
+    ref = _run(ref_est, _blocks(t, v_ref, v, 50))
+    rows = [est.process(b) for b in _blocks(t, v_ref, v, 50, seq0=offset)]
+    assert [r.seq for r in rows] == [offset + 50 * k for k in range(30)]  # Python ints, exact
+    got = _run(AxisEstimator(_model()), _blocks(t, v_ref, v, 50, seq0=offset))
+    for name, values in ref.items():
+        if name != "seq":
+            np.testing.assert_array_equal(got[name], values, err_msg=name)
+    assert dict(est.counters) == dict(ref_est.counters)
+    assert est.counters["restarts"] == 1 and est.counters["trained"] == 1499 and est.counters["estimates_out"] == 1500
+
+
+def test_sequence_numbers_beyond_int64_are_refused_not_crashed():
+    t, v_ref, v, _ = _stream(300)
+    est = AxisEstimator(_model())
+    first, *rest = list(_blocks(t, v_ref, v, 10))
+    est.process(first)
+    before = est.snapshot()
+    for seq in (online.SEQ_LIMIT - 5, 2**64, 2**70, -1):  # the last sample's number would not fit in int64
+        assert est.process(msgspec.structs.replace(rest[0], seq=seq)) is None
+    assert est.counters["rejected_seq_range"] == 40
+    assert all(np.array_equal(v, est.snapshot()[k]) for k, v in before.items())  # nothing learned
+    out = est.process(rest[0])  # the stream goes on
+    assert out.seq == 10 and est.counters["gaps"] == 0 and math.isfinite(out.residual[0])  # chain unbroken
+
+
+@pytest.mark.parametrize("seq0", [-1, -(2**63), online.SEQ_LIMIT - 8, online.SEQ_LIMIT])
+def test_compiled_loop_refuses_any_int64_that_does_not_fit(seq0):
+    """Defence in depth: the ``@njit`` loop itself, handed an int64 the Python layer would refuse."""
+    t, v_ref, v, _ = _stream(10)
+    est = AxisEstimator(_model())
+    xbuf, obuf = online.new_scratch()
+    rows, irows, counts = online.new_rows(10)
+    first = online.track_block(*est.tracker.core_arrays(xbuf), *est.config, *online.new_state(), np.int64(seq0), t,
+                               v_ref, v, rows, irows, counts, xbuf, obuf)
+    assert first == 10 and counts[online.COUNTERS.index("rejected_seq_range")] == 10
+
+
+# ---- sequence numbers and time together: gaps, re-sends, new bridge sessions --------------------------------
+def _seq_blocks(t, v_ref, v, seqs, size):
+    """Blocks of ``size`` (cut where the sequence numbers are not consecutive) with the given seq per sample."""
+    starts = [0] + [k for k in range(1, len(seqs)) if seqs[k] != seqs[k - 1] + 1 or k % size == 0]
+    out = []
+    for a, b in zip(starts, starts[1:] + [len(seqs)]):
+        out.append(S.SampleBlock(machine="m", axis="x", seq=int(seqs[a]), t=t[a:b].tolist(),
+                                 v_ref=v_ref[a:b].tolist(), v_meas=v[a:b].tolist()))
+    return out
+
+
+def _rows_and_counters(t, v_ref, v, seqs, size):
+    est = AxisEstimator(_model())
+    return _run(est, _seq_blocks(t, v_ref, v, list(seqs), size)), est.counters
+
+
+@pytest.fixture(scope="module")
+def stream():
+    return _stream(1500)
+
+
+def _same_rows(a, b, skip=("seq",)):
+    for name in a:
+        if name not in skip:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+@pytest.mark.parametrize("size", [1, 64])
+def test_bridge_restarting_its_count_with_the_clock_running_restarts_the_chain_at_once(stream, size):
+    t, v_ref, v, _ = stream
+    k = np.arange(t.size)
+    seqs = np.where(k < 100, k, k - 100)  # the bridge restarted at sample 100: seq 0, 1, … again, time goes on
+    got, c = _rows_and_counters(t, v_ref, v, seqs, size)
+    assert (c["seq_resets"], c["gaps"], c["missing_samples"], c["estimates_out"]) == (1, 0, 0, 1500)
+    assert got["flags"][100] & S.GAP and got["flags"][100] & S.WARMUP and np.isnan(got["residual"][100])
+    assert np.isfinite(got["f"][101:]).all()  # estimates go on
+    # the same numbers as a stream with a gap there (the chain restarts the same way)
+    ref, _ = _rows_and_counters(t, v_ref, v, np.where(k < 100, k, k + 1), size)
+    _same_rows(got, ref)
+
+
+@pytest.mark.parametrize("size", [1, 64])
+def test_one_far_future_seq_costs_two_restarts_not_the_axis(stream, size):
+    t, v_ref, v, _ = stream
+    k = np.arange(t.size)
+    seqs = np.where(k == 800, 2**60, k)  # one absurd seq, then the count goes on
+    got, c = _rows_and_counters(t, v_ref, v, seqs, size)
+    assert (c["seq_resets"], c["gaps"], c["missing_samples"], c["out_of_order"]) == (2, 0, 0, 0)
+    assert c["estimates_out"] == 1500 and got["flags"][800] & S.GAP and got["flags"][801] & S.GAP
+    ref, _ = _rows_and_counters(t, v_ref, v, np.where(k < 800, k, np.where(k == 800, k + 1, k + 2)), size)
+    _same_rows(got, ref)
+
+
+@pytest.mark.parametrize("size", [1, 64])
+def test_bridge_restarting_count_and_clock_loses_at_most_the_reorder_window(stream, size):
+    """Both seq and t start again from 0 (a power cycle; or the same trial replayed twice): the first W − 1
+    samples look like a late re-send and are dropped; the W-th in a row starts a new session."""
+    t, v_ref, v, _ = stream
+    W = online.REORDER_WINDOW
+    idx = np.r_[np.arange(800), np.arange(700)]  # samples 0…799, then 0…699 again (seq and t)
+    got, c = _rows_and_counters(t[idx], v_ref[idx], v[idx], idx, size)
+    assert (c["out_of_order"], c["duplicate"], c["seq_resets"], c["gaps"]) == (W - 1, 0, 1, 0)
+    assert c["estimates_out"] == 1500 - (W - 1)
+    second = got["seq"][800:]
+    assert second[0] == W - 1 and (np.diff(second) == 1).all() and got["flags"][800] & S.GAP
+    keep = np.r_[np.arange(800), 800 + np.arange(W - 1, 700)]
+    ref, _ = _rows_and_counters(t[idx][keep], v_ref[idx][keep], v[idx][keep], np.r_[np.arange(800), 10**6 + np.arange(701 - W)],
+                                size)
+    _same_rows(got, ref)
+
+
+def test_genuine_gap_stays_a_gap_seq_jump_without_time_is_a_new_session(stream):
+    t, v_ref, v, _ = stream
+    k = np.arange(t.size)
+    lost = 5000  # an outage: seq and time jump together
+    _, c = _rows_and_counters(t + (k >= 800) * lost * TS, v_ref, v, np.where(k < 800, k, k + lost), 64)
+    assert (c["gaps"], c["missing_samples"], c["seq_resets"]) == (1, lost, 0)
+    _, c = _rows_and_counters(t, v_ref, v, np.where(k < 800, k, k + lost), 64)  # seq ahead of the clock
+    assert (c["gaps"], c["missing_samples"], c["seq_resets"]) == (0, 0, 1)
+    _, c = _rows_and_counters(t, v_ref, v, np.where(k < 800, k, k + 100), 64)  # within the window: a gap
+    assert (c["gaps"], c["missing_samples"], c["seq_resets"]) == (1, 100, 0)
+
+
+def test_late_resends_and_duplicates_are_dropped_even_far_back(stream):
+    t, v_ref, v, _ = stream
+    est = AxisEstimator(_model())
+    _run(est, _blocks(t[:800], v_ref[:800], v[:800], 100))
+    for k in (799, 799, 700, 100, 3):  # duplicates and old samples, as they were sent (old times)
+        assert est.process(next(_blocks(t[k:k + 1], v_ref[k:k + 1], v[k:k + 1], 1, seq0=k))) is None
+    assert (est.counters["duplicate"], est.counters["out_of_order"], est.counters["seq_resets"]) == (2, 3, 0)
+    out = est.process(next(_blocks(t[800:900], v_ref[800:900], v[800:900], 100, seq0=800)))
+    assert out.seq == 800 and out.flags[0] & S.GAP == 0 and math.isfinite(out.residual[0])  # chain unbroken
+
+
+# ---- the intercept ("one") enters the residual in both input forms ---------------------------------------
+def _with_intercept(model: AxisModel, offset: float) -> AxisModel:
+    """``model`` with the constant column "one" appended to β (value ``offset``)."""
+    names = (*model.beta_names, "one")
+    beta = [*model.beta, offset]
+    if "beta_names" in {f.name for f in dataclasses.fields(AxisModel)}:
+        return dataclasses.replace(model, beta=beta, beta_names=list(names))
+
+    class WithIntercept(AxisModel):
+        beta_names = property(lambda self: names)
+
+    return WithIntercept(**{**{f.name: getattr(model, f.name) for f in dataclasses.fields(AxisModel)}, "beta": beta})
+
+
+def test_velocity_loop_intercept_enters_the_residual():
+    rng = np.random.default_rng(5)
+    n, c = 1200, 3e-4  # a constant velocity offset (m/s per step) the model knows as β_one
+    t = np.arange(n) * TS
+    v_ref = 0.05 * np.sin(2 * np.pi * 0.7 * t)
+    v = np.zeros(n)
+    for k in range(n - 1):
+        v[k + 1] = (BETA[0] * v_ref[k] + BETA[1] * v[k] - BETA[2] * (v[k] > OMEGA) - BETA[3] * (v[k] < -OMEGA) + c
+                    + 2e-6 * rng.standard_normal())
+    model = _with_intercept(_model(), c)
+    assert model.form == "velocity-loop" and model.beta_names[-1] == "one"
+    out = _run(AxisEstimator(model), _blocks(t, v_ref, v, 50))
+    z = np.column_stack([v_ref[:-1], v[:-1], -1.0 * (v[:-1] > OMEGA), -1.0 * (v[:-1] < -OMEGA), np.ones(n - 1)])
+    np.testing.assert_allclose(out["residual"][1:], v[1:] - z @ np.array(model.beta), rtol=0, atol=1e-15)
+    assert abs(np.mean(out["residual"][1:])) < 1e-6 < c  # without the 1 the residual would carry c
+    without = _run(AxisEstimator(_model()), _blocks(t, v_ref, v, 50))
+    assert abs(np.mean(without["residual"][1:]) - c) < 1e-6

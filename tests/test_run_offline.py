@@ -1,4 +1,5 @@
-"""``feedmon run --from`` (offline), tracker state files, the monitor's robustness counters, ``feedmon status``."""
+"""``feedmon run --from`` (offline), the monitor's robustness counters, ``feedmon status`` (tracker state files:
+``test_state.py``)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,6 @@ from feedio.mcapio import iter_blocks, read_trial
 from feedmon import cli
 from monitor.axes import load_axes
 from monitor.daemon import Monitor
-from monitor.state import StateStore
 from monitor.status import BurstLog, LatencyRing
 
 
@@ -64,33 +64,6 @@ def test_offline_errors_are_clear(work, capsys, tmp_path):
     assert "model file not found" in capsys.readouterr().err
     assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap") == 2
     assert "--model" in capsys.readouterr().err
-
-
-def test_state_roundtrip_and_mismatch_is_ignored(work, tmp_path, caplog):
-    model = tmp_path / "z.model.toml"
-    model.write_text((work / "z.model.toml").read_text())
-    axes = load_axes([model])
-    ax = axes[("linear-drive", "Z")]
-    for _, b in iter_blocks(work / "trial.mcap"):
-        ax.estimator.process(b)
-    store = StateStore(tmp_path / "state")
-    path = store.save(ax)
-    with np.load(path, allow_pickle=False) as z:  # plain arrays only
-        assert str(z["meta.model_sha256"]) == ax.status.model_sha256
-    again = load_axes([model])[("linear-drive", "Z")]
-    assert store.load(again) == "restored"
-    assert again.estimator.tracker.size == ax.estimator.tracker.size
-    np.testing.assert_array_equal(again.estimator.tracker.mu, ax.estimator.tracker.mu)
-    model.write_text(model.read_text() + "\n# edited\n")  # another model file: its state is meaningless
-    edited = load_axes([model])[("linear-drive", "Z")]
-    with caplog.at_level(logging.WARNING, logger="monitor.state"):
-        assert store.load(edited) == "ignored"
-    assert "another model file" in caplog.text
-    assert edited.estimator.tracker.size == 0
-    path.write_bytes(b"garbage")
-    assert store.load(load_axes([model])[("linear-drive", "Z")]) == "unreadable"
-    default = StateStore(None).path_for(edited)
-    assert default.name == "z.model.state.npz" and default.parent == tmp_path
 
 
 def test_monitor_counts_malformed_no_model_and_queue_full(work):
