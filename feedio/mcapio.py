@@ -228,9 +228,12 @@ class TrialWriter:
     ``start`` (ISO 8601, datetime or ns; default: now) is the wall-clock time of controller
     time 0 for messages written without an explicit ``log_time``.
 
-    Errors: a block that cannot be written (log time outside 1970…2262, message larger than
-    :data:`MAX_MESSAGE_BYTES`) raises ``ValueError`` and leaves the writer as it was. A disk
-    that refuses a flush raises ``OSError``; the bytes are kept for the next flush. After a
+    Errors: a block that cannot be written (log time outside 1970…2262, sequence number
+    beyond :data:`~feedio.schema.SEQ_MAX`, message larger than :data:`MAX_MESSAGE_BYTES`)
+    raises ``ValueError`` and leaves the writer as it was. A disk that refuses a flush makes
+    :meth:`flush`, :meth:`flush_if_due` and :meth:`close` raise ``OSError`` (a write that
+    closes a chunk only records it in :attr:`last_flush_error`); the bytes are kept for the
+    next flush, so nothing is lost when space comes back. After a
     failure inside the mcap writer, or when more than ``max_pending_bytes`` wait for the disk,
     the writer is :attr:`failed`: the file ends on its last complete record (readable after
     ``feedmon recover``), :attr:`messages_lost` counts what never reached it, and every later
@@ -284,6 +287,7 @@ class TrialWriter:
         self.messages = 0  # messages accepted
         self.messages_lost = 0  # accepted but never written to the file (the writer failed)
         self.finished = False  # summary written and committed: a complete file
+        self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
         for (machine, axis), m in self.metas.items():
             self._writer.add_metadata(
                 METADATA_NAME,
@@ -390,7 +394,10 @@ class TrialWriter:
         if self._chunk_t0 is None or not math.isfinite(self._chunk_t0):
             self._chunk_t0 = t0
         if not (t1 - self._chunk_t0 < self._chunk_seconds):  # also when a time is not finite
-            self.flush()
+            try:
+                self.flush()
+            except OSError as exc:  # the bytes wait for the next flush; flush()/close() report it
+                self.last_flush_error = exc
 
     def _add_block(self, cid: int, block, log_time: int | None, what: str) -> None:
         self._check_open()
