@@ -167,49 +167,64 @@ def _now_ns() -> int:
 # ============================================================================================
 class _StagedFile:
     """The stream the mcap ``Writer`` writes to: bytes are staged in memory and committed to
-    the file by :meth:`commit` (the writer's ``flush``). A commit the disk refuses truncates
-    the file back to the last commit — always the end of a complete record — and keeps the
-    bytes for the next attempt, so the mcap ``Writer``'s offsets and state never disagree with
-    the file. ``damaged`` when even the truncation failed."""
+    the file by :meth:`commit`. Each ``write`` of the mcap writer holds complete records, so
+    the pieces are committed one by one; a piece the disk refuses is cut back (the file is
+    truncated to the end of the last piece written) and kept, with the pieces after it, for the
+    next attempt. The file therefore always ends on a complete record, as much as fits is on
+    disk, and the mcap ``Writer``'s offsets and state never disagree with the file.
+    ``damaged`` when even the truncation failed."""
 
     def __init__(self, path: str):
         self.file = open(path, "wb", buffering=0)  # OSError propagates with the path
         self.committed = 0
-        self.staged = bytearray()
+        self.staged: deque[tuple[bytes, int]] = deque()  # (piece, messages written before it ends)
+        self.staged_bytes = 0
         self.damaged = False
+        self.messages = 0  # set by the TrialWriter: messages handed to the mcap writer so far
+        self.messages_on_disk = 0  # messages of the chunks committed so far
 
     def write(self, data) -> int:
-        self.staged += data
-        return len(data)
+        piece = bytes(data)
+        if piece:
+            self.staged.append((piece, self.messages))
+            self.staged_bytes += len(piece)
+        return len(piece)
 
     def tell(self) -> int:
-        return self.committed + len(self.staged)
+        return self.committed + self.staged_bytes
 
     def flush(self) -> None:
         """No-op: the mcap writer calls it in ``Writer.flush``; :meth:`commit` does the I/O."""
 
-    def commit(self) -> None:
-        if not self.staged:
-            return
-        done = 0
-        view = memoryview(self.staged)
-        try:
-            while done < len(view):
-                n = self.file.write(view[done:])
-                if not n:
-                    raise OSError(f"the file accepted no bytes at offset {self.committed + done}")
-                done += n
-        except OSError:
-            try:
-                self.file.truncate(self.committed)
-                self.file.seek(self.committed)
-            except OSError:
-                self.damaged = True
-            raise
-        finally:
-            view.release()
-        self.committed += done
+    def drop(self) -> None:
+        """Forget what is staged (the file is given up)."""
         self.staged.clear()
+        self.staged_bytes = 0
+
+    def commit(self) -> None:
+        while self.staged:
+            piece, messages = self.staged[0]
+            done = 0
+            try:
+                with memoryview(piece) as view:
+                    while done < len(piece):
+                        n = self.file.write(view[done:])
+                        if not n:
+                            raise OSError(f"the file accepted no bytes at offset {self.committed + done}")
+                        done += n
+            except OSError:
+                if done:
+                    try:
+                        self.file.truncate(self.committed)
+                        self.file.seek(self.committed)
+                    except OSError:
+                        self.damaged = True
+                raise
+            self.staged.popleft()
+            self.staged_bytes -= len(piece)
+            self.committed += len(piece)
+            if piece[0] == 0x06:  # a chunk record: its messages are on disk
+                self.messages_on_disk = messages
 
     def close(self) -> None:
         self.file.close()
@@ -280,7 +295,6 @@ class TrialWriter:
         self._chunk_seconds = float(chunk_seconds)
         self._chunk_t0: float | None = None  # controller time of the first message in the open chunk
         self._pending = 0  # messages in the open chunk
-        self._uncommitted = 0  # messages written to the mcap writer but not yet to the file
         self._last_wall = time.monotonic()
         self._closed = False
         self.failed: str | None = None  # why the file was given up
@@ -315,7 +329,7 @@ class TrialWriter:
     @property
     def pending_bytes(self) -> int:
         """Bytes written to the writer that the disk has not taken yet."""
-        return len(self._stream.staged)
+        return self._stream.staged_bytes
 
     @property
     def bytes_on_disk(self) -> int:
@@ -326,9 +340,8 @@ class TrialWriter:
         """Give the file up: it keeps what was committed (complete records); the rest is lost."""
         if self.failed is None:
             self.failed = why
-            self.messages_lost += self._uncommitted
-            self._uncommitted = 0
-            self._stream.staged.clear()
+            self.messages_lost += self.messages - self._stream.messages_on_disk
+            self._stream.drop()
         return TrialFileError(
             f"{self.path}: the writer failed ({self.failed}); the file ends at byte {self._stream.committed} "
             f"on its last complete record — finish it with 'feedmon recover {self.path} -o FIXED.mcap'")
@@ -387,10 +400,14 @@ class TrialWriter:
         if len(data) > MAX_MESSAGE_BYTES:
             raise ValueError(f"{self.path}: {what} is {len(data)} bytes encoded, more than the limit of "
                              f"{MAX_MESSAGE_BYTES}; write it as several blocks")
-        self._inside(self._writer.add_message, cid, log_time, data, log_time, seq & 0xFFFFFFFF)
+        self._stream.messages = self.messages + 1  # a chunk finished inside add_message holds this one
+        try:
+            self._inside(self._writer.add_message, cid, log_time, data, log_time, seq & 0xFFFFFFFF)
+        finally:
+            self._stream.messages = self.messages
         self.messages += 1
+        self._stream.messages = self.messages
         self._pending += 1
-        self._uncommitted += 1
         if self._chunk_t0 is None or not math.isfinite(self._chunk_t0):
             self._chunk_t0 = t0
         if not (t1 - self._chunk_t0 < self._chunk_seconds):  # also when a time is not finite
@@ -465,11 +482,10 @@ class TrialWriter:
         except OSError as exc:
             if self._stream.damaged:
                 raise self._fail(f"{exc.strerror or exc}, and the file could not be cut back to its last record") from exc
-            if len(self._stream.staged) > self.max_pending_bytes:
+            if self._stream.staged_bytes > self.max_pending_bytes:
                 raise self._fail(f"{exc.strerror or exc}; more than {self.max_pending_bytes} bytes waited for the disk") \
                     from exc
             raise
-        self._uncommitted = 0
 
     def flush_if_due(self, now: float | None = None) -> bool:
         """For live writers: close the chunk when ``chunk_seconds`` of wall time passed
@@ -495,8 +511,7 @@ class TrialWriter:
                 self.finished = True
         finally:
             if not self.finished and self.failed is None:
-                self.messages_lost += self._uncommitted
-                self._uncommitted = 0
+                self.messages_lost += self.messages - self._stream.messages_on_disk
                 self.failed = "the end of the file could not be written"
             self._stream.close()
 

@@ -14,9 +14,11 @@ complete MCAP file:
 * every message of every intact chunk, with log time, publish time, sequence and data
   unchanged; chunk boundaries are kept (one output chunk per source chunk, the same
   compression and maximum chunk size as :class:`feedio.mcapio.TrialWriter`);
-* of a chunk that was cut off (end of file, or a later record starts inside it), every
-  *complete* record of the part that decompresses — the writer stopped there, so these
-  bytes are as written (counted as ``partial_messages``; no CRC covers a partial chunk);
+* of a chunk cut off by the end of the file, every *complete* record of the part that
+  decompresses — the writer stopped there, so these bytes are as written (counted as
+  ``partial_messages``; no CRC covers a partial chunk). A chunk cut off *inside* the file
+  (an intact record starts within it) is skipped whole: that is a write that failed and was
+  retried (a full disk), and its records are in the retry;
 * of a chunk that fails its CRC or its decompression, the schema and channel declarations
   (so the messages of later chunks keep their channel); its messages are dropped, as a
   flipped bit may be in any of them (``salvage_damaged=True`` keeps those that parse);
@@ -379,12 +381,13 @@ class _Source:
             return False
         return self.plausible_next(end, strict=True)
 
-    def resync(self, start: int) -> int | None:
-        """The first offset ≥ ``start`` where :meth:`valid_at` holds (None: none)."""
+    def resync(self, start: int, stop: int | None = None) -> int | None:
+        """The first offset in [``start``, ``stop``) where :meth:`valid_at` holds (None: none)."""
         mm, size = self.mm, self.size
+        limit = size - 9 if stop is None else min(size - 9, stop - 1)
         pos = start
-        while pos + 9 <= size:
-            stop = min(size - 9, pos + _WINDOW)  # candidate starts in [pos, stop]
+        while pos <= limit:
+            stop = min(limit, pos + _WINDOW)  # candidate starts in [pos, stop]
             arr = np.frombuffer(mm, dtype=np.uint8, count=stop + 9 - pos, offset=pos)
             op = arr[: stop - pos + 1]
             cand = (op >= 1) & (op <= 0x0F)
@@ -563,20 +566,24 @@ def _copy_records(source: _Source, cp: _Copier, report: RecoverReport, salvage_d
             problem = f"{name} record is followed by no valid record header (its length field is damaged)"
         rec = None
         if problem is None:
+            body = mm[pos + 9:end]
             try:
-                rec = parse_record(opcode, mm[pos + 9:end], exact=opcode in (Op.CHUNK, Op.DATA_END, Op.FOOTER))
+                rec = parse_record(opcode, body, exact=True)
             except RecordError as exc:
                 problem = f"{name} record is corrupt ({exc})"
+                if opcode not in (Op.CHUNK, Op.DATA_END, Op.FOOTER) and source.plausible_next(end, strict=True):
+                    try:  # a record with fields added by a newer MCAP version: trailing bytes allowed
+                        rec, problem = parse_record(opcode, body), None
+                    except RecordError:
+                        pass
         if problem is not None:
             nxt = source.resync(pos + 1)
-            if opcode == Op.CHUNK:
-                _partial_chunk(source, cp, report, pos, nxt if nxt is not None else size)
-                if nxt is None:
-                    report.stop_offset, report.stop_reason = pos, f"Chunk record cut off ({problem})"
-                    report.bytes_dropped += size - pos
-                    break
-                report.skip(pos, nxt - pos, f"cut-off chunk ({problem})")
-            elif nxt is None:
+            if opcode == Op.CHUNK and nxt is None:  # the writer stopped inside this chunk: keep what it wrote
+                _partial_chunk(source, cp, report, pos, size)
+                report.stop_offset, report.stop_reason = pos, f"Chunk record cut off ({problem})"
+                report.bytes_dropped += size - pos
+                break
+            if nxt is None:
                 report.stop_offset = pos
                 report.stop_reason = f"{name} {'cut off' if not fits else 'corrupt'} ({problem})"
                 report.bytes_dropped += size - pos
@@ -587,7 +594,10 @@ def _copy_records(source: _Source, cp: _Copier, report: RecoverReport, salvage_d
             continue
         # a record with an intact layout
         if opcode == Op.CHUNK:
-            _chunk(source, cp, report, pos, length, rec, salvage_damaged)
+            nxt = _chunk(source, cp, report, pos, length, rec, salvage_damaged)
+            if nxt is not None:  # a damaged chunk that an intact record cuts short
+                pos = nxt
+                continue
         elif opcode == Op.SCHEMA:
             cp.schema(rec)
         elif opcode == Op.CHANNEL:
@@ -621,8 +631,11 @@ def _copy_records(source: _Source, cp: _Copier, report: RecoverReport, salvage_d
 
 
 def _chunk(source: _Source, cp: _Copier, report: RecoverReport, pos: int, length: int, chunk: Chunk,
-           salvage_damaged: bool) -> None:
-    """An intact-looking chunk: copied when it decompresses and passes its CRC, else its declarations."""
+           salvage_damaged: bool) -> int | None:
+    """A chunk with an intact layout: copied when it decompresses and passes its CRC. Else, when an
+    intact record starts inside it, it was a write cut short (and retried: a full disk) — skipped up
+    to that record, whose offset is returned; otherwise it is damaged: its declarations are kept,
+    its messages dropped (kept with ``salvage_damaged``)."""
     try:
         data, _ = decompress(chunk, source.limits)
         records, _ = _inner_records(data, strict=True)
@@ -631,7 +644,12 @@ def _chunk(source: _Source, cp: _Copier, report: RecoverReport, pos: int, length
     else:
         cp.records(records)
         report.chunks += 1
-        return
+        return None
+    end = pos + 9 + length
+    nxt = source.resync(pos + 1, stop=end)
+    if nxt is not None and nxt < end:
+        report.skip(pos, nxt - pos, f"chunk cut short by the record at byte {nxt} ({problem})")
+        return nxt
     report.chunks_dropped += 1
     data = b""
     if check_chunk_size(chunk, source.limits) is None:
@@ -643,10 +661,11 @@ def _chunk(source: _Source, cp: _Copier, report: RecoverReport, pos: int, length
             source.channel_ids.add(r.id)
     cp.records(records, messages=salvage_damaged)
     report.skip(pos, 9 + length, f"damaged chunk ({problem})", 0 if salvage_damaged else n_msg)
+    return None
 
 
 def _partial_chunk(source: _Source, cp: _Copier, report: RecoverReport, pos: int, end: int) -> None:
-    """A chunk cut off at ``end`` (end of file or the next intact record): its complete records."""
+    """A chunk cut off at ``end`` (the end of the file): its complete records."""
     mm = source.mm
     body = mm[pos + 9:end]
     # the chunk's fields up to its records; the records' bytes are what is present
