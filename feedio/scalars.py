@@ -29,6 +29,8 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from . import schema as S
 
 __all__ = ["ScalarsPairer", "HOLD_SAMPLES", "HOLD_NS"]
@@ -41,26 +43,24 @@ HOLD_NS = 2 * 10**9
 _MAX_SPAN_S = 3600.0
 
 
-def _num(x) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
+def _column(values, n: int, sqrt: bool = False) -> list[float]:
+    """A block column as Python floats, NaN where missing or non-finite (``sqrt``: a variance → a
+    standard deviation, NaN where negative)."""
+    if values is None:
+        return [math.nan] * n
+    a = np.array(values, dtype=np.float64)  # None -> NaN
+    if sqrt:
+        with np.errstate(invalid="ignore"):
+            a = np.sqrt(a)
+    a[~np.isfinite(a)] = np.nan
+    return a.tolist()
 
 
-def _sd(var) -> float | None:
-    v = _num(var)
-    return math.sqrt(v) if v is not None and v >= 0.0 else None
-
-
-@dataclass
-class _Pending:
-    seq: int
-    t: float
-    log_ns: int
-    row: dict  # row k's own values
-    filtered: dict | None = None  # from row k+1 (None: not yet known, or never)
-    done: bool = False  # row k+1 seen (or known never to come)
+# per-sample record of the queue: [seq, t, log_ns, v_meas, f_next, force_next, flags, filtered, done]
+# filtered = (f, f_sd, force, force_sd) of row k+1, or None
+_SEQ, _T, _LOG, _VMEAS, _FNEXT, _FORCENEXT, _FLAGS, _FILT, _DONE = range(9)
+_FILTERED = ("f", "f_sd", "force", "force_sd")
+_TRUTH = ("truth_force", "truth_f", "dynamometer")
 
 
 @dataclass
@@ -100,42 +100,40 @@ class ScalarsPairer:
     def add_estimates(self, block: S.EstimateBlock, last_ns: int) -> list:
         """Add the rows of ``block``; ``last_ns`` is the log time of its last sample (ns)."""
         st = self._axis(block.machine, block.axis)
-        t = block.t
-        n = len(t)
-        t_last = float(t[-1])
-        force = block.force
+        n = len(block.t)
+        t = np.array(block.t, dtype=np.float64)
+        span = t[-1] - t
+        span[~(np.isfinite(span) & (span > 0.0))] = 0.0
+        log_ns = (int(last_ns) - np.round(np.minimum(span, _MAX_SPAN_S) * 1e9).astype(np.int64)).tolist()
+        f, f_sd = _column(block.f, n), _column(block.f_var, n, sqrt=True)
+        force, force_sd = _column(block.force, n), _column(block.force_var, n, sqrt=True)
+        v_meas, f_next, force_next = _column(block.v_meas, n), _column(block.f_next, n), _column(block.force_next, n)
+        q = st.pending
+        seq0 = block.seq
         for i in range(n):
-            seq = block.seq + i
-            tail = st.pending[-1] if st.pending else None
-            filt = {"f": _num(block.f[i]), "f_sd": _sd(block.f_var[i]),
-                    "force": None if force is None else _num(force[i]),
-                    "force_sd": None if block.force_var is None else _sd(block.force_var[i])}
-            if tail is not None and not tail.done:
-                tail.done = True
-                if tail.seq == seq - 1:  # otherwise a gap: the values describe a sample never seen
-                    tail.filtered = filt
-            span = t_last - float(t[i])
-            span = span if math.isfinite(span) and span > 0.0 else 0.0
-            log_ns = int(last_ns) - int(round(min(span, _MAX_SPAN_S) * 1e9))
-            st.pending.append(_Pending(
-                seq=seq, t=float(t[i]), log_ns=log_ns,
-                row={"v_meas": _num(block.v_meas[i]), "f_next": _num(block.f_next[i]),
-                     "force_next": None if block.force_next is None else _num(block.force_next[i]),
-                     "flags": int(block.flags[i])},
-            ))
+            seq = seq0 + i
+            if q:
+                tail = q[-1]
+                if not tail[_DONE]:
+                    tail[_DONE] = True
+                    if tail[_SEQ] == seq - 1:  # otherwise a gap: the values describe a sample never seen
+                        tail[_FILT] = (f[i], f_sd[i], force[i], force_sd[i])
+            q.append([seq, block.t[i], log_ns[i], v_meas[i], f_next[i], force_next[i], int(block.flags[i]), None,
+                      False])
         return self._ready(block.machine, block.axis, st)
 
     def add_truth(self, machine: str, axis: str, block: S.TruthBlock) -> list:
         """Add a truth block of ``machine/axis`` (samples ``seq … seq+len−1``)."""
         st = self._axis(machine, axis)
-        dyn = block.dynamometer
-        floor = st.pending[0].seq if st.pending else (None if st.released is None else st.released + 1)
-        for i in range(len(block.t)):
+        n = len(block.t)
+        force, f, dyn = _column(block.force, n), _column(block.f, n), _column(block.dynamometer, n)
+        floor = st.pending[0][_SEQ] if st.pending else (None if st.released is None else st.released + 1)
+        for i in range(n):
             seq = block.seq + i
             if floor is not None and seq < floor:
                 continue
-            st.truth[seq] = (_num(block.force[i]), _num(block.f[i]), None if dyn is None else _num(dyn[i]))
-        end = block.seq + len(block.t)
+            st.truth[seq] = (force[i], f[i], dyn[i])
+        end = block.seq + n
         st.truth_end = end if st.truth_end is None else max(st.truth_end, end)
         cap = 4 * self.hold_samples
         if len(st.truth) > cap:
@@ -171,26 +169,29 @@ class ScalarsPairer:
         q = st.pending
         while q:
             p = q[0]
-            if not force and len(q) <= self.hold_samples and (before_ns is None or p.log_ns >= before_ns):
-                if not p.done or self._waiting_for_truth((machine, axis), st, p.seq):
+            if not force and len(q) <= self.hold_samples and (before_ns is None or p[_LOG] >= before_ns):
+                if not p[_DONE] or self._waiting_for_truth((machine, axis), st, p[_SEQ]):
                     break
             q.popleft()
-            st.released = p.seq
-            out.append((machine, axis, self._stamp(st, p.log_ns), self._message(st, p)))
+            st.released = p[_SEQ]
+            ns = max(p[_LOG], st.last_ns + 1, 0)
+            st.last_ns = ns
+            out.append((machine, axis, ns, self._message(st, p)))
         return out
 
     @staticmethod
-    def _stamp(st: _Axis, log_ns: int) -> int:
-        ns = max(int(log_ns), st.last_ns + 1, 0)
-        st.last_ns = ns
-        return ns
-
-    @staticmethod
-    def _message(st: _Axis, p: _Pending) -> S.DisturbanceScalars:
-        vals = dict(p.row)
-        if p.filtered is not None:
-            vals.update(p.filtered)
-        truth = st.truth.pop(p.seq, None)
+    def _message(st: _Axis, p: list) -> S.DisturbanceScalars:
+        vals = {}
+        for name, v in (("v_meas", p[_VMEAS]), ("f_next", p[_FNEXT]), ("force_next", p[_FORCENEXT])):
+            if v == v:  # not NaN
+                vals[name] = v
+        if p[_FILT] is not None:
+            for name, v in zip(_FILTERED, p[_FILT]):
+                if v == v:
+                    vals[name] = v
+        truth = st.truth.pop(p[_SEQ], None)
         if truth is not None:
-            vals["truth_force"], vals["truth_f"], vals["dynamometer"] = truth
-        return S.DisturbanceScalars(t=p.t, seq=p.seq, **vals)
+            for name, v in zip(_TRUTH, truth):
+                if v == v:
+                    vals[name] = v
+        return S.DisturbanceScalars(t=p[_T], seq=p[_SEQ], flags=p[_FLAGS], **vals)

@@ -105,7 +105,7 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 m, a = name.split("/", 1)
                 out.put(partial(w.write_truth, block, m, a, log_time=lt))
                 if (m, a) in has_truth:
-                    out.put(_scalars, w, pairer.add_truth(m, a, block))
+                    out.put(_scalars, w, pairer.add_truth, m, a, block)
                 truth += 1
                 continue
             samples += len(block.t)
@@ -113,17 +113,18 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
             out.put(partial(w.write_samples, block, log_time=lt))
             if est is not None:
                 out.put(partial(w.write_estimates, est, log_time=lt))
-                out.put(_scalars, w, pairer.add_estimates(est, lt))
+                out.put(_scalars, w, pairer.add_estimates, est, lt)
                 estimates += len(est.t)
-        out.put(_scalars, w, pairer.drain())
+        out.put(_scalars, w, pairer.drain)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, samples, estimates, truth, seconds, names, skipped)
 
 
-def _scalars(w, ready: list) -> None:
-    """Write the scalars that became complete (grouped per axis, order kept)."""
+def _scalars(w, pair, *args) -> None:
+    """On the writer thread: feed the pairer (``pair(*args)``) and write the scalars that became
+    complete (grouped per axis, order kept)."""
     by_axis: dict[tuple[str, str], list] = {}
-    for machine, axis, ns, sc in ready:
+    for machine, axis, ns, sc in pair(*args):
         by_axis.setdefault((machine, axis), []).append((ns, sc))
     for (machine, axis), items in by_axis.items():
         w.write_scalars(machine, axis, items)

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +24,7 @@ from replay.player import replay
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
+REPO = Path(__file__).resolve().parents[1]
 PREFIX = "feedmon-mcaplive"
 AXIS = "linear-drive/Z"
 CREATED = "2024-05-01T08:00:00Z"
@@ -104,6 +108,21 @@ def test_live_log_has_per_sample_scalars_that_other_tools_read(work):
         a = np.array([m.get(key, np.nan) for _, m in live], dtype=float)
         b = np.array([m.get(key, np.nan) for _, m in off], dtype=float)
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12, equal_nan=True, err_msg=key)
+    # Rerun: `rerun mcap convert` reads the log (JSON channels arrive as raw bytes in Rerun 0.41), and the
+    # converter in deploy/ turns the scalars into time series that Rerun plots
+    rerun = str(Path(sys.executable).with_name("rerun"))
+    r = subprocess.run([rerun, "mcap", "convert", str(work / "live.mcap"), "-o", str(work / "convert.rrd")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, str(REPO / "deploy" / "mcap_scalars_to_rerun.py"), str(work / "live.mcap"),
+                        "-o", str(work / "scalars.rrd")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and f"/{AXIS}/disturbance/scalars: {n} samples" in r.stdout, r.stdout + r.stderr
+    assert subprocess.run([rerun, "rrd", "verify", str(work / "scalars.rrd")], capture_output=True,
+                          timeout=120).returncode == 0
+    printed = subprocess.run([rerun, "rrd", "print", str(work / "scalars.rrd")], capture_output=True, text=True,
+                             timeout=120).stdout
+    for field in ("force", "force_sd", "truth_force", "f"):
+        assert f"/{AXIS}/{field} - data columns: [Scalars:scalars]" in printed, printed[:2000]
     # the offline block channels keep the input's log times too
     with open(work / "trial.mcap", "rb") as f:
         src = [m.log_time for _, ch, m in make_reader(f).iter_messages(log_time_order=False)
@@ -144,3 +163,25 @@ def test_absurd_controller_time_does_not_poison_the_live_log(work):
     scalars = _plain(work / "poison.mcap", f"/{AXIS}/disturbance/scalars")
     times = [lt for lt, _ in scalars]
     assert times[0] > Y2020 and all(b > a for a, b in zip(times, times[1:])) and times[-1] < time.time_ns()
+
+
+def test_foxglove_layout_plots_fields_of_the_scalars_channel():
+    """deploy/foxglove/feedmon-disturbance.layout.json: valid JSON, every panel of the layout tree is
+    configured, and every plotted path is a field of the scalars schema on a scalars channel."""
+    doc = json.loads((REPO / "deploy" / "foxglove" / "feedmon-disturbance.layout.json").read_text())
+    panels = set(doc["configById"])
+
+    def leaves(node):
+        if isinstance(node, str):
+            yield node
+        else:
+            yield from leaves(node["first"])
+            yield from leaves(node["second"])
+
+    assert set(leaves(doc["layout"])) == panels
+    fields = set(S.DisturbanceScalars.__struct_fields__)
+    paths = [p["value"] for c in doc["configById"].values() for p in c.get("paths", [])]
+    assert len(paths) >= 8
+    for p in paths:
+        topic, field = p.rsplit(".", 1)
+        assert topic.endswith("/disturbance/scalars") and field in fields, p
