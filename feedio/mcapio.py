@@ -601,6 +601,8 @@ class _Open:
                 self.channels.setdefault(c.topic, c)
                 self._ids.setdefault(c.topic, []).append(c.id)
             self._topic_of = {c.id: c.topic for c in self.file.channels.values()}
+            self._axes: list[tuple[str, str]] | None = None
+            self._by_name: dict[str, list[tuple[str, str]]] = {}
             self._trial_meta: dict[tuple[str, str], dict] = {}
             self._n_trial_meta = 0
             for rec in self.file.metadata():
@@ -622,15 +624,26 @@ class _Open:
         self.close()
 
     def axes(self) -> list[tuple[str, str]]:
-        out = []
-        for name in sorted(self.channels):
-            parts = name.split("/")
-            if len(parts) == 4 and parts[0] == "" and parts[3] == "samples" and parts[1] and parts[2]:
-                out.append((parts[1], parts[2]))
-        return out
+        if self._axes is None:
+            out = []
+            for name in sorted(self.channels):
+                parts = name.split("/")
+                if len(parts) == 4 and parts[0] == "" and parts[3] == "samples" and parts[1] and parts[2]:
+                    out.append((parts[1], parts[2]))
+            self._axes = out
+            by_name: dict[str, list[tuple[str, str]]] = {}
+            for m, a in out:
+                by_name.setdefault(f"{m}/{a}", []).append((m, a))
+                by_name.setdefault(a, []).append((m, a))
+            self._by_name = by_name
+        return list(self._axes)
 
     def select(self, axis: str | None) -> tuple[str, str]:
-        axes = self.axes()
+        if self._axes is None:
+            self.axes()
+        if axis is not None and len(self._by_name.get(axis, ())) == 1:
+            return self._by_name[axis][0]
+        axes = self._axes
         if not axes:
             listed = ", ".join(sorted(self.channels)[:20]) or "none"
             raise TrialFileError(
