@@ -393,12 +393,14 @@ class TrialWriter:
                 f"{format_time(self.start_ns)} + t lies outside 1970…2262, the range of MCAP log times")
         return min(max(self.start_ns + int(round(x)), 0), MAX_LOG_TIME_NS)
 
-    def _add(self, cid: int, data: bytes, log_time: int, seq: int, t0: float, t1: float, what: str) -> None:
-        """Validate everything that could overflow the file format, then add one message."""
+    def _add(self, cid: int, data: bytes, log_time: int, seq: int, t0: float, t1: float, kind: str) -> None:
+        """Validate everything that could overflow the file format, then add one message
+        (``kind`` names the message in errors: "<kind> seq <seq>")."""
         if not isinstance(log_time, int) or not 0 <= log_time <= MAX_LOG_TIME_NS:
-            raise ValueError(f"{self.path}: {what}: log time {log_time!r} ns is outside 0…2**63−1 (1970…2262)")
+            raise ValueError(f"{self.path}: {kind} seq {seq}: log time {log_time!r} ns is outside 0…2**63−1 "
+                             "(1970…2262)")
         if len(data) > MAX_MESSAGE_BYTES:
-            raise ValueError(f"{self.path}: {what} is {len(data)} bytes encoded, more than the limit of "
+            raise ValueError(f"{self.path}: {kind} seq {seq} is {len(data)} bytes encoded, more than the limit of "
                              f"{MAX_MESSAGE_BYTES}; write it as several blocks")
         self._stream.messages = self.messages + 1  # a chunk finished inside add_message holds this one
         try:
@@ -416,10 +418,10 @@ class TrialWriter:
             except OSError as exc:  # the bytes wait for the next flush; flush()/close() report it
                 self.last_flush_error = exc
 
-    def _add_block(self, cid: int, block, log_time: int | None, what: str) -> None:
+    def _add_block(self, cid: int, block, log_time: int | None, kind: str) -> None:
         self._check_open()
         t0, t1 = float(block.t[0]), float(block.t[-1])
-        what = f"{what} seq {block.seq}"
+        what = f"{kind} seq {block.seq}"
         if not 0 <= block.seq <= S.SEQ_MAX - (len(block.t) - 1):
             raise ValueError(f"{self.path}: {what}: sequence numbers must lie in 0…SEQ_MAX = 2**53 − 1 "
                              f"(this block ends at {block.seq + len(block.t) - 1})")
@@ -428,7 +430,7 @@ class TrialWriter:
             data = S.encode(block)
         except (OverflowError, TypeError, ValueError, msgspec.EncodeError) as exc:
             raise ValueError(f"{self.path}: {what} cannot be encoded: {exc}") from None
-        self._add(cid, data, lt, int(block.seq), t0, t1, what)
+        self._add(cid, data, lt, int(block.seq), t0, t1, kind)
 
     def write_samples(self, block: S.SampleBlock, *, log_time: int | None = None) -> None:
         """Append a :class:`SampleBlock` on ``/<machine>/<axis>/samples``; ``log_time`` (ns since
@@ -459,10 +461,14 @@ class TrialWriter:
             return
         self._check_open()
         cid = self._channel(machine, axis, SCALARS)
+        encode = S.encode
         for lt, sc in items:
-            if not isinstance(sc, S.DisturbanceScalars):
+            if type(sc) is not S.DisturbanceScalars:
                 raise TypeError(f"write_scalars needs DisturbanceScalars, got {type(sc).__name__}")
-            self._add(cid, S.encode(sc), lt, int(sc.seq), float(sc.t), float(sc.t), f"scalars of seq {sc.seq}")
+            if not (0 <= sc.seq <= S.SEQ_MAX and math.isfinite(sc.t)):
+                raise ValueError(f"{self.path}: scalars seq {sc.seq} at t = {sc.t!r} s: the sequence number must lie "
+                                 "in 0…SEQ_MAX and the time must be finite")
+            self._add(cid, encode(sc), lt, sc.seq, sc.t, sc.t, "scalars")
 
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.
