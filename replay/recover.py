@@ -537,7 +537,7 @@ def _copy_records(source: _Source, cp: _Copier, report: RecoverReport, salvage_d
                                       + " (the writer stopped)")
             break
         if last_op == Op.FOOTER:
-            if mm[pos:] == MAGIC:
+            if size - pos == 8 and mm[pos:size] == MAGIC:
                 report.complete = report.skipped_ranges == 0
                 break
             report.stop_offset, report.stop_reason = pos, "no end magic after the footer"
@@ -555,12 +555,17 @@ def _copy_records(source: _Source, cp: _Copier, report: RecoverReport, salvage_d
         if fits and opcode >= 0x80:  # user opcodes: skipped, not damage
             pos = end
             continue
+        if fits and opcode == Op.ATTACHMENT and length > limits.record_bytes and source.plausible_next(end, strict=True):
+            report.skip(pos, 9 + length, f"attachment of {length} bytes, larger than the limit of "
+                                         f"{limits.record_bytes}: not copied")
+            pos = end
+            continue
         problem = None
         if not fits:
             problem = f"{name} record declares {length} bytes, only {size - pos - 9} left"
         elif opcode not in _KNOWN:
             problem = f"invalid opcode {opcode:#04x}"
-        elif length > limits.record_bytes and opcode not in (Op.ATTACHMENT,):
+        elif length > limits.record_bytes:
             problem = f"{name} record of {length} bytes is larger than the limit of {limits.record_bytes}"
         elif not source.plausible_next(end, strict=False):
             problem = f"{name} record is followed by no valid record header (its length field is damaged)"

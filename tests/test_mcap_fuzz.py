@@ -67,7 +67,7 @@ def _meta_json(machine="m", axis="X", form="force-input", Ts=0.001, **extra) -> 
 
 
 def build(chunks: list[bytes], *, meta: str | None = None, channels: int = 1, extra: bytes = b"",
-          machine: str = "m", axis: str = "X") -> bytes:
+          machine: str = "m", axis: str = "X", index: bool = True) -> bytes:
     """A complete MCAP file: header, one feedmon.trial metadata record, ``extra`` records, the given
     chunk records, DataEnd (no CRC), a summary with the schema, ``channels`` channels (the first is
     /m/X/samples, id 1) and the metadata index, footer (no CRC), end magic."""
@@ -84,7 +84,8 @@ def build(chunks: list[bytes], *, meta: str | None = None, channels: int = 1, ex
     summ = [_rec(Schema(1, b"{}", "jsonschema", "feedmon.SampleBlock"))]
     for i in range(1, channels + 1):
         summ.append(_rec(Channel(i, f"/{machine}/{axis}/samples" if i == 1 else f"/m/X{i}/other", "json", {}, 1)))
-    summ.append(_rec(MetadataIndex(meta_off, len(md), "feedmon.trial")))
+    if index:
+        summ.append(_rec(MetadataIndex(meta_off, len(md), "feedmon.trial")))
     out += b"".join(summ)
     out += _rec(Footer(s0, 0, 0))
     out += MAGIC
@@ -109,9 +110,11 @@ def chunk(payloads: list[bytes], *, compression: str = "", size: int | None = No
                       uncompressed_crc=0, uncompressed_size=len(inner) if size is None else size))
 
 
-def test_builder_makes_a_readable_file(tmp_path):
+@pytest.mark.parametrize("index", [True, False])
+def test_builder_makes_a_readable_file(tmp_path, index):
+    """(Without a metadata index — other writers — the metadata is found by a scan of the data section.)"""
     p = tmp_path / "built.mcap"
-    p.write_bytes(build([chunk([samples_payload(0), samples_payload(10)], compression="zstd")]))
+    p.write_bytes(build([chunk([samples_payload(0), samples_payload(10)], compression="zstd")], index=index))
     assert read_trial(p).seq.tolist()[:3] == [0, 1, 2] and len(read_trial(p)) == 20
 
 
