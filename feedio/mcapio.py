@@ -115,6 +115,10 @@ def _split_topic(name: str) -> tuple[str, str, str] | None:
 def _check_name(what: str, value: str) -> str:
     if not value or "/" in value or value.strip() != value:
         raise ValueError(f"{what} {value!r} must be a non-empty name without '/' or surrounding spaces")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{what} {value!r} is not valid Unicode text (a lone surrogate)") from None
     return value
 
 
@@ -287,9 +291,6 @@ class TrialWriter:
             raise ValueError(f"compression {compression!r}: use zstd, lz4 or none")
         self.start_ns = _now_ns() if start is None else parse_time(start)
         self.max_pending_bytes = int(max_pending_bytes)
-        self._stream = _StagedFile(self.path)
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
-        self._writer.start(profile="", library=_library())
         self._schemas: dict[type, int] = {}
         self._channels: dict[str, int] = {}
         self._chunk_seconds = float(chunk_seconds)
@@ -302,6 +303,17 @@ class TrialWriter:
         self.messages_lost = 0  # accepted but never written to the file (the writer failed)
         self.finished = False  # summary written and committed: a complete file
         self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
+        self._stream = _StagedFile(self.path)
+        try:
+            self._start(Writer, chunk_size, comp)
+        except BaseException:
+            self._stream.close()
+            raise
+
+    def _start(self, Writer, chunk_size: int, comp) -> None:
+        """Header, one metadata record and the samples channel per axis (into memory)."""
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
+        self._writer.start(profile="", library=_library())
         for (machine, axis), m in self.metas.items():
             self._writer.add_metadata(
                 METADATA_NAME,

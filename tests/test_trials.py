@@ -262,6 +262,8 @@ def test_refused_blocks_leave_the_writer_consistent(tmp_path):
         assert w.failed is None and w.messages == good
     tr = read_trial(p)  # footer, summary, every good block
     assert tr.seq.tolist() == list(range(10 * good))
+    with pytest.raises(ValueError, match="lone surrogate"):  # would fail inside the mcap writer: refused before
+        TrialWriter(tmp_path / "bad-name.mcap", _meta(axis="X\udc80"))
     with open(p, "rb") as fh:
         r = make_reader(fh)
         assert r.get_summary().statistics.message_count == good
