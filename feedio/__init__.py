@@ -2,6 +2,8 @@
 
 * :mod:`feedio.schema` — the one message schema (samples, truth, estimates, trial metadata);
 * :mod:`feedio.mcapio` — MCAP trial and log files (one writer, one reader);
+* :mod:`feedio.mcapfile` — checked, bounded MCAP record parsing (limits, CRCs) under the reader and recover;
+* :mod:`feedio.scalars` — the per-sample ``disturbance/scalars`` messages (pairing rows and truth in time);
 * :mod:`feedio.transport` — Zenoh sessions and key expressions.
 
 Dependencies run one way: ``kernels`` (numerics) ← ``feedio`` ← ``monitor``, ``replay`` ← ``feedmon`` (CLI).

@@ -7,34 +7,54 @@ Layout of a trial file
   (:data:`feedio.schema.JSON_SCHEMAS`).
 * Channels per axis: ``/<machine>/<axis>/samples`` (:class:`SampleBlock`),
   ``/<machine>/<axis>/truth`` (:class:`TruthBlock`, simulated trials and pulse
-  ground truth) and ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
-  written by the monitor).
+  ground truth), ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
+  written by the monitor) and ``/<machine>/<axis>/disturbance/scalars``
+  (:class:`DisturbanceScalars`, one message of plain numbers per sample, written by
+  the monitor for other tools; see :mod:`feedio.scalars`).
 * One metadata record ``feedmon.trial`` per axis (MCAP metadata is map<str,str>):
   key ``meta`` holds the :class:`TrialMeta` JSON, plus readable keys ``machine``,
-  ``axis``, ``form``, ``Ts``, ``source``.
-* Log time and publish time of a message = controller time of its first sample
-  in ns (``round(t[0]·1e9)``; must be ≥ 0). Data time, not wall time, so a
-  simulated trial is byte-identical for the same seed and replay order follows the
-  controller clock. MCAP ``sequence`` = the block's ``seq`` (mod 2³²).
-* Chunked, zstd-compressed. A chunk is closed whenever the written data span
-  ``chunk_seconds`` (default 1 s) of controller time, or its size exceeds
-  ``chunk_size``; a live writer also calls :meth:`TrialWriter.flush_if_due`
-  (wall clock) so that at most about a second is lost on a crash. Wall-clock
-  flushing is never automatic: it would make chunk boundaries, hence bytes,
-  depend on the machine's speed.
+  ``axis``, ``form``, ``Ts``, ``source`` and the trial's start time ``start_time``
+  (ISO 8601, UTC) / ``start_time_ns`` (ns since the Unix epoch).
+* Log times are wall-clock times in ns since the Unix epoch. The log time of a block
+  message is the time of its *last* sample (when a live monitor receives it): for a
+  live log the receive time, for a written trial ``start + t[-1]`` (controller time
+  counted from the start time). Publish time = log time. MCAP ``sequence`` = the
+  block's ``seq`` (mod 2³²). The start time defaults to the creation time; give it
+  (``start=``, ``--created``/``--start``) for byte-identical files.
+* Chunked, zstd-compressed, chunk and data-section CRCs stored. A chunk is closed
+  whenever the written data span ``chunk_seconds`` (default 1 s) of controller time,
+  or its size exceeds ``chunk_size``; a live writer also calls
+  :meth:`TrialWriter.flush_if_due` (wall clock) so that at most about a second is lost
+  on a crash. Wall-clock flushing is never automatic: it would make chunk boundaries,
+  hence bytes, depend on the machine's speed.
+
+Reading goes through :mod:`feedio.mcapfile` (limits, CRCs); messages are read in file
+order, which for feedmon's writers is sequence order on every channel.
+
+A failed write never corrupts the writer: every value that could overflow the file
+format is checked before the mcap ``Writer`` sees it, and the writer writes into memory
+(:class:`_StagedFile`) that is committed to the file on flush — a disk that refuses the
+bytes leaves the file ending on a complete record and the bytes waiting for the next
+flush (up to :data:`MAX_PENDING_BYTES`, then the file is given up, see
+:attr:`TrialWriter.failed`).
 """
 
 from __future__ import annotations
 
-import json
+import math
 import os
 import time
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 
+import msgspec
 import numpy as np
 
 from feedio import schema as S
+
+from .mcapfile import DEFAULT_LIMITS, Limits, McapFile, TrialFileError, json_depth
 
 __all__ = [
     "TrialFileError",
@@ -45,30 +65,60 @@ __all__ = [
     "read_trial",
     "list_axes",
     "iter_blocks",
+    "iter_axes",
+    "iter_file",
     "topic",
+    "parse_time",
+    "format_time",
     "METADATA_NAME",
     "KINDS",
+    "SCALARS",
+    "MAX_LOG_TIME_NS",
+    "MAX_MESSAGE_BYTES",
+    "MAX_PENDING_BYTES",
+    "MAX_READ_AHEAD_BLOCKS",
+    "Limits",
 ]
 
 METADATA_NAME = "feedmon.trial"
-KINDS = {"samples": S.SampleBlock, "truth": S.TruthBlock, "disturbance": S.EstimateBlock}
-_MAGIC = b"\x89MCAP0\r\n"
+SCALARS = "disturbance/scalars"
+KINDS = {"samples": S.SampleBlock, "truth": S.TruthBlock, "disturbance": S.EstimateBlock,
+         SCALARS: S.DisturbanceScalars}
 
-
-class TrialFileError(ValueError):
-    """A trial file cannot be read or written as asked; the message names file, channel, problem."""
+#: largest log time, ns since the Unix epoch (int64, year 2262): what every MCAP tool can hold
+MAX_LOG_TIME_NS = 2**63 - 1
+#: largest message the writer accepts (encoded JSON bytes); the reader's record limit is larger
+MAX_MESSAGE_BYTES = 16 * 2**20
+#: bytes a writer keeps in memory while the disk refuses them (full, file too large) before it
+#: gives the file up (it then ends on its last complete record; ``feedmon recover`` finishes it)
+MAX_PENDING_BYTES = 64 * 2**20
+#: blocks of other axes buffered while reading several axes in one pass, merged by time
+#: (replay, run --from); files whose axes are not interleaved in time beyond this are refused
+MAX_READ_AHEAD_BLOCKS = 200_000
 
 
 def topic(machine: str, axis: str, kind: str) -> str:
-    """``/<machine>/<axis>/<kind>`` with kind in samples, truth, disturbance."""
+    """``/<machine>/<axis>/<kind>`` with kind in samples, truth, disturbance, disturbance/scalars."""
     if kind not in KINDS:
         raise ValueError(f"unknown channel kind {kind!r}; use one of {', '.join(KINDS)}")
     return f"/{machine}/{axis}/{kind}"
 
 
+def _split_topic(name: str) -> tuple[str, str, str] | None:
+    """(machine, axis, kind) of a feedmon topic, None for other topics."""
+    parts = name.split("/", 3)
+    if len(parts) == 4 and parts[0] == "" and parts[3] in KINDS and parts[1] and parts[2]:
+        return parts[1], parts[2], parts[3]
+    return None
+
+
 def _check_name(what: str, value: str) -> str:
     if not value or "/" in value or value.strip() != value:
         raise ValueError(f"{what} {value!r} must be a non-empty name without '/' or surrounding spaces")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{what} {value!r} is not valid Unicode text (a lone surrogate)") from None
     return value
 
 
@@ -80,19 +130,133 @@ def _library() -> str:
     return f"feedmon/{__version__}; {LIBRARY_IDENTIFIER}"
 
 
+# ---- times ------------------------------------------------------------------------------------
+def parse_time(value, *, what: str = "start time") -> int:
+    """ns since the Unix epoch of ``value``: an ISO 8601 string (``2024-05-01T08:00:00Z``; no
+    zone = UTC), a :class:`datetime`, or an int of ns. Between 1970 and 2262 (int64 ns)."""
+    if isinstance(value, bool):
+        raise ValueError(f"{what} {value!r} is not a time")
+    if isinstance(value, int):
+        ns = value
+    else:
+        if isinstance(value, str):
+            try:
+                value = datetime.fromisoformat(value.strip())
+            except ValueError:
+                raise ValueError(f"{what} {value!r} is not an ISO 8601 time such as 2024-05-01T08:00:00Z") from None
+        if not isinstance(value, datetime):
+            raise ValueError(f"{what} {value!r} is not a time (give ISO 8601, a datetime or ns)")
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        delta = value - datetime(1970, 1, 1, tzinfo=UTC)
+        ns = (delta.days * 86400 + delta.seconds) * 10**9 + delta.microseconds * 1000
+    if not 0 <= ns <= MAX_LOG_TIME_NS:
+        raise ValueError(f"{what} {value!r} is outside 1970…2262, the range of MCAP log times (int64 ns)")
+    return ns
+
+
+def format_time(ns: int) -> str:
+    """ISO 8601 UTC of ``ns`` since the epoch, to the microsecond (``2024-05-01T08:00:00.000000Z``)."""
+    sec, rem = divmod(int(ns), 10**9)
+    dt = datetime.fromtimestamp(sec, tz=UTC).replace(microsecond=rem // 1000)
+    return dt.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def _now_ns() -> int:
+    return time.time_ns() // 10**6 * 10**6  # the creation time, to the millisecond
+
+
 # ============================================================================================
 # writer
 # ============================================================================================
+class _StagedFile:
+    """The stream the mcap ``Writer`` writes to: bytes are staged in memory and committed to
+    the file by :meth:`commit`. Each ``write`` of the mcap writer holds complete records, so
+    the pieces are committed one by one; a piece the disk refuses is cut back (the file is
+    truncated to the end of the last piece written) and kept, with the pieces after it, for the
+    next attempt. The file therefore always ends on a complete record, as much as fits is on
+    disk, and the mcap ``Writer``'s offsets and state never disagree with the file.
+    ``damaged`` when even the truncation failed."""
+
+    def __init__(self, path: str):
+        self.file = open(path, "wb", buffering=0)  # OSError propagates with the path
+        self.committed = 0
+        self.staged: deque[tuple[bytes, int]] = deque()  # (piece, messages written before it ends)
+        self.staged_bytes = 0
+        self.damaged = False
+        self.messages = 0  # set by the TrialWriter: messages handed to the mcap writer so far
+        self.messages_on_disk = 0  # messages of the chunks committed so far
+
+    def write(self, data) -> int:
+        piece = bytes(data)
+        if piece:
+            self.staged.append((piece, self.messages))
+            self.staged_bytes += len(piece)
+        return len(piece)
+
+    def tell(self) -> int:
+        return self.committed + self.staged_bytes
+
+    def flush(self) -> None:
+        """No-op: the mcap writer calls it in ``Writer.flush``; :meth:`commit` does the I/O."""
+
+    def drop(self) -> None:
+        """Forget what is staged (the file is given up)."""
+        self.staged.clear()
+        self.staged_bytes = 0
+
+    def commit(self) -> None:
+        while self.staged:
+            piece, messages = self.staged[0]
+            done = 0
+            try:
+                with memoryview(piece) as view:
+                    while done < len(piece):
+                        n = self.file.write(view[done:])
+                        if not n:
+                            raise OSError(f"the file accepted no bytes at offset {self.committed + done}")
+                        done += n
+            except OSError:
+                if done:
+                    try:
+                        self.file.truncate(self.committed)
+                        self.file.seek(self.committed)
+                    except OSError:
+                        self.damaged = True
+                raise
+            self.staged.popleft()
+            self.staged_bytes -= len(piece)
+            self.committed += len(piece)
+            if piece[0] == 0x06:  # a chunk record: its messages are on disk
+                self.messages_on_disk = messages
+
+    def close(self) -> None:
+        self.file.close()
+
+
 class TrialWriter:
     """Write a trial file. Use as a context manager::
 
-        with TrialWriter("trial.mcap", meta) as w:
+        with TrialWriter("trial.mcap", meta, start="2024-05-01T08:00:00Z") as w:
             w.write_samples(block)
             w.write_truth(truth_block, machine, axis)
 
     ``meta`` is one :class:`TrialMeta` or a sequence of them (one per axis). Blocks of an
     axis not declared in ``meta`` are refused. ``chunk_seconds`` closes a chunk every so
     many seconds of controller time; ``chunk_size`` (bytes, uncompressed) as well.
+    ``start`` (ISO 8601, datetime or ns; default: now) is the wall-clock time of controller
+    time 0 for messages written without an explicit ``log_time``.
+
+    Errors: a block that cannot be written (log time outside 1970…2262, sequence number
+    beyond :data:`~feedio.schema.SEQ_MAX`, message larger than :data:`MAX_MESSAGE_BYTES`)
+    raises ``ValueError`` and leaves the writer as it was. A disk that refuses a flush makes
+    :meth:`flush`, :meth:`flush_if_due` and :meth:`close` raise ``OSError`` (a write that
+    closes a chunk only records it in :attr:`last_flush_error`); the bytes are kept for the
+    next flush, so nothing is lost when space comes back. After a
+    failure inside the mcap writer, or when more than ``max_pending_bytes`` wait for the disk,
+    the writer is :attr:`failed`: the file ends on its last complete record (readable after
+    ``feedmon recover``), :attr:`messages_lost` counts what never reached it, and every later
+    write raises :class:`TrialFileError`.
     """
 
     def __init__(
@@ -103,6 +267,8 @@ class TrialWriter:
         chunk_seconds: float = 1.0,
         chunk_size: int = 4 * 1024 * 1024,
         compression: str = "zstd",
+        start=None,
+        max_pending_bytes: int = MAX_PENDING_BYTES,
     ):
         from mcap.writer import CompressionType, Writer
 
@@ -123,16 +289,31 @@ class TrialWriter:
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}.get(compression)
         if comp is None:
             raise ValueError(f"compression {compression!r}: use zstd, lz4 or none")
-        self._stream = open(self.path, "wb")  # OSError propagates with the path
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp)
-        self._writer.start(profile="", library=_library())
+        self.start_ns = _now_ns() if start is None else parse_time(start)
+        self.max_pending_bytes = int(max_pending_bytes)
         self._schemas: dict[type, int] = {}
         self._channels: dict[str, int] = {}
         self._chunk_seconds = float(chunk_seconds)
         self._chunk_t0: float | None = None  # controller time of the first message in the open chunk
-        self._pending = 0
+        self._pending = 0  # messages in the open chunk
         self._last_wall = time.monotonic()
         self._closed = False
+        self.failed: str | None = None  # why the file was given up
+        self.messages = 0  # messages accepted
+        self.messages_lost = 0  # accepted but never written to the file (the writer failed)
+        self.finished = False  # summary written and committed: a complete file
+        self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
+        self._stream = _StagedFile(self.path)
+        try:
+            self._start(Writer, chunk_size, comp)
+        except BaseException:
+            self._stream.close()
+            raise
+
+    def _start(self, Writer, chunk_size: int, comp) -> None:
+        """Header, one metadata record and the samples channel per axis (into memory)."""
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
+        self._writer.start(profile="", library=_library())
         for (machine, axis), m in self.metas.items():
             self._writer.add_metadata(
                 METADATA_NAME,
@@ -144,6 +325,8 @@ class TrialWriter:
                     "Ts": repr(float(m.Ts)),
                     "source": m.provenance.source,
                     "schema": "feedmon/1",
+                    "start_time": format_time(self.start_ns),
+                    "start_time_ns": str(self.start_ns),
                 },
             )
             self._channel(machine, axis, "samples")
@@ -155,6 +338,41 @@ class TrialWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes written to the writer that the disk has not taken yet."""
+        return self._stream.staged_bytes
+
+    @property
+    def bytes_on_disk(self) -> int:
+        return self._stream.committed
+
+    # -- failure ------------------------------------------------------------------------------
+    def _fail(self, why: str) -> TrialFileError:
+        """Give the file up: it keeps what was committed (complete records); the rest is lost."""
+        if self.failed is None:
+            self.failed = why
+            self.messages_lost += self.messages - self._stream.messages_on_disk
+            self._stream.drop()
+        return TrialFileError(
+            f"{self.path}: the writer failed ({self.failed}); the file ends at byte {self._stream.committed} "
+            f"on its last complete record — finish it with 'feedmon recover {self.path} -o FIXED.mcap'")
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"{self.path}: writer is closed")
+        if self.failed is not None:
+            raise self._fail(self.failed)
+
+    def _inside(self, fn, *args):
+        """Call the mcap writer; anything it raises leaves it in an unknown state: fail the file."""
+        try:
+            return fn(*args)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the mcap writer's state is unknown after this
+            raise self._fail(f"{type(exc).__name__} inside the MCAP writer: {exc}") from exc
+
     # -- channels ---------------------------------------------------------------------------
     def _channel(self, machine: str, axis: str, kind: str) -> int:
         name = topic(machine, axis, kind)
@@ -164,103 +382,173 @@ class TrialWriter:
         if (machine, axis) not in self.metas:
             declared = ", ".join(f"{m}/{a}" for m, a in self.metas)
             raise ValueError(f"{self.path}: axis {machine}/{axis} has no TrialMeta in this file (declared: {declared})")
+        import json
+
         type_ = KINDS[kind]
         sid = self._schemas.get(type_)
         if sid is None:
-            sid = self._writer.register_schema(
-                name=S.SCHEMA_NAMES[type_],
-                encoding="jsonschema",
-                data=json.dumps(S.json_schema(type_), sort_keys=True).encode(),
-            )
+            data = json.dumps(S.json_schema(type_), sort_keys=True).encode()
+            sid = self._inside(self._writer.register_schema, S.SCHEMA_NAMES[type_], "jsonschema", data)
             self._schemas[type_] = sid
-        cid = self._writer.register_channel(
-            topic=name,
-            message_encoding="json",
-            schema_id=sid,
-            metadata={"machine": machine, "axis": axis, "kind": kind},
-        )
+        cid = self._inside(self._writer.register_channel, name, "json", sid,
+                           {"machine": machine, "axis": axis, "kind": kind})
         self._channels[name] = cid
         return cid
 
     # -- writing ------------------------------------------------------------------------------
-    def _add(self, cid: int, block, what: str) -> None:
-        if self._closed:
-            raise ValueError(f"{self.path}: writer is closed")
-        t0 = float(block.t[0])
-        if not (t0 >= 0.0):
-            raise ValueError(f"{self.path}: {what} starts at t = {t0!r} s; MCAP log times need controller time ≥ 0")
-        log_time = int(round(t0 * 1e9))
-        self._writer.add_message(
-            channel_id=cid, log_time=log_time, data=S.encode(block), publish_time=log_time,
-            sequence=int(block.seq) & 0xFFFFFFFF,
-        )
-        self._pending += 1
-        t_end = float(block.t[-1])
-        if self._chunk_t0 is None:
-            self._chunk_t0 = t0
-        if t_end - self._chunk_t0 >= self._chunk_seconds:
-            self.flush()
+    def log_time_of(self, t: float, what: str) -> int:
+        """ns since the epoch of controller time ``t`` (``start + t``); ValueError when outside 1970…2262."""
+        x = float(t) * 1e9
+        if not (math.isfinite(x) and -self.start_ns <= x <= MAX_LOG_TIME_NS - self.start_ns):
+            raise ValueError(
+                f"{self.path}: {what} at controller time t = {t!r} s cannot be logged: start "
+                f"{format_time(self.start_ns)} + t lies outside 1970…2262, the range of MCAP log times")
+        return min(max(self.start_ns + int(round(x)), 0), MAX_LOG_TIME_NS)
 
-    def write_samples(self, block: S.SampleBlock) -> None:
-        """Append a :class:`SampleBlock` on ``/<machine>/<axis>/samples``."""
+    def _add(self, cid: int, data: bytes, log_time: int, seq: int, t0: float, t1: float, kind: str) -> None:
+        """Validate everything that could overflow the file format, then add one message
+        (``kind`` names the message in errors: "<kind> seq <seq>")."""
+        if not isinstance(log_time, int) or not 0 <= log_time <= MAX_LOG_TIME_NS:
+            raise ValueError(f"{self.path}: {kind} seq {seq}: log time {log_time!r} ns is outside 0…2**63−1 "
+                             "(1970…2262)")
+        if len(data) > MAX_MESSAGE_BYTES:
+            raise ValueError(f"{self.path}: {kind} seq {seq} is {len(data)} bytes encoded, more than the limit of "
+                             f"{MAX_MESSAGE_BYTES}; write it as several blocks")
+        self._stream.messages = self.messages + 1  # a chunk finished inside add_message holds this one
+        try:
+            self._inside(self._writer.add_message, cid, log_time, data, log_time, seq & 0xFFFFFFFF)
+        finally:
+            self._stream.messages = self.messages
+        self.messages += 1
+        self._stream.messages = self.messages
+        self._pending += 1
+        if self._chunk_t0 is None or not math.isfinite(self._chunk_t0):
+            self._chunk_t0 = t0
+        if not (t1 - self._chunk_t0 < self._chunk_seconds):  # also when a time is not finite
+            try:
+                self.flush()
+            except OSError as exc:  # the bytes wait for the next flush; flush()/close() report it
+                self.last_flush_error = exc
+
+    def _add_block(self, cid: int, block, log_time: int | None, kind: str) -> None:
+        self._check_open()
+        t0, t1 = float(block.t[0]), float(block.t[-1])
+        what = f"{kind} seq {block.seq}"
+        if not 0 <= block.seq <= S.SEQ_MAX - (len(block.t) - 1):
+            raise ValueError(f"{self.path}: {what}: sequence numbers must lie in 0…SEQ_MAX = 2**53 − 1 "
+                             f"(this block ends at {block.seq + len(block.t) - 1})")
+        lt = self.log_time_of(t1, what) if log_time is None else log_time
+        try:
+            data = S.encode(block)
+        except (OverflowError, TypeError, ValueError, msgspec.EncodeError) as exc:
+            raise ValueError(f"{self.path}: {what} cannot be encoded: {exc}") from None
+        self._add(cid, data, lt, int(block.seq), t0, t1, kind)
+
+    def write_samples(self, block: S.SampleBlock, *, log_time: int | None = None) -> None:
+        """Append a :class:`SampleBlock` on ``/<machine>/<axis>/samples``; ``log_time`` (ns since
+        the epoch, default ``start + t[-1]``) is the time of its last sample."""
         if not isinstance(block, S.SampleBlock):
             raise TypeError(f"write_samples needs a SampleBlock, got {type(block).__name__}")
         block.validate()
-        self._add(self._channel(block.machine, block.axis, "samples"), block, "sample block")
+        self._check_open()
+        self._add_block(self._channel(block.machine, block.axis, "samples"), block, log_time, "sample block")
 
-    def write_truth(self, block: S.TruthBlock, machine: str, axis: str) -> None:
+    def write_truth(self, block: S.TruthBlock, machine: str, axis: str, *, log_time: int | None = None) -> None:
         """Append a :class:`TruthBlock` on ``/<machine>/<axis>/truth``."""
         if not isinstance(block, S.TruthBlock):
             raise TypeError(f"write_truth needs a TruthBlock, got {type(block).__name__}")
-        self._add(self._channel(machine, axis, "truth"), block, "truth block")
+        self._check_open()
+        self._add_block(self._channel(machine, axis, "truth"), block, log_time, "truth block")
 
-    def write_estimates(self, block: S.EstimateBlock) -> None:
+    def write_estimates(self, block: S.EstimateBlock, *, log_time: int | None = None) -> None:
         """Append an :class:`EstimateBlock` on ``/<machine>/<axis>/disturbance``."""
         if not isinstance(block, S.EstimateBlock):
             raise TypeError(f"write_estimates needs an EstimateBlock, got {type(block).__name__}")
-        self._add(self._channel(block.machine, block.axis, "disturbance"), block, "estimate block")
+        self._check_open()
+        self._add_block(self._channel(block.machine, block.axis, "disturbance"), block, log_time, "estimate block")
+
+    def write_scalars(self, machine: str, axis: str, items: Sequence[tuple[int, S.DisturbanceScalars]]) -> None:
+        """Append ``(log_time_ns, DisturbanceScalars)`` messages on ``/<machine>/<axis>/disturbance/scalars``."""
+        if not items:
+            return
+        self._check_open()
+        cid = self._channel(machine, axis, SCALARS)
+        encode = S.encode
+        for lt, sc in items:
+            if type(sc) is not S.DisturbanceScalars:
+                raise TypeError(f"write_scalars needs DisturbanceScalars, got {type(sc).__name__}")
+            if not (0 <= sc.seq <= S.SEQ_MAX and math.isfinite(sc.t)):
+                raise ValueError(f"{self.path}: scalars seq {sc.seq} at t = {sc.t!r} s: the sequence number must lie "
+                                 "in 0…SEQ_MAX and the time must be finite")
+            self._add(cid, encode(sc), lt, sc.seq, sc.t, sc.t, "scalars")
 
     def flush(self) -> None:
-        """Close the open chunk (if it has messages) and flush the file."""
-        if self._closed:
+        """Close the open chunk (if it has messages) and write everything to the file.
+        ``OSError`` when the disk refuses (the bytes are kept for the next flush)."""
+        if self._closed or self.failed is not None:
             return
         if self._pending:
-            self._writer.flush()
-        self._pending = 0
-        self._chunk_t0 = None
+            self._inside(self._writer.flush)  # closes the chunk into memory (the stream's flush is a no-op)
+            self._pending = 0
+            self._chunk_t0 = None
+        self._commit()
         self._last_wall = time.monotonic()
+
+    def _commit(self) -> None:
+        try:
+            self._stream.commit()
+        except OSError as exc:
+            if self._stream.damaged:
+                raise self._fail(f"{exc.strerror or exc}, and the file could not be cut back to its last record") from exc
+            if self._stream.staged_bytes > self.max_pending_bytes:
+                raise self._fail(f"{exc.strerror or exc}; more than {self.max_pending_bytes} bytes waited for the disk") \
+                    from exc
+            raise
 
     def flush_if_due(self, now: float | None = None) -> bool:
         """For live writers: close the chunk when ``chunk_seconds`` of wall time passed
         since the last flush (``now`` from ``time.monotonic()``). Returns True if flushed."""
         now = time.monotonic() if now is None else now
-        if self._pending and now - self._last_wall >= self._chunk_seconds:
+        if (self._pending or self.pending_bytes) and now - self._last_wall >= self._chunk_seconds:
             self.flush()
             return True
         return False
 
     def close(self) -> None:
-        """Write the summary and close the file (idempotent)."""
+        """Write the summary and close the file (idempotent). A failed writer only closes the
+        file (it ends on its last complete record); ``OSError`` when the disk refuses the end
+        of the file (then it too ends on its last complete record)."""
         if self._closed:
             return
+        self._closed = True
         try:
-            self._writer.finish()
+            if self.failed is None:
+                self._inside(self._writer.finish)
+                self._pending = 0
+                self._commit()
+                self.finished = True
         finally:
-            self._closed = True
+            if not self.finished and self.failed is None:
+                self.messages_lost += self.messages - self._stream.messages_on_disk
+                self.failed = "the end of the file could not be written"
             self._stream.close()
 
 
-def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = None, *, block: int = 100) -> None:
+def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = None, *, block: int = 100,
+                 start=None) -> None:
     """Write one axis given as arrays: ``samples`` maps :class:`SampleBlock` fields (``t``,
     ``v_ref``, ``v_meas`` and optional columns; ``None`` = absent) to arrays, ``truth`` maps
     :class:`TruthBlock` fields to arrays; both are cut into blocks of ``block`` samples with
-    ``seq`` from 0 (the one writer of the simulator and the importers)."""
+    ``seq`` from 0 (the one writer of the simulator and the importers). ``start``: the
+    trial's start time (default ``meta.provenance.created`` when set, else now)."""
     n = len(samples["t"])
+    if start is None and meta.provenance.created:
+        start = parse_time(meta.provenance.created, what="provenance.created")
 
     def cut(cols: dict, i: int, j: int) -> dict:
         return {k: None if a is None else np.asarray(a[i:j]).tolist() for k, a in cols.items()}
 
-    with TrialWriter(os.fspath(path), meta) as w:
+    with TrialWriter(os.fspath(path), meta, start=start) as w:
         for i in range(0, n, block):
             j = min(i + block, n)
             w.write_samples(S.SampleBlock(machine=meta.machine, axis=meta.axis, seq=i, **cut(samples, i, j)))
@@ -307,6 +595,7 @@ class Trial:
     spindle_angle: np.ndarray | None = None  # rad, unwrapped
     truth: TruthArrays | None = None
     channels: list[str] = field(default_factory=list)
+    start_ns: int | None = None  # wall-clock time of controller time 0 (None: files without one)
 
     @property
     def Ts(self) -> float:
@@ -321,55 +610,35 @@ class Trial:
 
 
 class _Open:
-    """Opened, sanity-checked MCAP file (magic at both ends, summary, channels, metadata)."""
+    """An opened, checked trial file (:class:`~feedio.mcapfile.McapFile`) with feedmon's
+    conventions: axes, their metadata, decoded messages."""
 
-    def __init__(self, path):
-        from mcap.reader import make_reader
-
-        self.path = os.fspath(path)
+    def __init__(self, path, limits: Limits = DEFAULT_LIMITS):
+        self.file = McapFile(path, limits)
+        self.path = self.file.path
+        self.limits = limits
         try:
-            self.stream = open(self.path, "rb")
-        except OSError as exc:
-            raise TrialFileError(f"cannot open trial file {self.path}: {exc.strerror or exc}") from exc
-        try:
-            size = os.fstat(self.stream.fileno()).st_size
-            head = self.stream.read(8)
-            if head != _MAGIC:
-                raise TrialFileError(
-                    f"{self.path} is not an MCAP file (it starts with {head[:8]!r}, "
-                    f"not the MCAP magic {_MAGIC!r})"
-                )
-            self.stream.seek(max(size - 8, 0))
-            tail = self.stream.read(8)
-            if size < 16 or tail != _MAGIC:
-                raise TrialFileError(
-                    f"{self.path} is truncated: {size} bytes and no MCAP end magic — the recording "
-                    "was not closed properly (writer killed or disk full); salvage its complete chunks with "
-                    f"'feedmon recover {self.path} -o FIXED.mcap'"
-                )
-            self.stream.seek(0)
-            self.reader = make_reader(self.stream)
-            self.summary = self._guard(self.reader.get_summary, "reading the summary section")
-            if self.summary is None:
-                raise TrialFileError(f"{self.path} has no summary section (channels unknown); rewrite it with feedmon")
-            self.channels = {c.topic: c for c in self.summary.channels.values()}
-            self.metadata = self._guard(lambda: list(self.reader.iter_metadata()), "reading metadata")
+            self.channels = {}
+            self._ids: dict[str, list[int]] = {}
+            for c in self.file.channels.values():
+                self.channels.setdefault(c.topic, c)
+                self._ids.setdefault(c.topic, []).append(c.id)
+            self._topic_of = {c.id: c.topic for c in self.file.channels.values()}
+            self._axes: list[tuple[str, str]] | None = None
+            self._by_name: dict[str, list[tuple[str, str]]] = {}
+            self._trial_meta: dict[tuple[str, str], dict] = {}
+            self._n_trial_meta = 0
+            for rec in self.file.metadata():
+                if rec.name == METADATA_NAME:
+                    self._n_trial_meta += 1
+                    key = (rec.metadata.get("machine"), rec.metadata.get("axis"))
+                    self._trial_meta.setdefault(key, rec.metadata)
         except BaseException:
-            self.stream.close()
+            self.file.close()
             raise
-
-    def _guard(self, fn, doing: str):
-        try:
-            return fn()
-        except TrialFileError:
-            raise
-        except Exception as exc:  # mcap raises many types (McapError, struct.error, zstd, EOF...)
-            raise TrialFileError(
-                f"{self.path} is corrupt or truncated ({doing}: {type(exc).__name__}: {exc})"
-            ) from exc
 
     def close(self):
-        self.stream.close()
+        self.file.close()
 
     def __enter__(self):
         return self
@@ -378,30 +647,41 @@ class _Open:
         self.close()
 
     def axes(self) -> list[tuple[str, str]]:
-        out = []
-        for name in sorted(self.channels):
-            parts = name.split("/")
-            if len(parts) == 4 and parts[0] == "" and parts[3] == "samples":
-                out.append((parts[1], parts[2]))
-        return out
+        if self._axes is None:
+            out = []
+            for name in sorted(self.channels):
+                parts = name.split("/")
+                if len(parts) == 4 and parts[0] == "" and parts[3] == "samples" and parts[1] and parts[2]:
+                    out.append((parts[1], parts[2]))
+            self._axes = out
+            by_name: dict[str, list[tuple[str, str]]] = {}
+            for m, a in out:
+                by_name.setdefault(f"{m}/{a}", []).append((m, a))
+                by_name.setdefault(a, []).append((m, a))
+            self._by_name = by_name
+        return list(self._axes)
 
     def select(self, axis: str | None) -> tuple[str, str]:
-        axes = self.axes()
+        if self._axes is None:
+            self.axes()
+        if axis is not None and len(self._by_name.get(axis, ())) == 1:
+            return self._by_name[axis][0]
+        axes = self._axes
         if not axes:
-            listed = ", ".join(sorted(self.channels)) or "none"
+            listed = ", ".join(sorted(self.channels)[:20]) or "none"
             raise TrialFileError(
                 f"{self.path} has no samples channel (/<machine>/<axis>/samples); channels present: {listed}"
             )
         names = [f"{m}/{a}" for m, a in axes]
         if axis is None:
             if len(axes) > 1:
-                raise TrialFileError(
-                    f"{self.path} holds {len(axes)} axes ({', '.join(names)}); choose one with axis="
-                )
+                shown = ", ".join(names[:20]) + (", …" if len(names) > 20 else "")
+                raise TrialFileError(f"{self.path} holds {len(axes)} axes ({shown}); choose one with axis=")
             return axes[0]
         hits = [(m, a) for m, a in axes if axis in (a, f"{m}/{a}")]
         if not hits:
-            raise TrialFileError(f"{self.path} has no axis {axis!r}; axes present: {', '.join(names)}")
+            shown = ", ".join(names[:20]) + (", …" if len(names) > 20 else "")
+            raise TrialFileError(f"{self.path} has no axis {axis!r}; axes present: {shown}")
         if len(hits) > 1:
             raise TrialFileError(
                 f"{self.path}: axis {axis!r} exists on several machines ({', '.join(f'{m}/{a}' for m, a in hits)}); "
@@ -409,55 +689,76 @@ class _Open:
             )
         return hits[0]
 
+    def _record(self, machine: str, axis: str) -> dict:
+        rec = self._trial_meta.get((machine, axis))
+        if rec is None:
+            raise TrialFileError(
+                f"{self.path}: missing metadata record {METADATA_NAME!r} for axis {machine}/{axis} "
+                f"(sampling time and input form unknown); found {self._n_trial_meta} {METADATA_NAME} record(s)"
+            )
+        return rec
+
     def meta(self, machine: str, axis: str) -> S.TrialMeta:
-        found = [m for m in self.metadata if m.name == METADATA_NAME]
-        for rec in found:
-            if rec.metadata.get("machine") == machine and rec.metadata.get("axis") == axis:
-                if "meta" not in rec.metadata:
-                    raise TrialFileError(f"{self.path}: metadata record {METADATA_NAME} of {machine}/{axis} has no 'meta' key")
-                try:
-                    return S.decode_meta(rec.metadata["meta"], what=f"metadata {METADATA_NAME} of {machine}/{axis}")
-                except S.SchemaError as exc:
-                    raise TrialFileError(f"{self.path}: {exc}") from None
-        raise TrialFileError(
-            f"{self.path}: missing metadata record {METADATA_NAME!r} for axis {machine}/{axis} "
-            f"(sampling time and input form unknown); found {len(found)} {METADATA_NAME} record(s)"
-        )
+        rec = self._record(machine, axis)
+        if "meta" not in rec:
+            raise TrialFileError(f"{self.path}: metadata record {METADATA_NAME} of {machine}/{axis} has no 'meta' key")
+        raw = rec["meta"]
+        depth = json_depth(raw)
+        if depth > self.limits.json_depth:
+            raise TrialFileError(
+                f"{self.path}: metadata {METADATA_NAME} of {machine}/{axis} nests {depth} levels deep, more than "
+                f"the limit of {self.limits.json_depth}")
+        try:
+            return S.decode_meta(raw, what=f"metadata {METADATA_NAME} of {machine}/{axis}")
+        except S.SchemaError as exc:
+            raise TrialFileError(f"{self.path}: {exc}") from None
+
+    def start_ns(self, machine: str, axis: str) -> int | None:
+        raw = self._record(machine, axis).get("start_time_ns")
+        if raw is None:
+            return None
+        try:
+            return parse_time(int(raw), what="start_time_ns")
+        except ValueError as exc:
+            raise TrialFileError(f"{self.path}: metadata {METADATA_NAME} of {machine}/{axis}: {exc}") from None
 
     def check_channel(self, name: str) -> None:
         ch = self.channels[name]
         if ch.message_encoding != "json":
             raise TrialFileError(f"{self.path}: channel {name} has message encoding {ch.message_encoding!r}, expected 'json'")
-        sch = self.summary.schemas.get(ch.schema_id)
+        sch = self.file.schemas.get(ch.schema_id)
         if sch is None or sch.encoding != "jsonschema":
             got = "no schema" if sch is None else f"schema encoding {sch.encoding!r}"
             raise TrialFileError(f"{self.path}: channel {name} has {got}, expected a 'jsonschema' schema")
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, object]]:
-        """Decoded (topic, log_time, block) in log-time order; errors name channel and index."""
+        """Decoded (topic, log_time, block) in file order; errors name file, channel and message index."""
+        kinds = {}
         for name in topics:
             self.check_channel(name)
-        kinds = {name: KINDS[name.rsplit("/", 1)[1]] for name in topics}
+            split = _split_topic(name)
+            if split is None:
+                raise ValueError(f"{name} is not a feedmon channel (/<machine>/<axis>/<kind>)")
+            kinds[name] = KINDS[split[2]]
+        ids = [i for name in topics for i in self._ids[name]]
         counters = dict.fromkeys(topics, 0)
-        it = iter(self._guard(lambda: self.reader.iter_messages(topics=topics), "reading messages"))
-        while True:
-            try:
-                item = next(it)
-            except StopIteration:
-                return
-            except Exception as exc:
-                raise TrialFileError(
-                    f"{self.path} is corrupt or truncated (reading messages: {type(exc).__name__}: {exc})"
-                ) from exc
-            _, channel, message = item
-            name = channel.topic
+        for _, msg in self.file.messages(ids):
+            name = self._topic_of[msg.channel_id]
             idx = counters[name]
             counters[name] = idx + 1
+            type_ = kinds[name]
             try:
-                block = S.decode(message.data, kinds[name], what=f"message {idx}")
+                block = S.decode(msg.data, type_, what=f"message {idx}")
             except S.SchemaError as exc:
                 raise TrialFileError(f"{self.path}: channel {name}, {exc}") from None
-            yield name, message.log_time, block
+            seq = block.seq
+            last = seq + (len(block.t) - 1 if type_ is not S.DisturbanceScalars else 0)
+            if last > S.SEQ_MAX:
+                raise TrialFileError(
+                    f"{self.path}: channel {name}, message {idx}: sequence number {seq} "
+                    f"{'' if last == seq else f'(+{last - seq}) '}is beyond the largest the schema allows "
+                    f"(SEQ_MAX = 2**53 − 1 = {S.SEQ_MAX}); the bridge that wrote it broke the schema")
+            yield name, msg.log_time, block
 
 
 def list_axes(path) -> list[str]:
@@ -467,9 +768,10 @@ def list_axes(path) -> list[str]:
 
 
 def iter_blocks(path, axis: str | None = None, kinds: Sequence[str] = ("samples",)) -> Iterator[tuple[str, object]]:
-    """Replay iterator: ``(kind, block)`` of one axis in log-time (controller time) order.
+    """Replay iterator: ``(kind, block)`` of one axis in file (sequence) order.
 
-    ``kinds`` any of "samples", "truth", "disturbance" (absent channels are skipped).
+    ``kinds`` any of "samples", "truth", "disturbance", "disturbance/scalars" (absent
+    channels are skipped).
     """
     f = _Open(path)
     try:
@@ -477,9 +779,73 @@ def iter_blocks(path, axis: str | None = None, kinds: Sequence[str] = ("samples"
         topics = [topic(machine, ax, k) for k in kinds]
         topics = [t for t in topics if t in f.channels]
         for name, _, block in f.messages(topics):
-            yield name.rsplit("/", 1)[1], block
+            yield _split_topic(name)[2], block
     finally:
         f.close()
+
+
+def iter_file(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",)) -> Iterator[tuple[str, str, int, object]]:
+    """``(axis, kind, log_time, block)`` of the given axes (``machine/axis``) and kinds in file
+    order, in one pass over the file."""
+    f = _Open(path)
+    try:
+        wanted: dict[str, tuple[str, str]] = {}
+        for name in axes:
+            machine, ax = f.select(name)
+            for k in kinds:
+                tp = topic(machine, ax, k)
+                if tp in f.channels:
+                    wanted[tp] = (name, k)
+        for tp, lt, block in f.messages(list(wanted)):
+            name, kind = wanted[tp]
+            yield name, kind, lt, block
+    finally:
+        f.close()
+
+
+def iter_axes(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",), *,
+              read_ahead: int = MAX_READ_AHEAD_BLOCKS) -> dict[str, Iterator[tuple[str, int, object]]]:
+    """One iterator of ``(kind, log_time, block)`` per axis (``machine/axis``), all fed by **one**
+    pass over the file (:func:`iter_file`), so reading N axes costs one read, not N. Blocks of
+    the axes not being consumed are buffered; more than ``read_ahead`` of them raises
+    :class:`TrialFileError` (the file's axes are not interleaved in time; read one axis at a
+    time). Meant for consuming the axes together, e.g. merged with ``heapq.merge``."""
+    source = iter_file(path, axes, kinds)
+    queues: dict[str, deque] = {name: deque() for name in axes}
+    state = {"buffered": 0, "done": False, "open": len(axes)}
+
+    def stream(axis_name: str) -> Iterator[tuple[str, int, object]]:
+        q = queues[axis_name]
+        try:
+            while True:
+                if q:
+                    state["buffered"] -= 1
+                    yield q.popleft()
+                    continue
+                if state["done"]:
+                    return
+                try:
+                    target, kind, lt, block = next(source)
+                except StopIteration:
+                    state["done"] = True
+                    continue
+                if target == axis_name:
+                    yield kind, lt, block
+                    continue
+                queues[target].append((kind, lt, block))
+                state["buffered"] += 1
+                if state["buffered"] > read_ahead:
+                    state["done"] = True
+                    source.close()
+                    raise TrialFileError(
+                        f"{path}: more than {read_ahead} blocks of other axes precede the next block of "
+                        f"{axis_name} (the axes are not interleaved in time); read the axes one at a time")
+        finally:
+            state["open"] -= 1
+            if state["open"] == 0:
+                source.close()
+
+    return {name: stream(name) for name in axes}
 
 
 def _column(blocks, name: str, n_total: int) -> np.ndarray | None:
@@ -500,15 +866,16 @@ def _seq(blocks) -> np.ndarray:
     return np.concatenate([np.arange(b.seq, b.seq + len(b.t), dtype=np.int64) for b in blocks])
 
 
-def read_trial(path, axis: str | None = None) -> Trial:
+def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS) -> Trial:
     """Read one axis of a trial file into arrays.
 
     ``axis`` "X" or "machine/X"; required when the file holds several axes.
     Raises :class:`TrialFileError` (a ValueError) naming file, channel and problem.
     """
-    with _Open(path) as f:
+    with _Open(path, limits) as f:
         machine, ax = f.select(axis)
         meta = f.meta(machine, ax)
+        start = f.start_ns(machine, ax)
         t_s, t_t = topic(machine, ax, "samples"), topic(machine, ax, "truth")
         topics = [t_s] + ([t_t] if t_t in f.channels else [])
         samples, truths = [], []
@@ -532,6 +899,7 @@ def read_trial(path, axis: str | None = None) -> Trial:
             spindle_rpm=_column(samples, "spindle_rpm", n),
             spindle_angle=_column(samples, "spindle_angle", n),
             channels=sorted(f.channels),
+            start_ns=start,
         )
         if truths:
             m = sum(len(b.t) for b in truths)

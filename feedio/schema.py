@@ -47,6 +47,8 @@ __all__ = [
     "SampleBlock",
     "TruthBlock",
     "EstimateBlock",
+    "DisturbanceScalars",
+    "SEQ_MAX",
     "Provenance",
     "TrialTruth",
     "TrialMeta",
@@ -84,6 +86,11 @@ FLAG_NAMES = {flag: flag.name for flag in EstimateFlag}
 def flag_names(flags: int) -> list[str]:
     """Names of the bits set in ``flags`` (unknown bits are ignored)."""
     return [flag.name for flag in EstimateFlag if int(flags) & flag]
+
+
+#: largest sequence number of a sample (CONTRACTS.md: seq + len(block) − 1 ≤ SEQ_MAX); integers up to
+#: 2**53 − 1 survive any JSON reader (doubles) unchanged. Branch `service` enforces it on decode.
+SEQ_MAX = 2**53 - 1
 
 
 class SchemaError(ValueError):
@@ -224,6 +231,38 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
         return len(self.t)
 
 
+class DisturbanceScalars(msgspec.Struct, **_STRUCT_OPTS):
+    """One sample's disturbance estimate as plain numbers (MCAP channel
+    ``/<machine>/<axis>/disturbance/scalars``), for tools that plot one time series per field
+    (Foxglove's Plot panel, ``rerun mcap convert``).
+
+    Message k describes sample k (sequence number ``seq``, controller time ``t`` in s) and its
+    log time is the wall-clock time of that sample. ``f``, ``f_sd`` (m/s) and ``force``,
+    ``force_sd`` (N) are the filtered disturbance of sample k and its standard deviation, taken
+    from the estimate row of sample k+1 (the filtered values of row j describe sample j−1);
+    ``f_next`` (m/s), ``force_next`` (N) are the one-step-ahead prediction for sample k made when
+    sample k arrived (row k); ``v_meas`` (m/s) and ``flags`` (STALE 1, GAP 2, REJECTED 4,
+    WARMUP 8, REDUCED 16) are row k's. ``truth_force`` (N), ``truth_f`` (m/s) and
+    ``dynamometer`` (N) are the recorded truth of sample k. A value that is missing (no force
+    scaling, a rejected sample, no later row, no truth) is left out of the message, never
+    written as null or NaN.
+    """
+
+    t: float
+    seq: int
+    flags: int
+    v_meas: float | None = None
+    f: float | None = None
+    f_sd: float | None = None
+    f_next: float | None = None
+    force: float | None = None
+    force_sd: float | None = None
+    force_next: float | None = None
+    truth_force: float | None = None
+    truth_f: float | None = None
+    dynamometer: float | None = None
+
+
 class Provenance(msgspec.Struct, **_STRUCT_OPTS):
     """Where a trial came from. ``created`` is only set when the caller gives it
     (simulated trials stay byte-identical for the same seed)."""
@@ -328,6 +367,7 @@ SCHEMA_NAMES = {
     SampleBlock: "feedmon.SampleBlock",
     TruthBlock: "feedmon.TruthBlock",
     EstimateBlock: "feedmon.EstimateBlock",
+    DisturbanceScalars: "feedmon.DisturbanceScalars",
     TrialMeta: "feedmon.TrialMeta",
 }
 

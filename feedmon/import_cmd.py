@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+_START_HELP = ("wall-clock time of the first sample, ISO 8601 (e.g. 2024-05-01T08:00:00Z; no zone = UTC); "
+               "the MCAP log times count from it (default: now, the creation time — give it for byte-identical files)")
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,6 +24,7 @@ def register(subparsers) -> None:
     e.add_argument("-o", "--output", required=True, help="output MCAP file")
     e.add_argument("--rate", type=int, choices=(333, 1000), default=333,
                    help="333: decimate by 3 (Ts = 3 ms, force averaged over each interval); 1000: keep 1 kHz")
+    e.add_argument("--start", default=None, metavar="TIME", help=_START_HELP)
     e.set_defaults(func=run_emps)
 
     c = sub.add_parser("csv", help="CSV export of any controller",
@@ -36,13 +40,14 @@ def register(subparsers) -> None:
     c.add_argument("--axis", default="X")
     c.add_argument("--loop-gain", type=float, default=None, help="velocity loop gain K (N·s/m) when known")
     c.add_argument("--Ts", type=float, default=None, help="sampling time (s); default: median time step")
+    c.add_argument("--start", default=None, metavar="TIME", help=_START_HELP)
     c.set_defaults(func=run_csv)
 
 
 def run_emps(args: argparse.Namespace) -> int:
     from replay.importers import import_emps
 
-    tr = import_emps(args.data, args.output, rate=args.rate)
+    tr = import_emps(args.data, args.output, rate=args.rate, start=args.start)
     extra = ", pulse truth on the truth channel" if tr.truth_force is not None else ""
     print(f"wrote {args.output}: EMPS, {len(tr)} samples, Ts = {tr.meta.Ts:g} s, force-input form{extra}")
     return 0
@@ -52,6 +57,6 @@ def run_csv(args: argparse.Namespace) -> int:
     from replay.importers import import_csv
 
     tr = import_csv(args.file, args.output, args.map, args.units, form=args.form, machine=args.machine,
-                    axis=args.axis, loop_gain=args.loop_gain, Ts=args.Ts)
+                    axis=args.axis, loop_gain=args.loop_gain, Ts=args.Ts, start=args.start)
     print(f"wrote {args.output}: {tr.meta.machine}/{tr.meta.axis}, {len(tr)} samples, Ts = {tr.meta.Ts:g} s, {tr.meta.form} form")
     return 0

@@ -36,7 +36,9 @@ def register(subparsers) -> None:
     p.add_argument("--fine", action="store_true",
                    help="integrate the plant at 10 kHz, anti-alias filter and decimate to Ts (as recorded on the machine)")
     p.add_argument("--created", default=None,
-                   help="creation time to store in the provenance (default: none, so the same seed gives the same bytes)")
+                   help="creation time (ISO 8601, e.g. 2024-05-01T08:00:00Z) stored in the provenance and used as the "
+                        "trial's start time, which the MCAP log times count from (default: now, not stored); give it "
+                        "for byte-identical files")
     p.add_argument("--show", action="store_true", help="print the scenario constants and exit")
     p.set_defaults(func=run)
 

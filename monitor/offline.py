@@ -9,8 +9,9 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import msgspec
@@ -36,17 +37,20 @@ class OfflineResult:
         return self.samples / self.seconds if self.seconds > 0 else math.inf
 
 
-def _merged_blocks(path: str, axes: Iterable[str]) -> Iterator[tuple[str, str, Any]]:
-    """``(axis_name, kind, block)`` of several axes merged by the time of their last sample."""
-    from feedio.mcapio import iter_blocks
+def _merged_blocks(path: str, axes: list[str]) -> Iterator[tuple[str, str, int, Any]]:
+    """``(axis_name, kind, log_time, block)`` of several axes merged by the time of their last
+    sample, from one pass over the file (:func:`feedio.mcapio.iter_axes`)."""
+    from feedio.mcapio import iter_axes
+
+    streams = iter_axes(path, axes, kinds=("samples", "truth"))
 
     def one(idx: int, name: str):
-        for j, (kind, b) in enumerate(iter_blocks(path, name, kinds=("samples", "truth"))):
-            yield float(b.t[-1]), idx, j, name, kind, b
+        for j, (kind, lt, b) in enumerate(streams[name]):
+            yield float(b.t[-1]), idx, j, name, kind, lt, b
 
-    for _, _, _, name, kind, b in heapq.merge(*(one(i, a) for i, a in enumerate(axes)),
-                                              key=lambda x: (x[0], x[1], x[2])):
-        yield name, kind, b
+    for _, _, _, name, kind, lt, b in heapq.merge(*(one(i, a) for i, a in enumerate(axes)),
+                                                  key=lambda x: (x[0], x[1], x[2])):
+        yield name, kind, lt, b
 
 
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
@@ -56,11 +60,15 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     Every samples block of the axes that have a model goes through the same
     :class:`Pipeline` as in the live monitor; samples and estimates are written
     with :class:`~feedio.mcapio.TrialWriter` (the writer of the MCAP sink) and the
-    truth blocks are copied through. The trial's own metadata (with its truth) is
-    kept, with the model file and hash added to the provenance details. Chunks
-    follow controller time only, so the same input gives the same bytes.
+    truth blocks are copied through, each with the log time its input block had (the
+    estimates of a block get the log time of its samples), and so do the per-sample
+    ``disturbance/scalars`` (:class:`~feedio.scalars.ScalarsPairer`, stamped from those
+    log times). The trial's own metadata (with its truth and start time) is kept, with the
+    model file and hash added to the provenance details. Chunks follow controller time
+    only, so the same input gives the same bytes.
     """
     from feedio.mcapio import TrialWriter, _Open
+    from feedio.scalars import ScalarsPairer
 
     trial, output = os.fspath(trial), os.fspath(output)
     if os.path.abspath(trial) == os.path.abspath(output):
@@ -68,6 +76,8 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     with _Open(trial) as f:
         present = f.axes()
         metas = {key: f.meta(*key) for key in present if key in axes}
+        starts = {f.start_ns(*key) for key in metas}
+        has_truth = {(m, a) for (m, a) in metas if f"/{m}/{a}/truth" in f.channels}
     missing = [f"{m}/{a}" for (m, a) in axes if (m, a) not in present]
     if missing:
         raise ValueError(f"{trial} has no axis {', '.join(missing)} (axes present: "
@@ -85,23 +95,39 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                                                                                            details=details)))
     pipe = Pipeline(axes)
     names = [f"{m}/{a}" for (m, a) in metas]
+    pairer = ScalarsPairer(expect_truth=has_truth)
+    start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
     samples = estimates = truth = 0
     t0 = time.perf_counter()
-    with TrialWriter(output, out_metas) as w, _WriterThread(w) as out:
-        for name, kind, block in _prefetch(_merged_blocks(trial, names)):
+    with TrialWriter(output, out_metas, start=start) as w, _WriterThread(w) as out:
+        for name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
             if kind == "truth":
                 m, a = name.split("/", 1)
-                out.put(w.write_truth, block, m, a)
+                out.put(partial(w.write_truth, block, m, a, log_time=lt))
+                if (m, a) in has_truth:
+                    out.put(_scalars, w, pairer.add_truth, m, a, block)
                 truth += 1
                 continue
             samples += len(block.t)
             _, est = pipe.estimate(block)
-            out.put(w.write_samples, block)
+            out.put(partial(w.write_samples, block, log_time=lt))
             if est is not None:
-                out.put(w.write_estimates, est)
+                out.put(partial(w.write_estimates, est, log_time=lt))
+                out.put(_scalars, w, pairer.add_estimates, est, lt)
                 estimates += len(est.t)
+        out.put(_scalars, w, pairer.drain)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, samples, estimates, truth, seconds, names, skipped)
+
+
+def _scalars(w, pair, *args) -> None:
+    """On the writer thread: feed the pairer (``pair(*args)``) and write the scalars that became
+    complete (grouped per axis, order kept)."""
+    by_axis: dict[tuple[str, str], list] = {}
+    for machine, axis, ns, sc in pair(*args):
+        by_axis.setdefault((machine, axis), []).append((ns, sc))
+    for (machine, axis), items in by_axis.items():
+        w.write_scalars(machine, axis, items)
 
 
 def _prefetch(items: Iterator, depth: int = 64) -> Iterator:

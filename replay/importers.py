@@ -174,10 +174,11 @@ def _version() -> str:
     return __version__
 
 
-def import_emps(path, output, *, rate: int = 333) -> ImportedTrial:
-    """``feedmon import emps``: read an EMPS ``.mat`` and write an MCAP trial file."""
+def import_emps(path, output, *, rate: int = 333, start=None) -> ImportedTrial:
+    """``feedmon import emps``: read an EMPS ``.mat`` and write an MCAP trial file (``start``: the
+    trial's start time, see :func:`write_imported`)."""
     tr = load_emps(path, rate=rate)
-    write_imported(tr, output)
+    write_imported(tr, output, start=start)
     return tr
 
 
@@ -335,17 +336,20 @@ def read_csv_trial(
     )
 
 
-def import_csv(path, output, mapping, units=None, **kw) -> ImportedTrial:
+def import_csv(path, output, mapping, units=None, *, start=None, **kw) -> ImportedTrial:
     tr = read_csv_trial(path, mapping, units, **kw)
-    write_imported(tr, output)
+    write_imported(tr, output, start=start)
     return tr
 
 
 # ============================================================================================
-def write_imported(tr: ImportedTrial, output, *, block: int = 100) -> None:
-    """Write an imported trial (and pulse truth, if any) to an MCAP trial file."""
+def write_imported(tr: ImportedTrial, output, *, block: int = 100, start=None) -> None:
+    """Write an imported trial (and pulse truth, if any) to an MCAP trial file. ``start``: the
+    wall-clock time of its first sample (ISO 8601, datetime or ns since the epoch; default: now,
+    the creation time), which the MCAP log times count from."""
     from feedio.mcapio import write_arrays
 
     truth = None if tr.truth_force is None else dict(t=tr.t, force=tr.truth_force, f=tr.truth_f)
     write_arrays(output, tr.meta, dict(t=tr.t, v_ref=tr.v_ref, v_meas=tr.v_meas, u=tr.u, current=tr.current,
-                                       position=tr.position, spindle_rpm=tr.spindle_rpm), truth, block=block)
+                                       position=tr.position, spindle_rpm=tr.spindle_rpm), truth, block=block,
+                 start=start)

@@ -59,7 +59,7 @@ import msgspec
 import zenoh
 
 from feedio import schema as S
-from feedio.mcapio import iter_blocks, list_axes
+from feedio.mcapio import iter_axes, iter_file, list_axes
 from feedio.transport import DEFAULT_PREFIX, samples_key, truth_key
 
 __all__ = ["ReplayStats", "replay", "scan_trial", "TrialScan"]
@@ -113,45 +113,42 @@ class TrialScan:
 
 
 def scan_trial(path: str | os.PathLike, axis: str | None = None) -> TrialScan:
-    """One decoding pass: axes, sample counts, seq range and time span (samples channels only)."""
+    """One decoding pass over the samples channels: axes, sample counts, seq range and time span."""
     path = os.fspath(path)
     axes = list_axes(path)
     if axis is not None:
         hits = [a for a in axes if axis in (a, a.split("/", 1)[1])]
         if not hits:
-            raise ValueError(f"{path} has no axis {axis!r}; axes present: {', '.join(axes) or 'none'}")
+            raise ValueError(f"{path} has no axis {axis!r}; axes present: {', '.join(axes[:20]) or 'none'}")
         if len(hits) > 1:
             raise ValueError(f"{path}: axis {axis!r} is ambiguous ({', '.join(hits)}); give it as machine/axis")
         axes = hits
     if not axes:
         raise ValueError(f"{path} has no samples channel to replay")
-    samples: dict[str, int] = {}
+    samples: dict[str, int] = dict.fromkeys(axes, 0)
     first: dict[str, int] = {}
     end: dict[str, int] = {}
     t0, t1 = math.inf, -math.inf
     dts: list[float] = []
-    for name in axes:
-        n = 0
-        for _, b in iter_blocks(path, name, kinds=("samples",)):
-            if n == 0:
-                first[name] = b.seq
-            n += len(b.t)
-            end[name] = b.seq + len(b.t)
-            t0 = min(t0, b.t[0])
-            t1 = max(t1, b.t[-1])
-            if len(dts) < 2000:
-                dts.extend(y - x for x, y in zip(b.t, b.t[1:]) if y > x)
-        samples[name] = n
-        if n == 0:
-            raise ValueError(f"{path}: axis {name} has no samples")
-    if not dts:  # one-sample blocks: use consecutive block times
-        prev = None
-        for _, b in iter_blocks(path, axes[0], kinds=("samples",)):
+    block_steps: list[float] = []  # one-sample blocks: time per sequence step between blocks
+    prev: tuple[int, float] | None = None
+    for name, _, _, b in iter_file(path, axes, ("samples",)):
+        if name not in first:
+            first[name] = b.seq
+        samples[name] += len(b.t)
+        end[name] = b.seq + len(b.t)
+        t0 = min(t0, b.t[0])
+        t1 = max(t1, b.t[-1])
+        if len(dts) < 2000:
+            dts.extend(y - x for x, y in zip(b.t, b.t[1:]) if y > x)
+        if name == axes[0] and len(block_steps) < 2000:
             if prev is not None and b.t[0] > prev[1] and b.seq > prev[0]:
-                dts.append((b.t[0] - prev[1]) / (b.seq - prev[0]))
+                block_steps.append((b.t[0] - prev[1]) / (b.seq - prev[0]))
             prev = (b.seq, b.t[0])
-            if len(dts) >= 2000:
-                break
+    empty = [a for a in axes if samples[a] == 0]
+    if empty:
+        raise ValueError(f"{path}: axis {empty[0]} has no samples")
+    dts = dts or block_steps
     dts.sort()
     ts = dts[len(dts) // 2] if dts else 0.0
     return TrialScan(axes, samples, first, end, float(t0), float(t1), float(ts))
@@ -235,10 +232,13 @@ def _shift(block: Any, dseq: int, dt: float) -> Any:
 
 def _pass_stream(path: str, scan: TrialScan, block: int | None, k: int,
                  kinds: tuple[str, ...] = _KINDS) -> Iterator[tuple[float, int, str, str, Any]]:
-    """All blocks of pass ``k`` of every axis, merged by send time: ``(t_send, axis_index, axis, kind, block)``."""
+    """All blocks of pass ``k`` of every axis, merged by send time: ``(t_send, axis_index, axis, kind, block)``.
+    One pass over the file feeds every axis (:func:`feedio.mcapio.iter_axes`), so the cost is
+    linear in the file, whatever the number of axes."""
+    streams = iter_axes(path, scan.axes, kinds=kinds)
 
     def one(idx: int, name: str) -> Iterator[tuple[float, int, int, str, str, Any]]:
-        stream: Iterator[tuple[str, Any]] = iter_blocks(path, name, kinds=kinds)
+        stream: Iterator[tuple[str, Any]] = ((kind, b) for kind, _, b in streams[name])
         if block:
             stream = _reblock(stream, block)
         span = scan.end_seq[name] - scan.first_seq[name]

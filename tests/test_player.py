@@ -225,3 +225,58 @@ def test_replay_of_a_simulated_trial(tmp_path, sessions):
     assert [x for b in got for x in b.v_meas] == pytest.approx(tr.v_meas.tolist(), nan_ok=True)
     truth = col.by_key[f"{key}/truth"]
     assert [x for b in truth for x in b.f] == pytest.approx(tr.truth.f.tolist(), nan_ok=True)
+
+
+def test_replay_of_many_axes_reads_the_file_once(tmp_path, sessions, monkeypatch):
+    """1500 axes (the old player opened and decoded the whole file once per axis: quadratic, > 100 s for
+    3000 axes). Now the scan and each pass read the file once for all axes; every block arrives."""
+    import feedio.mcapio as mcapio
+
+    n_axes = 1500
+    path = tmp_path / "many.mcap"
+    metas = [_meta(f"A{i}") for i in range(n_axes)]
+    with TrialWriter(path, metas, start="2024-05-01T08:00:00Z") as w:
+        for seq in (0, 5):
+            t = [(seq + i) * TS for i in range(5)]
+            for i in range(n_axes):
+                w.write_samples(S.SampleBlock(machine="mill", axis=f"A{i}", seq=seq, t=t, v_ref=[0.0] * 5,
+                                              v_meas=[0.001 * i] * 5))
+    opens = []
+    real_init = mcapio._Open.__init__
+
+    def counting_init(self, *a, **k):
+        opens.append(a[0] if a else k.get("path"))
+        real_init(self, *a, **k)
+
+    monkeypatch.setattr(mcapio._Open, "__init__", counting_init)
+    mon, pub, _ = sessions
+    got: list[str] = []
+    sub = mon.declare_subscriber("feedmon/mill/*/samples", lambda s: got.append(str(s.key_expr)))
+    try:
+        stats = replay(path, pub, rate=None, wait_for_subscriber=WAIT)
+        deadline = time.monotonic() + WAIT
+        while len(got) < 2 * n_axes and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        sub.undeclare()
+    assert stats.blocks == 2 * n_axes and stats.samples == 10 * n_axes
+    assert len(got) == 2 * n_axes and len(set(got)) == n_axes
+    assert len(opens) <= 3, opens  # list_axes, scan, one pass — whatever the number of axes
+
+
+def test_axes_not_interleaved_in_time_beyond_the_read_ahead_are_refused(tmp_path):
+    from feedio.mcapio import TrialFileError, iter_axes
+
+    path = tmp_path / "blocks.mcap"
+    with TrialWriter(path, [_meta("X"), _meta("Y")], start="2024-05-01T08:00:00Z") as w:
+        for ax in "XY":  # all of X, then all of Y
+            for seq in range(0, 100, BLOCK):
+                t = [(seq + i) * TS for i in range(BLOCK)]
+                w.write_samples(S.SampleBlock(machine="mill", axis=ax, seq=seq, t=t, v_ref=[0.0] * BLOCK,
+                                              v_meas=[0.0] * BLOCK))
+    streams = iter_axes(path, ["mill/X", "mill/Y"], read_ahead=5)
+    with pytest.raises(TrialFileError, match=r"more than 5 blocks of other axes precede the next block of mill/Y"):
+        next(streams["mill/Y"])
+    streams = iter_axes(path, ["mill/X", "mill/Y"])  # within the default read-ahead: fine
+    assert [b.seq for _, _, b in streams["mill/Y"]] == list(range(0, 100, BLOCK))
+    assert len(list(streams["mill/X"])) == 10

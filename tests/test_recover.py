@@ -334,3 +334,124 @@ def test_recover_skips_unknown_record_types(tmp_path, trial_bytes):
     unknown = bytes([0x80]) + struct.pack("<Q", 5) + b"hello"
     n = _check_recover(tmp_path, data[:pos] + unknown + data[pos:], total, "unknown")
     assert n == total
+
+
+# ---- resynchronisation after damage (issue 9 #12) --------------------------------------------------
+@pytest.fixture(scope="module")
+def long_trial(tmp_path_factory):
+    """A 12 s trial: 12 chunks of ~1 s; (bytes, [(chunk offset, record length, messages)], total messages)."""
+    path = tmp_path_factory.mktemp("recover-long") / "long.mcap"
+    assert main(["simulate", "shaker-constant", "-o", str(path), "--seed", "4", "--duration", "12",
+                 "--created", "2024-05-01T08:00:00Z"]) == 0
+    data = path.read_bytes()
+    chunks = []
+    with open(path, "rb") as f:
+        for rec in StreamReader(f, emit_chunks=True).records:
+            if isinstance(rec, Chunk):
+                end = f.tell()
+                n = sum(isinstance(r, Message) for r in breakup_chunk(rec))
+                chunks.append((end, n))
+    # a chunk record's start: its end minus its length (opcode + length + fields + data)
+    out = []
+    for end, n in chunks:
+        start = data.rfind(b"\x06", 0, end)
+        while True:
+            length = int.from_bytes(data[start + 1:start + 9], "little")
+            if start + 9 + length == end:
+                break
+            start = data.rfind(b"\x06", 0, start)
+        out.append((start, end - start, n))
+    assert len(out) >= 11
+    return data, out, sum(n for _, _, n in out)
+
+
+def _recover_bytes(tmp_path: Path, data: bytes, name: str, **kw):
+    src, out = tmp_path / f"{name}.mcap", tmp_path / f"{name}-fixed.mcap"
+    src.write_bytes(data)
+    rep = recover(src, out, **kw)
+    assert _messages_plain(out) == rep.messages
+    return rep, out
+
+
+def test_damaged_first_chunk_keeps_every_other_chunk(tmp_path, long_trial):
+    """One flipped byte in the first chunk (which also holds the channel declarations): its messages
+    are dropped and reported with the offset, every message of the other chunks is kept — with and
+    without the summary section (the declarations then come from the damaged chunk's intact start)."""
+    data, chunks, total = long_trial
+    start, length, n0 = chunks[0]
+    buf = bytearray(data)
+    buf[start + length - 50] ^= 0x40  # late in the compressed data: the start still decompresses
+    for name, blob in (("flip", bytes(buf)), ("flip-cut", bytes(buf[: chunks[-1][0] + chunks[-1][1]]))):
+        rep, out = _recover_bytes(tmp_path, blob, name)
+        assert rep.messages == total - n0, (name, rep.summary())
+        assert rep.chunks == len(chunks) - 1 and rep.chunks_dropped == 1
+        s = rep.skipped[0]
+        assert (s.offset, s.length, s.messages_dropped) == (start, length, n0) and "damaged chunk" in s.reason
+        tr = read_trial(out)
+        first = tr.seq[0]
+        assert tr.seq.tolist() == list(range(first, first + len(tr)))  # the rest, without holes
+        text = rep.summary()
+        assert f"bytes {start}…{start + length}" in text and f"{n0} message(s) dropped" in text
+    # --salvage-damaged keeps the messages of the damaged chunk too (their bytes may be wrong)
+    rep, _ = _recover_bytes(tmp_path, bytes(buf), "flip-salvage", salvage_damaged=True)
+    assert rep.messages >= total - n0 and rep.damaged_messages == n0
+
+
+def test_zeroed_range_across_records_resynchronises(tmp_path, long_trial):
+    """3000 zero bytes across the boundary of chunks 4 and 5 (a bad sector): recover skips exactly the
+    damaged chunks and keeps all the others."""
+    data, chunks, total = long_trial
+    s4, l4, n4 = chunks[4]
+    s5, l5, n5 = chunks[5]
+    a = s5 - 1500
+    buf = bytearray(data)
+    buf[a:a + 3000] = bytes(3000)
+    rep, out = _recover_bytes(tmp_path, bytes(buf), "zeroed")
+    assert rep.messages == total - n4 - n5, rep.summary()
+    assert rep.skipped_ranges >= 1 and rep.skipped[0].offset == s4
+    assert rep.chunks == len(chunks) - 2
+
+
+def test_full_disk_episode_of_the_old_writer(tmp_path, long_trial):
+    """What a writer without staging left after a full disk: the first half of chunk 6, then (space
+    back) the whole chunk 6 again and everything after. recover skips the half-written chunk and keeps
+    every message once (the old recover kept 382 of 985 blocks)."""
+    data, chunks, total = long_trial
+    s6, l6, n6 = chunks[6]
+    episode = data[:s6] + data[s6:s6 + l6 // 2] + data[s6:]
+    rep, out = _recover_bytes(tmp_path, episode, "episode")
+    assert rep.messages == total, rep.summary()
+    assert rep.skipped[0].offset == s6 and rep.skipped[0].length == l6 // 2
+    tr = read_trial(out)
+    assert tr.seq.tolist() == list(range(len(tr)))  # every sample once
+    # the same without the retry: the half chunk is lost, everything else kept
+    lost = data[:s6] + data[s6:s6 + l6 // 2] + data[s6 + l6:]
+    rep, _ = _recover_bytes(tmp_path, lost, "lost")
+    assert rep.messages == total - n6
+
+
+def test_cut_inside_the_last_chunk_keeps_its_complete_records(tmp_path):
+    """A writer killed while writing one big chunk (zstd works in 128 kB blocks): the records of the
+    blocks that made it to the disk are kept, in order, without holes."""
+    from feedio import schema as S
+    from feedio.mcapio import TrialWriter
+
+    meta = S.TrialMeta(Ts=TS, form="force-input", machine="mill", axis="X",
+                       provenance=S.Provenance(source="test", tool="pytest", version="0"))
+    path = tmp_path / "big.mcap"
+    with TrialWriter(path, meta, chunk_seconds=100.0, start="2024-05-01T08:00:00Z") as w:
+        for k in range(3000):
+            t = [(k * BLOCK + i) * TS for i in range(BLOCK)]
+            w.write_samples(S.SampleBlock(machine="mill", axis="X", seq=k * BLOCK, t=t, v_ref=[0.01] * BLOCK,
+                                          v_meas=[0.0099] * BLOCK, u=[float(k * BLOCK + i) for i in range(BLOCK)]))
+    data = path.read_bytes()
+    with open(path, "rb") as f:
+        for rec in StreamReader(f, emit_chunks=True).records:
+            if isinstance(rec, Chunk):
+                end = f.tell()
+                break
+    rep, out = _recover_bytes(tmp_path, data[: end - len(rec.data) // 4], "tail")  # a quarter of it missing
+    assert rep.chunks == 0 and rep.partial_chunks == 1 and 1000 < rep.partial_messages < 3000, rep.summary()
+    assert rep.messages == rep.partial_messages and "Chunk record cut off" in rep.stop_reason
+    tr = read_trial(out)
+    assert tr.seq.tolist() == list(range(len(tr))) and tr.u.tolist() == [float(i) for i in range(len(tr))]

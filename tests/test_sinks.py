@@ -181,10 +181,13 @@ def test_mcap_sink_writes_samples_and_estimates_of_every_axis(tmp_path):
     assert sink.close(timeout=10)
     st = sink.status()
     assert st["failures"] == 0 and st["written"] == 5 * n and st["files"] == [str(path)]
+    assert st["scalars_written"] == 2 * 10 * n and st["incomplete_files"] == [] and st["messages_lost"] == 0
     topics, msgs = _read_plain(str(path))
-    assert topics == {f"/mill/{a}/{k}" for a in "XY" for k in ("samples", "disturbance")} | {"/mill/X/truth"}
-    assert len(msgs) == 5 * n
-    x = [m for t, m in msgs if t == "/mill/X/disturbance"]
+    assert topics == ({f"/mill/{a}/{k}" for a in "XY" for k in ("samples", "disturbance", "disturbance/scalars")}
+                      | {"/mill/X/truth"})
+    blocks = [(t, m) for t, m in msgs if not t.endswith("/scalars")]
+    assert len(blocks) == 5 * n
+    x = [m for t, m in blocks if t == "/mill/X/disturbance"]
     assert [m["seq"] for m in x] == [10 * k for k in range(n)]
     trial = read_trial(path, axis="Y")  # a monitor log is a trial file
     assert len(trial) == 10 * n and trial.meta.Ts == pytest.approx(TS)
@@ -222,12 +225,15 @@ def test_mcap_sink_rotation_produces_several_readable_files(tmp_path):
     assert len(files) >= 3
     assert files[0].endswith("rot-000.mcap") and files[1].endswith("rot-001.mcap")
     seqs = []
+    scalars = []
     total = 0
     for f in files:
         _, msgs = _read_plain(f)
-        total += len(msgs)
+        total += sum(not t.endswith("/scalars") for t, _ in msgs)
         seqs += [m["seq"] for t, m in msgs if t == "/mill/X/samples"]
+        scalars += [m["seq"] for t, m in msgs if t.endswith("/scalars")]
     assert total == sent and seqs == [10 * k for k in range(120)]
+    assert scalars == list(range(1200))  # one per sample, across the files, in order
 
 
 def test_mcap_sink_time_rotation(tmp_path):
@@ -239,21 +245,141 @@ def test_mcap_sink_time_rotation(tmp_path):
         time.sleep(0.01)
     assert sink.close(timeout=10)
     assert len(sink.files) >= 2
-    assert sum(len(_read_plain(f)[1]) for f in sink.files) == 50
+    assert sum(len(_read_plain(f)[1]) for f in sink.files) == 50  # samples only: no estimates, no scalars
 
 
 def test_mcap_sink_bad_block_is_a_counted_failure(tmp_path):
     from monitor.sinks.mcap_sink import McapSink
 
     sink = McapSink(tmp_path / "neg.mcap", metas=[meta("X")])
-    bad = S.SampleBlock(machine="mill", axis="X", seq=0, t=[-1.0], v_ref=[0.0], v_meas=[0.0])
-    sink.offer(bad)
+    bad = S.SampleBlock(machine="mill", axis="X", seq=2**60, t=[-1.0], v_ref=[0.0], v_meas=[0.0])
+    absurd_t = S.SampleBlock(machine="mill", axis="X", seq=10, t=[2e10, -1e300], v_ref=[0.0] * 2, v_meas=[0.0] * 2)
+    sink.offer(bad)  # seq beyond the schema: refused by the writer
     sink.offer("not a block")
     sink.offer(samples("X", 0))
+    sink.offer(absurd_t)  # live log times are wall-clock: absurd controller times are written as they are
+    sink.offer(samples("X", 12))
     assert sink.close(timeout=10)
     st = sink.status()
-    assert st["failures"] == 2 and st["written"] == 1
-    assert len(_read_plain(str(tmp_path / "neg.mcap"))[1]) == 1
+    assert st["failures"] == 2 and st["written"] == 3 and "got str" in st["last_error"]
+    assert st["incomplete_files"] == [] and st["messages_lost"] == 0
+    assert [m["seq"] for _, m in _read_plain(str(tmp_path / "neg.mcap"))[1]] == [0, 10, 12]
+
+
+def _scalars_plain(path) -> list[tuple[int, str, dict]]:
+    """(log_time, topic, message) of every scalars message, read with the plain mcap reader."""
+    with open(path, "rb") as f:
+        return [(m.log_time, ch.topic, json.loads(m.data))
+                for _, ch, m in make_reader(f).iter_messages(log_time_order=False) if ch.topic.endswith("/scalars")]
+
+
+def _numbers_only(msg: dict) -> None:
+    for k, v in msg.items():
+        assert isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v), (k, v)
+
+
+def test_mcap_sink_scalars_one_message_per_sample_paired_in_time(tmp_path):
+    """disturbance/scalars: one message per sample with plain numbers; message k holds row k+1's filtered
+    values (they describe sample k), row k's prediction and the truth of sample k; log times are wall-clock
+    (after 2020), increasing per axis, the last sample of a block at its receive time."""
+    import time as _time
+
+    from monitor.sinks.mcap_sink import McapSink
+
+    path = tmp_path / "sc.mcap"
+    sink = McapSink(path, metas=[meta("X"), meta("Y")])
+    n, t_start = 40, _time.time_ns()
+    rx = {}
+    for k in range(n):
+        rx[k] = t_start + k * 30_000_000  # blocks received 30 ms apart (10 samples at 3 ms)
+        for ax in "XY":
+            sink.offer(samples(ax, 10 * k), received_ns=rx[k])
+            est = estimates(ax, 10 * k)
+            if k == 7:
+                est.force = [float(i) for i in range(10)]
+                est.force_var = [4.0] * 10
+                est.force_next = [0.5] * 10
+                est.f = [math.nan if i == 3 else x for i, x in enumerate(est.f)]  # missing: left out, never null
+            sink.offer(est, received_ns=rx[k])
+        sink.offer_truth("mill", "X", truth(10 * k), received_ns=rx[k])
+    assert sink.close(timeout=10)
+    got = _scalars_plain(path)
+    rows = {(b.axis, b.seq + i): (b, i) for ax in "XY" for k in range(n)
+            for b in [estimates(ax, 10 * k)] for i in range(10)}
+    for ax in "XY":
+        mine = [(lt, m) for lt, tp, m in got if tp == f"/mill/{ax}/disturbance/scalars"]
+        assert [m["seq"] for _, m in mine] == list(range(10 * n))  # one per sample, in order
+        times = [lt for lt, _ in mine]
+        assert times[0] > 1577836800 * 10**9 and all(b > a for a, b in zip(times, times[1:]))
+        for lt, m in mine:
+            _numbers_only(m)
+            seq = m["seq"]
+            k, i = divmod(seq, 10)
+            assert lt == rx[k] - round((9 - i) * TS * 1e9)  # receive time minus the controller-time offset
+            b, j = rows[(ax, seq)]
+            assert m["t"] == b.t[j] and m["f_next"] == b.f_next[j] and m["flags"] == b.flags[j]
+            if (ax, seq + 1) in rows and not (k == 7 and i == 2):
+                nb, nj = rows[(ax, seq + 1)]
+                assert m["f"] == nb.f[nj] and m["f_sd"] == pytest.approx(1e-4)  # the next row's filtered value
+            if seq == 10 * n - 1:
+                assert "f" not in m and "f_sd" not in m  # not known yet for the last sample: left out
+            if k == 7 and i == 2:
+                assert "f" not in m and m["f_sd"] == pytest.approx(1e-4)  # NaN: left out, never null
+            if ax == "X":
+                assert m["truth_force"] == 30.0 and m["truth_f"] == -9e-4
+            else:
+                assert "truth_force" not in m
+    x7 = {m["seq"]: m for _, tp, m in got if tp == "/mill/X/disturbance/scalars" and 69 <= m["seq"] <= 79}
+    assert x7[71]["force"] == 2.0 and x7[71]["force_sd"] == 2.0 and x7[71]["force_next"] == 0.5
+    assert "force" in x7[69] and x7[69]["force"] == 0.0 and "force_next" not in x7[69]  # row 70 filtered, row 69 none
+    assert "force" not in x7[79] and x7[79]["force_next"] == 0.5
+
+
+_FULL_DISK_SINK = """
+import json, os, resource, signal, sys, time
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+sys.path.insert(0, sys.argv[2])
+from test_sinks import meta, samples
+from monitor.sinks.mcap_sink import McapSink
+resource.setrlimit(resource.RLIMIT_FSIZE, (30_000, resource.RLIM_INFINITY))  # every file stops at 30 kB
+sink = McapSink(sys.argv[1], metas=[meta("X")], flush_seconds=0.02, max_pending_bytes=20_000, scalars=False)
+for k in range(600):
+    assert sink.offer(samples("X", 10 * k))
+    if k % 50 == 0:
+        time.sleep(0.05)
+    if k == 450:  # space comes back: the file open now finishes properly
+        resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+sink.close(timeout=30)
+print(json.dumps(sink.status()))
+"""
+
+
+def test_mcap_sink_gives_up_a_refused_file_and_goes_on_in_a_fresh_one(tmp_path):
+    """Every file is limited to 30 kB (RLIMIT_FSIZE, in a subprocess): when more than max_pending_bytes
+    wait for the disk, the sink gives the file up (it ends on its last complete record, listed in
+    incomplete_files) and the next block opens a fresh file; once the limit is lifted the file then open
+    is finished properly. Counters never go back; every block
+    accepted is either in a file (recover finishes the given-up ones without a damaged byte) or counted
+    in messages_lost."""
+    from replay.recover import recover
+
+    r = subprocess.run([sys.executable, "-c", _FULL_DISK_SINK, str(tmp_path / "log.mcap"), str(Path(__file__).parent)],
+                       capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert r.returncode == 0, r.stderr
+    st = json.loads(r.stdout)
+    assert st["accepted"] == 600 and st["dropped"] == 0
+    assert st["failures"] > 0 and "File too large" in st["last_error"] and st["flush_failures"] > 0
+    assert len(st["incomplete_files"]) >= 2 and len(st["files"]) > len(st["incomplete_files"])
+    found = []
+    for f in st["files"]:
+        if f in st["incomplete_files"]:
+            rep = recover(f, f + ".fixed")
+            assert rep.skipped_ranges == 0 and rep.bytes_dropped == 0, rep.summary()
+            f += ".fixed"
+        found += [m["seq"] for _, m in _read_plain(f)[1]]
+    assert found == sorted(found) and len(set(found)) == len(found)
+    assert len(found) + st["messages_lost"] == 600
 
 
 # ---- RerunSink ---------------------------------------------------------------------------------------

@@ -4,7 +4,15 @@ The file is written with :class:`feedio.mcapio.TrialWriter`, so a monitor log
 *is* a trial file: same channels (``/<machine>/<axis>/samples|truth|disturbance``),
 same JSON + ``jsonschema`` schemas, zstd chunks, one ``feedmon.trial`` metadata
 record per axis. ``feedmon replay`` and :func:`feedio.mcapio.read_trial` read it.
+Besides the block channels it writes ``/<machine>/<axis>/disturbance/scalars``: one
+message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
+``rerun mcap convert`` plot directly.
 
+* Log times are wall-clock times (ns since the Unix epoch): a block's log time is the
+  time it was handed to the sink (``offer(item, received_ns=...)`` gives the exact
+  receive time; default ``time.time_ns()`` at the offer, right after estimation); the
+  scalars of a block are stamped back from it by the controller-time differences
+  of the samples, increasing per axis.
 * Flushing: a chunk is closed and flushed to the OS at least every
   ``flush_seconds`` (default 0.5 s) of wall time while data arrives, so a crash
   loses about half a second.
@@ -14,6 +22,15 @@ record per axis. ``feedmon replay`` and :func:`feedio.mcapio.read_trial` read it
   ``<stem>-000.mcap``, ``<stem>-001.mcap``, ... next to ``path``; without
   rotation the single file is ``path`` itself. :attr:`McapSink.files` lists
   them; every file is complete and self-describing.
+* Failures: a block the writer refuses (an absurd value) is counted and the file goes on.
+  A disk that refuses a flush (full, file too large) is counted each time; the bytes wait
+  in memory (``pending_bytes`` in the status) and go out with the next flush that works,
+  so nothing is lost when space comes back. When more than
+  :data:`~feedio.mcapio.MAX_PENDING_BYTES` wait, or the writer failed in any other way,
+  the file is given up — it ends on its last complete record, is listed in
+  ``incomplete_files`` (finish it with ``feedmon recover``) and what never reached it is
+  counted in ``messages_lost`` — and the next block opens a fresh file. These counters
+  never go back, and ``last_error`` keeps the last failure after a recovery.
 * Axes: a TrialWriter needs the :class:`~feedio.schema.TrialMeta` of every
   axis up front. Pass ``metas`` (the monitor knows Ts and form from its model
   files). A block of an axis without meta gets one from ``meta_factory``
@@ -39,6 +56,7 @@ from typing import Any
 
 from feedio import schema as S
 from feedio.mcapio import TrialWriter
+from feedio.scalars import HOLD_NS, ScalarsPairer
 
 from .queued import QueuedSink
 
@@ -90,9 +108,13 @@ class McapSink(QueuedSink):
         without ``metas``: buffer this long before opening the first file.
     maxsize:
         queue capacity (blocks).
+    scalars:
+        also write the per-sample ``disturbance/scalars`` channel (default True).
+    max_pending_bytes:
+        bytes kept in memory while the disk refuses them before a file is given up.
     """
 
-    recover_on_tick = True  # writes go to an in-memory chunk; only the flush proves the disk works
+    recover_on_tick = True  # writes go to memory; only the flush proves the disk works
 
     def __init__(
         self,
@@ -106,6 +128,8 @@ class McapSink(QueuedSink):
         discover_seconds: float = 1.0,
         maxsize: int = 4096,
         name: str = "mcap",
+        scalars: bool = True,
+        max_pending_bytes: int | None = None,
     ) -> None:
         if rotate_bytes is not None and rotate_bytes <= 0:
             raise ValueError(f"rotate_bytes must be > 0, got {rotate_bytes}")
@@ -123,47 +147,87 @@ class McapSink(QueuedSink):
         ms = [metas] if isinstance(metas, S.TrialMeta) else list(metas or [])
         self._metas: dict[tuple[str, str], S.TrialMeta] = {(m.machine, m.axis): m for m in ms}
         self.files: list[str] = []
+        self.incomplete_files: list[str] = []  # files given up (end on a complete record; feedmon recover)
+        self.messages_lost = 0  # accepted by a writer but never written to its file
+        self.flush_failures = 0  # flushes the disk refused (each one also counted in ``failures``)
         self._writer: TrialWriter | None = None
+        self._writer_kw = {} if max_pending_bytes is None else {"max_pending_bytes": int(max_pending_bytes)}
         self._opened_at = 0.0
         self._index = 0
         self._in_file = 0  # messages in the current file
         self.discover_seconds = float(discover_seconds)
         self._held: list[Any] = []  # blocks buffered while discovering axes (no metas given)
         self._held_since = 0.0
+        self._pairer = ScalarsPairer() if scalars else None
+        self.scalars_written = 0
         super().__init__(maxsize, name=name, tick_interval=min(0.1, self.flush_seconds / 2))
 
     # ---- producer helpers ----------------------------------------------------------------
-    def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
+    def offer(self, item: Any, received_ns: int | None = None) -> bool:
+        """Queue ``item``; ``received_ns`` = its receive time (ns since the epoch, default now)."""
+        return super().offer((item, time.time_ns() if received_ns is None else int(received_ns)))
+
+    def offer_truth(self, machine: str, axis: str, block: S.TruthBlock, received_ns: int | None = None) -> bool:
         """Queue a :class:`TruthBlock` of ``machine/axis`` (truth blocks carry no axis)."""
-        return self.offer((machine, axis, block))
+        return self.offer((machine, axis, block), received_ns)
 
     @property
     def rotating(self) -> bool:
         return self.rotate_bytes is not None or self.rotate_seconds is not None
 
     def extra_status(self) -> dict[str, Any]:
-        return {"files": list(self.files), "current_file": self.files[-1] if self._writer else None}
+        w = self._writer
+        return {"files": list(self.files), "current_file": self.files[-1] if w else None,
+                "incomplete_files": list(self.incomplete_files), "messages_lost": self.messages_lost,
+                "flush_failures": self.flush_failures, "pending_bytes": w.pending_bytes if w else 0,
+                "scalars_written": self.scalars_written}
 
     # ---- worker side -----------------------------------------------------------------------
     def _next_path(self) -> str:
         if not self.rotating and self._index == 0:
-            p = self.path
-        else:
-            p = self.path.with_name(f"{self.path.stem}-{self._index:03d}{self.path.suffix or '.mcap'}")
-        self._index += 1
-        return str(p)
+            return str(self.path)
+        return str(self.path.with_name(f"{self.path.stem}-{self._index:03d}{self.path.suffix or '.mcap'}"))
 
     def _open(self) -> None:
         path = self._next_path()
-        self._writer = TrialWriter(path, list(self._metas.values()), chunk_seconds=self.flush_seconds)
+        self._writer = TrialWriter(path, list(self._metas.values()), chunk_seconds=self.flush_seconds,
+                                   start=time.time_ns(), **self._writer_kw)
+        self._index += 1
         self._opened_at = time.monotonic()
         self._in_file = 0
         self.files.append(path)
 
     def _close_writer(self) -> None:
         w, self._writer = self._writer, None
-        if w is not None:
+        if w is None:
+            return
+        try:
             w.close()
+        finally:
+            self._account(w)
+
+    def _account(self, w: TrialWriter) -> None:
+        """Book a closed or given-up writer's losses."""
+        if w.failed is not None and w.path not in self.incomplete_files:
+            self.incomplete_files.append(w.path)
+        self.messages_lost += w.messages_lost
+        w.messages_lost = 0
+
+    def _call(self, fn, *args):
+        """Call the writer; if that left it failed, give the file up (the next block opens a new one)."""
+        w = self._writer
+        try:
+            return fn(*args)
+        except OSError:
+            self.flush_failures += 1
+            raise
+        finally:
+            if w is not None and w.failed is not None and self._writer is w:
+                self._writer = None
+                try:
+                    w.close()
+                finally:
+                    self._account(w)
 
     def rotate(self) -> None:
         """Finish the current file and start the next one (worker thread only)."""
@@ -188,16 +252,17 @@ class McapSink(QueuedSink):
         assert self._writer is not None
         return self._writer
 
-    def handle(self, item: Any) -> None:
+    def handle(self, entry: Any) -> None:
+        item, _ = entry
         if self._writer is None and not self.files and self.discover_seconds > 0:
             key = self._axis_of(item)
             if key not in self._metas:
                 self._metas[key] = self.meta_factory(key[0], key[1], item)
             if not self._held:
                 self._held_since = time.monotonic()
-            self._held.append(item)
+            self._held.append(entry)
             return
-        self._write(item)
+        self._write(entry)
         self._in_file += 1
 
     @staticmethod
@@ -215,51 +280,69 @@ class McapSink(QueuedSink):
         held, self._held = self._held, []
         if self._writer is None:
             self._open()
-        for item in held:
+        for entry in held:
             try:
-                self._write(item)
+                self._write(entry)
                 self._in_file += 1
             except Exception as exc:  # noqa: BLE001 - counted like any other write failure
                 with self._lock:
                     self.written -= 1  # it was counted when it was held
                 self._record_failure(exc)
 
-    def _write(self, item: Any) -> None:
+    def _write(self, entry: Any) -> None:
+        item, rx = entry
         if isinstance(item, S.SampleBlock):
-            self._ensure_axis(item.machine, item.axis, item).write_samples(item)
+            w = self._ensure_axis(item.machine, item.axis, item)
+            self._call(lambda: w.write_samples(item, log_time=rx))
         elif isinstance(item, S.EstimateBlock):
-            self._ensure_axis(item.machine, item.axis, item).write_estimates(item)
+            w = self._ensure_axis(item.machine, item.axis, item)
+            self._call(lambda: w.write_estimates(item, log_time=rx))
+            if self._pairer is not None:
+                self._write_scalars(self._pairer.add_estimates(item, rx))
         elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             machine, axis, block = item
-            self._ensure_axis(machine, axis, block).write_truth(block, machine, axis)
+            w = self._ensure_axis(machine, axis, block)
+            self._call(lambda: w.write_truth(block, machine, axis, log_time=rx))
+            if self._pairer is not None:
+                self._write_scalars(self._pairer.add_truth(machine, axis, block))
         else:
             raise TypeError(
                 f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
             )
 
+    def _write_scalars(self, ready: list) -> None:
+        by_axis: dict[tuple[str, str], list] = {}
+        for machine, axis, ns, sc in ready:
+            by_axis.setdefault((machine, axis), []).append((ns, sc))
+        for (machine, axis), items in by_axis.items():
+            w = self._ensure_axis(machine, axis, None)
+            self._call(w.write_scalars, machine, axis, items)
+            self.scalars_written += len(items)
+
     def tick(self, now: float) -> None:
         if self._held and now - self._held_since >= self.discover_seconds:
             self._release()
+        if self._pairer is not None and self._writer is not None:
+            self._write_scalars(self._pairer.expire(time.time_ns() - HOLD_NS))
         w = self._writer
         if w is None:
             return
-        w.flush_if_due(now)
-        if not self._in_file:
-            return  # never rotate away from an empty file
+        self._call(w.flush_if_due, now)
+        if self._writer is None or not self._in_file:
+            return  # given up, or never rotate away from an empty file
         if self.rotate_seconds is not None and now - self._opened_at >= self.rotate_seconds:
             self.rotate()
             return
-        if self.rotate_bytes is not None:
-            try:
-                size = os.path.getsize(self.files[-1])
-            except OSError:
-                return
-            if size >= self.rotate_bytes:
-                self.rotate()
+        if self.rotate_bytes is not None and w.bytes_on_disk >= self.rotate_bytes:
+            self.rotate()
 
     def finish(self) -> None:
         if self._held:
             self._release()
+        if self._pairer is not None:
+            ready = self._pairer.drain()
+            if ready:
+                self._write_scalars(ready)
         if self._writer is None and not self.files and self._metas:
             self._open()  # a run without data still leaves a valid (empty) file
         self._close_writer()

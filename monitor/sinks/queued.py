@@ -16,7 +16,10 @@ Failure policy: an exception from a subclass hook never kills the thread. It
 is counted (``failures``), remembered (``last_error``), logged once per burst
 (the first failure after a success; the recovery is logged with the count),
 and the sink's ``state`` is ``"failed"`` until a later item succeeds. The item
-that failed is lost (it is not retried).
+that failed is lost (it is not retried). ``failures`` and ``recoveries`` only ever
+grow and ``last_error`` is kept after a recovery, so a failure stays visible (and a
+test can wait on it) whatever the state is when one looks; ``failed_since`` is the
+wall time the current failure began (None when ok).
 """
 
 from __future__ import annotations
@@ -85,6 +88,8 @@ class QueuedSink:
         self.failures = 0
         self.last_error: str | None = None
         self.failed = False
+        self.failed_since: float | None = None  # time.time() of the first failure of the current burst
+        self.recoveries = 0  # failed -> ok transitions
         self.closed = False
         self._burst = 0  # failures in the current burst
         if start:
@@ -143,6 +148,8 @@ class QueuedSink:
                 dropped=self.dropped,
                 written=self.written,
                 failures=self.failures,
+                recoveries=self.recoveries,
+                failed_since=self.failed_since,
                 pending=self.pending,
                 last_error=self.last_error,
                 **self.extra_status(),
@@ -226,6 +233,8 @@ class QueuedSink:
         with self._lock:
             self.failures += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
+            if not self.failed:
+                self.failed_since = time.time()
             self.failed = True
             self._burst += 1
             first = self._burst == 1
@@ -238,6 +247,8 @@ class QueuedSink:
             return
         with self._lock:
             burst, self._burst, self.failed = self._burst, 0, False
+            self.failed_since = None
+            self.recoveries += 1
         log.warning("sink %s recovered after %d failure(s)", self.name, burst)
 
     def _run(self) -> None:
