@@ -296,7 +296,7 @@ def test_same_seed_same_bytes(name, tmp_path):
     paths = []
     for i, seed in enumerate((3, 3, 4)):
         p = tmp_path / f"{i}.mcap"
-        write_trial(simulate_scenario(name, seed=seed, duration=5.0, config=cfg), p)
+        write_trial(simulate_scenario(name, seed=seed, duration=5.0, config=cfg, created="2026-01-02T03:04:05Z"), p)
         paths.append(p.read_bytes())
     assert paths[0] == paths[1]
     assert paths[0] != paths[2]
