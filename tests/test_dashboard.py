@@ -381,3 +381,14 @@ def test_a_full_disk_in_the_recording_process_is_counted_in_the_monitors_sink_st
     assert child["final"] and child["broken"]
     assert after["failures"] == child["failures"] + child["undecodable"] >= 20  # blocks lost after it broke
     assert os.path.getsize(tmp_path / "full.rrd") <= 65536
+
+
+def test_axis_info_is_checked_when_the_sink_is_made(tmp_path):
+    from monitor.sinks.rerun_sink import RerunSink
+
+    for bad, word in (({"period": -0.02}, "period"), ({"teeth": 2.5}, "teeth"), ({"Ts": float("inf")}, "Ts"),
+                      ({"force": "yes"}, "force"), ({"spindle": 3000}, "unknown keys")):
+        with pytest.raises(ValueError, match=word):
+            RerunSink(tmp_path / "bad.rrd", axis_info={"mill/X": bad})
+    with pytest.raises(ValueError, match="psd_window"):
+        RerunSink(tmp_path / "bad.rrd", psd_window=4)

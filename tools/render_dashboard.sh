@@ -4,9 +4,12 @@
 #   tools/render_dashboard.sh [OUT_DIR] [RRD]
 #
 # Without RRD it first runs `feedmon demo` (12 s milling trial replayed at 10×) into OUT_DIR/demo and
-# renders OUT_DIR/demo/monitor.rrd. Writes OUT_DIR/dashboard.png (the viewer as it opens) and
-# OUT_DIR/dashboard-mid.png with the time cursor moved to mid-run (needs xdotool). Needs Debian's xvfb, mesa-vulkan-drivers and imagemagick:
-#   apt-get install -y xvfb mesa-vulkan-drivers imagemagick x11-utils [xdotool]
+# renders OUT_DIR/demo/monitor.rrd. Writes OUT_DIR/dashboard.png (the viewer as it opens: time cursor
+# at the end) and, with xdotool, OUT_DIR/dashboard-mid.png (time bar clicked at CURSOR of the run).
+# Needs Debian's packages:
+#   apt-get install -y xvfb mesa-vulkan-drivers imagemagick x11-utils xdotool
+# Environment: PYTHON (default python), WAIT (s for the software renderer, default 25),
+# SIZE (default 1920x1080), CURSOR (default 0.5), DURATION and RATE of the demo.
 # Not run by CI. Starts its own Xvfb on a free display and its own viewer on a free port, and stops
 # both (by their process ids) on exit.
 set -euo pipefail

@@ -145,11 +145,15 @@ class AxisInfo:
 
 
 def describe_model(model, teeth: int | None = None) -> dict[str, Any]:
-    """``axis_info`` entry of an :class:`~monitor.model_file.AxisModel` (period ψ, Ts, force scaling)."""
-    period = (model.tracker.kernel or {}).get("period")
+    """``axis_info`` entry of an :class:`~monitor.model_file.AxisModel`: ψ of a time-periodic tracker
+    kernel (s), Ts, force scaling, and the tool's teeth (argument, else a ``teeth`` attribute of the
+    model when it has one)."""
+    kernel = model.tracker.kernel or {}
+    period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "periodic") else None
+    if teeth is None:
+        teeth = getattr(model, "teeth", None)
     return {"period": float(period) if period else None, "Ts": float(model.Ts), "force": bool(model.force_scalable),
             "teeth": teeth}
-
 
 
 # ---- blueprint -------------------------------------------------------------------------------------------
