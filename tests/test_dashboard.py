@@ -392,3 +392,34 @@ def test_axis_info_is_checked_when_the_sink_is_made(tmp_path):
             RerunSink(tmp_path / "bad.rrd", axis_info={"mill/X": bad})
     with pytest.raises(ValueError, match="psd_window"):
         RerunSink(tmp_path / "bad.rrd", psd_window=4)
+
+
+def _view_windows(rrd) -> list[float]:
+    """Rolling windows (s before the time cursor) of the views in the recording's layout."""
+    from rerun.chunk import RrdReader
+
+    r = RrdReader(str(rrd))
+    out = []
+    for chunk in r.stream(store=r.blueprints()[-1]).to_chunks():
+        if chunk.entity_path.endswith("/VisibleTimeRanges"):
+            for row in chunk.to_record_batch().to_pydict()["VisibleTimeRanges:ranges"]:
+                out += [-r["range"]["start"] * 1e-9 for r in row if r["timeline"] == "time"]
+    return sorted(out)
+
+
+def test_live_views_roll_a_window_and_a_file_shows_the_whole_run(tmp_path):
+    from feedio.transport import free_tcp_port
+    from monitor.sinks.rerun_sink import RerunSink
+
+    axes = ("X", "Y")
+    for tag, kw in (("file", {}), ("live", {"serve_port": free_tcp_port(), "memory_limit": "64MB"})):
+        sink = RerunSink(tmp_path / f"{tag}.rrd", **kw)
+        for ax in axes:
+            sink.offer(est_block(0, 50, axis=ax))
+        assert sink.close(timeout=60)
+        windows = _view_windows(tmp_path / f"{tag}.rrd")
+        detail = [pytest.approx(0.25)] * len(axes)  # the waveform panel of each axis rolls in any case
+        if tag == "file":
+            assert windows == detail
+        else:  # force, velocity, σ, dictionary of each axis and the overview's force panels: last 10 s
+            assert windows == detail + [pytest.approx(10.0)] * (4 * len(axes) + len(axes))

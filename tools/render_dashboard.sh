@@ -55,6 +55,10 @@ for _ in $(seq 100); do
     sleep 0.2
 done
 sleep "$WAIT"
+if command -v xdotool >/dev/null; then  # the pointer starts mid-screen: move it off the plots (no tooltip)
+    DISPLAY=":$DISP" xdotool mousemove $((${SIZE%x*} / 2)) 14
+    sleep 3
+fi
 DISPLAY=":$DISP" import -window root "$OUT/dashboard.png"
 echo "render_dashboard: $OUT/dashboard.png (the viewer as it opens: time cursor at the end)"
 # with xdotool: click the time bar at CURSOR (fraction of the run, default 0.5) for a mid-run view
