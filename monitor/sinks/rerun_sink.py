@@ -647,6 +647,8 @@ class RerunSink(QueuedSink):
                 if ax.events:
                     self._attempt(self._log_events, ax, items=len(ax.events))
             self._flush(max(10.0, self.flush_timeout))
+        if self._flush_failures:  # Rerun's disconnect waits for ever on a writer that stopped
+            self.broken = True
         if not self.broken:
             self.rec.disconnect()  # finalises the .rrd footer and stops the gRPC server
 
