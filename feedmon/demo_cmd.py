@@ -66,7 +66,8 @@ def run(args) -> int:
     # 3.–4. monitor + replay
     mcap_path = out / "monitor.mcap"
     rrd_path = out / "monitor.rrd"
-    received = _monitor_and_replay(model_path, paths["milling-incdec"], mcap_path, rrd_path, args.rate, console)
+    received = _monitor_and_replay(model_path, paths["milling-incdec"], mcap_path, rrd_path, args.rate, console,
+                                   teeth=cut_trial.meta.teeth)
 
     # 5. how well did it follow the cutting force?
     summary = _score(mcap_path, cut_trial)
@@ -94,18 +95,22 @@ def _print_identification(air, cut, console) -> None:
     console.print(table)
 
 
-def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, console) -> int:
+def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, console, teeth=None) -> int:
     from feedio.transport import free_tcp_port, open_session
     from monitor.axes import live_meta, load_axes, warm_up
     from monitor.daemon import Monitor
     from monitor.sinks.mcap_sink import McapSink
+    from monitor.sinks.rerun_layout import describe_model
     from monitor.sinks.rerun_process import RerunProcessSink
     from replay.player import replay
 
     axes = load_axes([model_path])
     warm_up(axes)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    sinks = [McapSink(mcap_path, metas=[live_meta(a, source="demo") for a in axes.values()]), RerunProcessSink(rrd_path)]
+    # the dashboard marks 1/ψ (model) and the tooth-passing frequency (spindle_rpm × the trial's teeth)
+    info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model, teeth=teeth) for a in axes.values()}
+    sinks = [McapSink(mcap_path, metas=[live_meta(a, source="demo") for a in axes.values()]),
+             RerunProcessSink(rrd_path, axis_info=info)]
     server = open_session(listen=endpoint)
     client = None
     monitor = Monitor(axes, server, sinks=sinks, record_truth=True)

@@ -206,9 +206,11 @@ def _run_live(args) -> int:
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
         if args.rrd is not None or args.serve_rerun is not None:
+            from monitor.sinks.rerun_layout import describe_model
             from monitor.sinks.rerun_process import RerunProcessSink
 
-            rs_ = RerunProcessSink(args.rrd, args.serve_rerun)  # own process: never holds our GIL
+            info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
+            rs_ = RerunProcessSink(args.rrd, args.serve_rerun, axis_info=info)  # own process: never holds our GIL
             sinks.append(rs_)
             if args.rrd:
                 _say(f"Rerun recording: {args.rrd}")

@@ -9,8 +9,10 @@ encoding as on Zenoh, no pickling — to a pipe; a child process decodes them an
 
 Wire format on the pipe (``Connection.send_bytes``): one tag byte, then the payload —
 ``S`` + SampleBlock JSON, ``E`` + EstimateBlock JSON, ``T`` + ``machine\\0axis\\0`` + TruthBlock
-JSON, ``Q`` to finish. The child answers once at start (``{"server_uri": ...}`` or
-``{"error": ...}``) and once at the end (its status). It ignores SIGINT/SIGTERM (a service
+JSON, ``V`` + event JSON, ``H`` + health-report JSON, ``Q`` to finish. The child answers once at
+start (``{"server_uri": ...}`` or ``{"error": ...}``), then with its status whenever its counters
+change (at most every ``report_interval`` s) and once at the end (``"final": true``): failures
+inside the child count in the parent's ``failures``. It ignores SIGINT/SIGTERM (a service
 manager signals the whole process group): it stops when told, or when the pipe closes because
 the monitor died, and finishes the recording either way. It runs at nice 10, so on a busy
 machine the monitor's estimator thread gets the CPU first.
@@ -22,6 +24,7 @@ import json
 import multiprocessing
 import os
 import signal
+import threading
 from typing import Any
 
 from feedio import schema as S
@@ -44,22 +47,31 @@ def check_outputs(rrd_path, serve_port) -> None:
 class RerunProcessSink(QueuedSink):
     """A :class:`RerunSink` run in a child process (same arguments, same entities and blueprint).
 
+    Its :meth:`status` adds what went wrong inside the child to the sink's own counters: the
+    child's ``failures`` and undecodable messages to ``failures``, the child's queue drops to
+    ``dropped``, its last error to ``last_error`` (the child reports every ``report_interval`` s
+    while something changes, and once more at the end).
+
     Parameters
     ----------
     rrd_path, serve_port, memory_limit, **rerun_options:
         as for :class:`~monitor.sinks.rerun_sink.RerunSink`.
     start_timeout:
         seconds to wait for the child to import Rerun and open its sinks.
+    report_interval:
+        seconds between the child's status reports.
     """
 
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
-                 maxsize: int = 4096, name: str = "rerun", start_timeout: float = 60.0, **rerun_options) -> None:
+                 maxsize: int = 4096, name: str = "rerun", start_timeout: float = 60.0, report_interval: float = 0.5,
+                 **rerun_options) -> None:
         check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(target=_child_main, name="feedmon-rerun", daemon=True,
-                                 args=(child, self.rrd_path, serve_port, memory_limit, rerun_options))
+                                 args=(child, self.rrd_path, serve_port, memory_limit, rerun_options,
+                                       float(report_interval)))
         self._proc.start()
         child.close()
         hello = self._receive(start_timeout)
@@ -81,8 +93,29 @@ class RerunProcessSink(QueuedSink):
 
     # ---- producer side ---------------------------------------------------------------------
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
-        """Queue a :class:`TruthBlock` of ``machine/axis`` (plotted as ``disturbance/truth``)."""
+        """Queue a :class:`TruthBlock` of ``machine/axis`` (plotted as the true force / dynamometer)."""
         return self.offer((machine, axis, block))
+
+    def offer_event(self, machine: str, axis: str, seq: int, t: float, level: str, text: str) -> bool:
+        """Queue one line for the event log of ``machine/axis`` (see :meth:`RerunSink.offer_event`)."""
+        return self.offer(("event", {"machine": machine, "axis": axis, "seq": int(seq), "t": float(t),
+                                     "level": str(level), "text": str(text)}))
+
+    def offer_health(self, machine: str, axis: str, health: dict[str, Any]) -> bool:
+        """Queue a health report (see :meth:`RerunSink.offer_health`)."""
+        return self.offer(("health", {"machine": machine, "axis": axis, "health": dict(health)}))
+
+    def status(self):
+        st = super().status()
+        c = self.child_status
+        if c:
+            st["failures"] += int(c.get("failures", 0)) + int(c.get("undecodable", 0))
+            st["dropped"] += int(c.get("dropped", 0))
+            if c.get("last_error"):
+                st["last_error"] = f"recording process: {c['last_error']}"
+            if (c.get("state") == "failed" or c.get("broken")) and st["state"] == "ok":
+                st["state"] = "failed"
+        return st
 
     def extra_status(self) -> dict[str, Any]:
         return {"rrd_path": self.rrd_path, "server_uri": self.server_uri, "process_alive": self._proc.is_alive(),
@@ -97,14 +130,30 @@ class RerunProcessSink(QueuedSink):
         elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             head = f"{item[0]}\0{item[1]}\0".encode()
             self._conn.send_bytes(b"T" + head + S.encode(item[2]))
+        elif isinstance(item, tuple) and len(item) == 2 and item[0] in ("event", "health"):
+            tag = b"V" if item[0] == "event" else b"H"
+            self._conn.send_bytes(tag + json.dumps(item[1], allow_nan=False).encode())
         else:
-            raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), "
-                            f"got {type(item).__name__}")
+            raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
+                            f"events and health reports, got {type(item).__name__}")
+
+    def _take_reports(self, timeout: float = 0.0) -> bool:
+        """Read the child's status reports waiting on the pipe; True once the final one arrived."""
+        while True:
+            msg = self._receive(timeout)
+            if msg is None:
+                return False
+            self.child_status = msg
+            if msg.get("final"):
+                return True
+
+    def tick(self, now: float) -> None:
+        self._take_reports()
 
     def finish(self) -> None:
         try:
             self._conn.send_bytes(b"Q")
-            self.child_status = self._receive(60.0) or {}
+            self._take_reports(60.0)
         finally:
             self._proc.join(10.0)
             if self._proc.is_alive():
@@ -112,7 +161,21 @@ class RerunProcessSink(QueuedSink):
             self._conn.close()
 
 
-def _child_main(conn, rrd_path, serve_port, memory_limit, options) -> None:
+def _reporter(conn, sink, stop: threading.Event, interval: float, extra: dict) -> None:
+    """Child thread: send the sink's status to the parent whenever it changed (at most every ``interval`` s)."""
+    last = None
+    while not stop.wait(interval):
+        st = {**sink.status(), **extra}
+        key = (st["failures"], st["dropped"], st["state"], st.get("broken"), st["undecodable"])
+        if key != last:
+            last = key
+            try:
+                conn.send_bytes(json.dumps(st, default=str).encode())
+            except (OSError, ValueError):
+                return
+
+
+def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5) -> None:
     """The recording process: pipe → decode → :class:`RerunSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -128,7 +191,11 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options) -> None:
         conn.send_bytes(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
         return
     conn.send_bytes(json.dumps({"server_uri": sink.server_uri}).encode())
-    bad = 0
+    counts = {"undecodable": 0}
+    stop = threading.Event()
+    reporter = threading.Thread(target=_reporter, args=(conn, sink, stop, report_interval, counts),
+                                name="rerun-report", daemon=True)
+    reporter.start()
     while True:
         try:
             msg = conn.recv_bytes()
@@ -145,12 +212,24 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options) -> None:
             elif tag == b"T":
                 machine, axis, payload = body.split(b"\0", 2)
                 sink.offer_truth(machine.decode(), axis.decode(), S.decode_truth(payload))
+            elif tag == b"V":
+                e = json.loads(body)
+                sink.offer_event(e["machine"], e["axis"], e["seq"], e["t"], e["level"], e["text"])
+            elif tag == b"H":
+                h = json.loads(body)
+                sink.offer_health(h["machine"], h["axis"], h["health"])
             else:
-                bad += 1
-        except (S.SchemaError, ValueError):
-            bad += 1
-    sink.close(30.0)
+                counts["undecodable"] += 1
+        except (S.SchemaError, ValueError, KeyError, TypeError):
+            counts["undecodable"] += 1
+    finished = sink.close(30.0)
+    stop.set()
+    reporter.join(5.0)
     try:
-        conn.send_bytes(json.dumps({**sink.status(), "undecodable": bad}, default=str).encode())
+        conn.send_bytes(json.dumps({**sink.status(), **counts, "final": True}, default=str).encode())
     except (OSError, ValueError):
         pass
+    if not finished or sink.broken:
+        # Rerun's writer is stuck (e.g. the disk is full): its exit handlers would wait for ever
+        conn.close()
+        os._exit(1)

@@ -1,0 +1,272 @@
+"""What the Rerun dashboard shows: entity paths, units, series styles and the blueprint.
+
+One axis: paths below ``/<machine>/<axis>``; ``<g>`` is ``force`` (N) when the model scales to
+newtons, else ``disturbance`` (velocity disturbance in µm/s). "At" is the sample each value is
+placed at, for a value from EstimateBlock row j.
+
+* ``<g>/estimate`` filtered disturbance (``force`` / ``f``), at j−1; ``<g>/upper``, ``<g>/lower``
+  estimate ± 2σ, at j−1; ``sigma/estimate`` its σ, at j−1.
+* ``<g>/prediction`` one-step prediction (``force_next`` / ``f_next``), at j; ``sigma/prediction``.
+* ``<g>/actual`` the truth (TruthBlock ``force`` / ``f``) of sample j; ``force/dynamometer`` the
+  dynamometer reading of sample j with its sign turned to the disturbance's (the dynamometer
+  measures along the axis, the disturbance force opposes motion).
+* ``velocity/reference|measured|predicted`` v_ref, v_meas, v_pred in mm/s, at j.
+* ``dictionary/size`` KRLS-T dictionary size; ``dictionary/pruned|reduced`` elements pruned and
+  REDUCED updates per second over the last ``rate_window`` s, at j.
+* ``residual_psd/residual``, ``disturbance_psd/estimate|actual``: BarCharts, PSD in dB above the
+  signal's floor vs Hz, at the last sample of their window; ``psd_markers/1_over_psi|
+  tooth_passing|spindle`` marker bars (Hz) shown in both spectra.
+* ``events``: TextLog (flags, gaps, glitches, spectrum markers, health), at the sample concerned.
+
+Entity names sort so that the estimate is drawn over the truth (Rerun draws in path order).
+
+Row j of an EstimateBlock is emitted when sample j arrives; its filtered values describe sample
+j−1 and its prediction sample j (CONTRACTS.md, "what a value describes, in time"), so each value
+is placed on the ``sample`` (sequence) and ``time`` (controller time, s) timelines at the sample
+it describes and lines up with the truth of that sample.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["AxisInfo", "describe_model", "Series", "series_styles", "group_of", "units_of", "AxisView",
+           "axis_blueprint", "blueprint_for", "MARKER_COLOURS", "SPECTRUM_COLOURS", "TIMELINE", "SEQUENCE"]
+
+TIMELINE = "time"  # controller time (s), duration timeline
+SEQUENCE = "sample"  # sample sequence number
+
+# colours (RGBA): band translucent so the estimate and the truth stay visible through it
+_RED = (214, 39, 40, 255)
+_BAND = (255, 110, 110, 110)
+_ORANGE = (255, 160, 40, 255)
+_GREEN = (70, 200, 90, 255)
+_GREY = (170, 170, 170, 255)
+_BLUE = (60, 150, 230, 255)
+_VIOLET = (180, 130, 230, 255)
+_CYAN = (23, 190, 207, 255)
+
+MARKER_COLOURS = {"1_over_psi": (255, 215, 0, 150), "tooth_passing": (0, 220, 255, 150), "spindle": (0, 220, 255, 150)}
+SPECTRUM_COLOURS = {"residual": (196, 140, 110, 255), "estimate": _RED, "actual": _GREEN}
+
+
+@dataclass(frozen=True)
+class Series:
+    """Style of one plotted series: legend label, RGBA colour, line width (px), zoomed-out aggregation.
+
+    ``aggregation`` is Rerun's AggregationPolicy: MinMax keeps the peaks of a 100 Hz force visible
+    when a pixel covers many samples (averaging would wash them out), Max/Min keep the band's
+    outer edge.
+    """
+
+    label: str
+    colour: tuple[int, int, int, int]
+    width: float = 1.5
+    aggregation: str = "MinMax"
+
+
+def group_of(force: bool) -> str:
+    """Entity group of the disturbance: ``force`` (N) or ``disturbance`` (µm/s)."""
+    return "force" if force else "disturbance"
+
+
+def units_of(force: bool) -> str:
+    return "N" if force else "µm/s"
+
+
+def _disturbance_series(force: bool) -> dict[str, Series]:
+    g = group_of(force)
+    s = {
+        f"{g}/upper": Series("estimate + 2σ", _BAND, 1.0, "Max"),
+        f"{g}/lower": Series("estimate − 2σ", _BAND, 1.0, "Min"),
+        f"{g}/actual": Series("true force" if force else "true disturbance", _GREEN, 1.5),
+        f"{g}/estimate": Series("filtered estimate", _RED, 1.5),
+        f"{g}/prediction": Series("one-step prediction", _ORANGE, 1.5),
+        "sigma/estimate": Series("σ filtered estimate", _RED, 1.5, "Max"),
+        "sigma/prediction": Series("σ one-step prediction", _ORANGE, 1.5, "Max"),
+    }
+    if force:
+        s["force/dynamometer"] = Series("dynamometer (sign flipped)", _GREY, 1.0)
+    return s
+
+
+_COMMON: dict[str, Series] = {
+    "velocity/reference": Series("reference v_ref", _GREY, 1.5),
+    "velocity/measured": Series("measured v_meas", _BLUE, 1.5),
+    "velocity/predicted": Series("one-step prediction v_pred", _ORANGE, 1.0),
+    "dictionary/size": Series("size (elements)", _CYAN, 1.5, "MinMax"),
+    "dictionary/pruned": Series("pruned per s", _VIOLET, 1.5, "Max"),
+    "dictionary/reduced": Series("REDUCED per s (newest pruned at once)", _GREY, 1.0, "Max"),
+}
+
+
+def series_styles(force: bool) -> dict[str, Series]:
+    """Every time series of one axis (path relative to ``/<m>/<a>``) and its style."""
+    return {**_disturbance_series(force), **_COMMON}
+
+
+# ---- what the dashboard knows of an axis ------------------------------------------------------------
+@dataclass(frozen=True)
+class AxisInfo:
+    """What the dashboard knows of an axis beyond its blocks (all optional).
+
+    ``period`` ψ of the tracker kernel (s, 1/ψ marker), ``teeth`` of the tool (tooth-passing
+    marker, with the samples' ``spindle_rpm``), ``Ts`` sampling period (s; else measured from
+    the blocks), ``force``: the model scales to newtons (else decided by the first estimate).
+    """
+
+    period: float | None = None
+    teeth: int | None = None
+    Ts: float | None = None
+    force: bool | None = None
+
+    @classmethod
+    def parse(cls, key: str, value: Mapping[str, Any]) -> AxisInfo:
+        if not isinstance(value, Mapping):
+            raise ValueError(f"axis_info[{key!r}] must be a mapping, got {type(value).__name__}")
+        unknown = set(value) - {"period", "teeth", "Ts", "force"}
+        if unknown:
+            raise ValueError(f"axis_info[{key!r}]: unknown keys {sorted(unknown)}; known: period, teeth, Ts, force")
+        for name in ("period", "Ts"):
+            v = value.get(name)
+            if v is not None and not (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                                      and 0 < v < 1e6):
+                raise ValueError(f"axis_info[{key!r}][{name!r}] must be a positive number of seconds, got {v!r}")
+        teeth = value.get("teeth")
+        if teeth is not None and not (isinstance(teeth, int) and not isinstance(teeth, bool) and 1 <= teeth <= 1000):
+            raise ValueError(f"axis_info[{key!r}]['teeth'] must be an integer 1..1000, got {teeth!r}")
+        force = value.get("force")
+        if force is not None and not isinstance(force, bool):
+            raise ValueError(f"axis_info[{key!r}]['force'] must be true or false, got {force!r}")
+        return cls(value.get("period"), teeth, value.get("Ts"), force)
+
+
+def describe_model(model, teeth: int | None = None) -> dict[str, Any]:
+    """``axis_info`` entry of an :class:`~monitor.model_file.AxisModel`: ψ of a time-periodic tracker
+    kernel (s), Ts, force scaling, and the tool's teeth (argument, else a ``teeth`` attribute of the
+    model when it has one)."""
+    kernel = model.tracker.kernel or {}
+    period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "periodic") else None
+    if teeth is None:
+        teeth = getattr(model, "teeth", None)
+    return {"period": float(period) if period else None, "Ts": float(model.Ts), "force": bool(model.force_scalable),
+            "teeth": teeth}
+
+
+# ---- blueprint -------------------------------------------------------------------------------------------
+def _window(seconds: float | None):
+    import rerun.blueprint as rrb
+
+    if seconds is None:
+        return None
+    return rrb.VisibleTimeRange(TIMELINE, start=rrb.TimeRangeBoundary.cursor_relative(seconds=-float(seconds)),
+                                end=rrb.TimeRangeBoundary.cursor_relative())
+
+
+def _series_view(origin: str, name: str, window: float | None, contents=None, legend: str | None = "LeftTop"):
+    import rerun.blueprint as rrb
+
+    kw = {} if contents is None else {"contents": contents}
+    plot_legend = rrb.PlotLegend(visible=False) if legend is None else rrb.PlotLegend(corner=legend)
+    tr = _window(window)
+    if tr is not None:
+        kw["time_ranges"] = tr
+    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=plot_legend, **kw)
+
+
+@dataclass(frozen=True)
+class AxisView:
+    """One axis on the dashboard: entity root (``/<m>/<a>``, escaped), names, newtons or velocity units."""
+
+    root: str
+    machine: str
+    axis: str
+    force: bool = True
+
+
+def force_view(ax: AxisView, window: float | None, title_prefix: str = ""):
+    """The disturbance panel: filtered estimate ±2σ at its sample time, truth, dynamometer."""
+    what = "force" if ax.force else "disturbance (velocity units)"
+    name = (f"{title_prefix}{ax.axis} {what} ({units_of(ax.force)}): filtered estimate ±2σ at its sample time, "
+            f"true{', dynamometer' if ax.force else ''}")
+    return _series_view(f"{ax.root}/{group_of(ax.force)}", name, window,
+                        contents=["$origin/**", "- $origin/prediction"])
+
+
+def _events_view(origin: str, name: str, contents=None, entity_column: bool = False):
+    """The event log: sample number, level, text (the text says the time; a time column is cut short)."""
+    import rerun.blueprint as rrb
+    from rerun.blueprint.encodings import TextLogColumn, TimelineColumn
+
+    cols = rrb.TextLogColumns(
+        timeline_columns=[TimelineColumn(SEQUENCE), TimelineColumn(TIMELINE, visible=False)],
+        text_log_columns=[TextLogColumn("EntityPath", visible=entity_column), TextLogColumn("LogLevel"),
+                          TextLogColumn("Body")])
+    kw = {} if contents is None else {"contents": contents}
+    return rrb.TextLogView(origin=origin, name=name, columns=cols, **kw)
+
+
+def axis_blueprint(ax: AxisView, window: float | None = None, detail: float = 0.25):
+    """One axis on one screen (after thesis Figure 4.8): disturbance and its detail, velocity, σ,
+    dictionary, the two spectra with their markers (full width: a tick label every 10 Hz), events."""
+    import rerun.blueprint as rrb
+
+    o, u, g = ax.root, units_of(ax.force), group_of(ax.force)
+    markers = f"{o}/psd_markers/**"
+    key = "markers: 1/ψ yellow, tooth passing (and harmonics) cyan"
+    what = "force" if ax.force else "disturbance"
+    return rrb.Vertical(
+        rrb.Horizontal(
+            force_view(ax, window),
+            _series_view(f"{o}/{g}", f"last {detail:g} s ({u}): one-step prediction orange, true green"
+                                     f"{', dynamometer grey' if ax.force else ''}", detail, legend=None,
+                         contents=["$origin/prediction", "$origin/actual", "$origin/dynamometer"]),
+            column_shares=[2.2, 1],
+        ),
+        rrb.Horizontal(
+            _series_view(f"{o}/velocity", f"{ax.axis} velocity (mm/s): reference, measured, one-step prediction",
+                         window),
+            _series_view(f"{o}/sigma", f"σ of the {what} estimate ({u})", window),
+            _series_view(f"{o}/dictionary", "KRLS-T dictionary: size, pruning rate (1/s)", window),
+            column_shares=[2, 1, 1],
+        ),
+        rrb.BarChartView(origin=f"{o}/residual_psd", contents=["$origin/**", markers],
+                         name=f"residual PSD (brown), dB above its floor, vs frequency (Hz); {key}",
+                         plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.BarChartView(origin=f"{o}/disturbance_psd", contents=["$origin/**", markers],
+                         name=f"{what} PSD, dB above its floor, vs frequency (Hz): estimate red, actual green; {key}",
+                         plot_legend=rrb.PlotLegend(visible=False)),
+        _events_view(f"{o}/events", f"{ax.machine}/{ax.axis} events: flags, gaps, glitches, health"),
+        row_shares=[2.4, 1.5, 1.85, 1.85, 1.9],
+        name=f"{ax.machine}/{ax.axis}",
+    )
+
+
+def overview(axes: Sequence[AxisView], window: float | None):
+    """Several axes: one disturbance panel per axis and the events of all axes."""
+    import rerun.blueprint as rrb
+
+    panels = [force_view(ax, window, title_prefix=f"{ax.machine}/") for ax in axes]
+    log = _events_view("/", "events of all axes", contents=[f"{ax.root}/events" for ax in axes], entity_column=True)
+    return rrb.Vertical(*panels, log, row_shares=[2] * len(panels) + [1], name="overview")
+
+
+def blueprint_for(axes: Sequence[AxisView], window: float | None = None, detail: float = 0.25):
+    """The dashboard: one axis on its own, else an overview tab and one tab per axis.
+
+    ``window``: rolling window (s of controller time) of the time views, None = the whole run.
+    """
+    import rerun.blueprint as rrb
+
+    views = [axis_blueprint(ax, window, detail) for ax in axes]
+    if not views:
+        root = rrb.Vertical(rrb.TextDocumentView(origin="/", name="waiting for data"))
+    elif len(views) == 1:
+        root = views[0]
+    else:
+        root = rrb.Tabs(overview(axes, window), *views)
+    return rrb.Blueprint(root, rrb.BlueprintPanel(state="hidden"), rrb.SelectionPanel(state="hidden"),
+                         rrb.TimePanel(state="collapsed", timeline=TIMELINE, play_state="following"))
