@@ -246,7 +246,8 @@ def test_mcap_sink_bad_block_is_a_counted_failure(tmp_path):
     from monitor.sinks.mcap_sink import McapSink
 
     sink = McapSink(tmp_path / "neg.mcap", metas=[meta("X")])
-    bad = S.SampleBlock(machine="mill", axis="X", seq=0, t=[-1.0], v_ref=[0.0], v_meas=[0.0])
+    bad = S.SampleBlock(machine="mill", axis="X", seq=0, t=[0.0], v_ref=[0.0], v_meas=[0.0])
+    bad.t = [-1.0]  # the schema refuses it on construction; edited in place it reaches the sink's own check
     sink.offer(bad)
     sink.offer("not a block")
     sink.offer(samples("X", 0))
