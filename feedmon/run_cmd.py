@@ -110,10 +110,12 @@ def _say(msg: str) -> None:
 def _setup_logging() -> None:
     from monitor.status import EscapingFormatter
 
+    root = logging.getLogger()
+    if root.handlers:  # configured by the embedding program (or a test runner): leave it
+        return
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(EscapingFormatter("feedmon run: %(levelname)s: %(message)s"))  # one record, one line
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
+    root.addHandler(handler)
     root.setLevel(logging.INFO)
 
 
@@ -261,12 +263,13 @@ def _run_live(cfg: RunConfig) -> int:
 
 def _summary(monitor) -> None:
     st = monitor.status()
+    inp = st["input"]
+    _say(f"input: {inp['received']} messages received, {inp['handled']} handled")
     for name, a in st["axes"].items():
         lat = a["latency_us"]
-        _say(f"{name}: {a['samples_in']} samples in, {a['estimates_out']} estimates out, "
+        _say(f"{name}: {a['blocks']} blocks, {a['samples_in']} samples in, {a['estimates_out']} estimates out, "
              f"{a['dropped_total']} dropped{' ' + str(a['drops']) if a['drops'] else ''}, {a['gaps']} gaps; "
              f"latency p50 {lat['p50']} µs, p99 {lat['p99']} µs")
-    inp = st["input"]
     refused = {k: inp[k] for k in ("too_large", "queue_full", "malformed", "key_mismatch_total", "shutdown_discarded")
                if inp.get(k)}
     nm = sum(inp["no_model"].values()) + inp["no_model_overflow"]

@@ -66,8 +66,6 @@ __all__ = ["Monitor"]
 log = logging.getLogger("monitor.daemon")
 
 _STOP = object()
-#: at stop, after the queue was discarded: how long the estimator may take to finish its current block
-_FINISH_BLOCK_SECONDS = 10.0
 #: callback-side refusal reasons (status name in ``input`` → per-axis ``drops`` name)
 _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
                      "shutdown_discarded": "shutdown_discarded"}
@@ -95,6 +93,10 @@ class Monitor:
     drain_seconds:
         at :meth:`stop`, how long the estimator may work off the queued input before the rest is
         discarded (and counted).
+    finish_seconds:
+        at :meth:`stop`, after that: how long the estimator may take to finish the block in progress
+        (at most ``max_block_samples`` samples) before the monitor gives up on it (and does not save
+        the tracker states).
     """
 
     def __init__(
@@ -109,9 +111,10 @@ class Monitor:
         state: StateStore | None = None,
         endpoints: Sequence[str] = (),
         drain_seconds: float = 30.0,
+        finish_seconds: float = 10.0,
     ) -> None:
-        if not drain_seconds >= 0:
-            raise ValueError(f"drain_seconds must be ≥ 0, got {drain_seconds}")
+        if not drain_seconds >= 0 or not finish_seconds >= 0:
+            raise ValueError(f"drain_seconds and finish_seconds must be ≥ 0, got {drain_seconds}, {finish_seconds}")
         self.pipeline = Pipeline(axes, prefix=prefix, limits=limits)
         self.axes = axes
         self.session = session
@@ -122,6 +125,7 @@ class Monitor:
         self.state_store = state
         self.endpoints = list(endpoints)
         self.drain_seconds = float(drain_seconds)
+        self.finish_seconds = float(finish_seconds)
         self._q: queue.Queue = queue.Queue(maxsize=limits.queue_messages)
         # input side (Zenoh callback threads), under _in_lock
         self._in_lock = threading.Lock()
@@ -131,6 +135,7 @@ class Monitor:
         self._refused: Counter[tuple[str, str]] = Counter()  # (reason, axis name or "") -> messages
         # estimator thread
         self._bytes_out = 0
+        self.handled = 0  # messages taken off the queue and handled
         self.truth_blocks = 0
         self.publish_errors = 0
         # status queryable (Zenoh threads), under _status_lock
@@ -239,6 +244,7 @@ class Monitor:
                 return
             key, payload, t_recv, size = item
             self._bytes_out += size
+            self.handled += 1
             try:
                 self.handle(key, payload, t_recv)
             except Exception:  # noqa: BLE001 - the estimator thread must survive anything
@@ -314,7 +320,10 @@ class Monitor:
         """Stop the estimator thread: drain for up to ``drain_seconds``, then discard the rest.
         True when the thread has ended."""
         th = self._thread
-        if th is None or not th.is_alive():
+        if th is None or not th.is_alive():  # never started (or gone): what is queued will not be estimated
+            n = self._discard_queued()
+            if n:
+                log.warning("%d queued message(s) discarded at stop (status: shutdown_discarded)", n)
             return True
         deadline = time.monotonic() + self.drain_seconds
         try:
@@ -331,7 +340,7 @@ class Monitor:
             self._q.put(_STOP, timeout=5.0)
         except queue.Full:  # only if the estimator is stuck and callbacks refilled it, which _accepting prevents
             pass
-        th.join(_FINISH_BLOCK_SECONDS)  # the block in progress (at most max_block_samples samples)
+        th.join(self.finish_seconds)  # the block in progress (at most max_block_samples samples)
         return not th.is_alive()
 
     def stop(self, timeout: float = 30.0) -> list[str]:
@@ -424,7 +433,8 @@ class Monitor:
                 "uptime_s": round(time.monotonic() - self._started_mono, 3), "endpoints": self.endpoints,
             },
             "input": {
-                "received": received, "pending": self._q.qsize(), "capacity": lim.queue_messages,
+                "received": received, "handled": self.handled, "pending": self._q.qsize(),
+                "capacity": lim.queue_messages,
                 "pending_bytes": max(0, bytes_in - self._bytes_out), "capacity_bytes": lim.queue_bytes,
                 "queue_full": int(totals["queue_full"]),
                 "too_large": int(totals["too_large"]) + axis_sum("too_large"),
@@ -432,6 +442,7 @@ class Monitor:
                 "key_mismatch": p.key_mismatch.to_dict(), "key_mismatch_overflow": p.key_mismatch.overflow,
                 "key_mismatch_total": int(pc.get("key_mismatch", 0)) + axis_sum("key_mismatch"),
                 "no_model": p.no_model.to_dict(), "no_model_overflow": p.no_model.overflow,
+                "no_model_blocks": int(pc.get("no_model_blocks", 0)),
                 "shutdown_discarded": int(totals["shutdown_discarded"]),
                 "truth_blocks": self.truth_blocks, "malformed_truth": int(pc.get("malformed_truth", 0)),
                 "publish_errors": self.publish_errors, "internal_errors": int(pc.get("internal_error", 0)),

@@ -104,6 +104,7 @@ class Pipeline:
         n = len(block.t)
         if ax is None:
             name = f"{block.machine}/{block.axis}"
+            self.counters["no_model_blocks"] += 1
             listed = self.no_model.add(name, n)
             self.burst(f"no_model:{name if listed else ''}",
                        "no model for axis %s: dropping its samples (have models for %s)%s", name,
