@@ -341,6 +341,8 @@ def decode(data: bytes | str, type_: type, *, what: str = "message"):
         raise SchemaError(f"{what} is not a valid {type_.__name__}: {exc}") from None
     except msgspec.DecodeError as exc:
         raise SchemaError(f"{what} is not valid JSON: {exc}") from None
+    except UnicodeDecodeError as exc:  # msgspec raises it for invalid UTF-8 inside a string
+        raise SchemaError(f"{what} is not valid JSON: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
 def decode_samples(data: bytes | str, *, what: str = "sample block") -> SampleBlock:
