@@ -116,6 +116,13 @@ class InputLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
         "a status reply is at most this old (s): the document is rebuilt at most this often, on "
         "the query thread, never on the estimator thread") = 0.2
 
+    @property
+    def transport_max_message_bytes(self) -> int:
+        """What the monitor's Zenoh links accept at all (2 × ``max_message_bytes`` + 64 KiB): a
+        larger message is dropped by Zenoh before it is reassembled (memory stays bounded) and is
+        not counted; one between the two limits reaches the callback and is counted ``too_large``."""
+        return 2 * self.max_message_bytes + 65536
+
     def __post_init__(self) -> None:
         if self.queue_bytes < self.max_message_bytes:
             raise ValueError(f"queue_bytes ({self.queue_bytes}) must be >= max_message_bytes "

@@ -162,7 +162,7 @@ def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:
 
 
 def _run_live(cfg: RunConfig) -> int:
-    from feedio.transport import config_from_args, describe_config, open_session
+    from feedio.transport import config_from_args, describe_config, limit_message_size, open_session
     from monitor.axes import live_meta, load_axes, warm_up
     from monitor.daemon import Monitor
     from monitor.state import StateStore
@@ -204,7 +204,8 @@ def _run_live(cfg: RunConfig) -> int:
                 _say(f"Rerun recording: {cfg.rrd}")
             if rs_.server_uri:
                 _say(f"Rerun live: rerun --connect {rs_.server_uri}")
-        zconfig = config_from_args(_zenoh_args(cfg))
+        # Zenoh itself drops what is far too large, before reassembling it (the callback counts the rest)
+        zconfig = limit_message_size(config_from_args(_zenoh_args(cfg)), cfg.limits.transport_max_message_bytes)
         session = open_session(zconfig)
         zdesc = describe_config(zconfig)  # what the session really does (also with --zenoh-config)
         listen, connect = zdesc["listen"], zdesc["connect"]

@@ -96,6 +96,31 @@ def test_absurd_times_and_sequence_numbers_never_reach_the_mcap_log(work, trial)
     np.testing.assert_array_equal(est["seq"], np.arange(200))
 
 
+# ---- message size: counted in the callback, far too large dropped by the transport ------------------
+def test_message_size_limits_in_feedmon_run(work, trial):
+    limit = 64 * 1024
+    mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-size"),
+                                           "--limit", f"max_message_bytes={limit}"], cwd=work)
+    pad = lambda size: _raw(trial, 100)[:-1] + b" " * (size - len(_raw(trial, 100))) + b"}"  # noqa: E731
+    try:
+        with T.open_session(connect=mon.endpoint) as s:
+            pub = _matched(s, T.samples_key(PREFIX, trial.machine, trial.axis))
+            for b in blocks_of(trial, 0, 100):
+                pub.put(S.encode(b))
+            pub.put(pad(limit))  # exactly the limit: accepted (samples 100..104)
+            pub.put(pad(limit + 1))  # over it: refused in the callback, counted
+            pub.put(pad(3 * limit))  # over 2x + 64 KiB: dropped by Zenoh, never reassembled
+            for b in blocks_of(trial, 105, 200):
+                pub.put(S.encode(b))
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 199)
+    finally:
+        rc = mon.stop()
+    assert rc == 0, mon.stderr
+    a = st["axes"][AXIS]
+    assert a["drops"] == {"too_large": 1} and st["input"]["too_large"] == 1
+    assert a["samples_in"] == 200 and a["gaps"] == 0 and st["limits"]["max_message_bytes"] == limit
+
+
 # ---- names: bounded tables, no log flood, no forged lines, tables that print -------------------
 def test_unknown_names_stay_bounded_and_cannot_forge_log_lines(work, trial):
     mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-names"),
