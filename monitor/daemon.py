@@ -281,6 +281,7 @@ class Monitor:
     def _handle_truth(self, key: str, payload: bytes) -> None:
         ax = self.pipeline.axis_of_key(key)
         if ax is None:  # truth of an axis without a model: not recorded
+            self.pipeline.counters["truth_no_model"] += 1
             return
         try:
             block = S.decode_truth(payload, what="truth block")
@@ -445,6 +446,7 @@ class Monitor:
                 "no_model_blocks": int(pc.get("no_model_blocks", 0)),
                 "shutdown_discarded": int(totals["shutdown_discarded"]),
                 "truth_blocks": self.truth_blocks, "malformed_truth": int(pc.get("malformed_truth", 0)),
+                "truth_no_model": int(pc.get("truth_no_model", 0)),
                 "publish_errors": self.publish_errors, "internal_errors": int(pc.get("internal_error", 0)),
             },
             "limits": {f: getattr(lim, f) for f in lim.__struct_fields__},

@@ -434,8 +434,12 @@ def daemon(work, trial, milling):
             ghost = S.encode(S.SampleBlock(machine="ghost", axis="Q", seq=0, t=[0.0], v_ref=[0.0], v_meas=[0.0]))
             for _ in range(100):
                 s.put(T.samples_key(PREFIX, "ghost", "Q"), ghost, congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in range(1300, 1400):  # our axis' next samples from a peer allowed to publish elsewhere only
+                s.put(T.samples_key(PREFIX, "other-machine", "Y"), one(k, ts[k % len(trial)]),
+                      congestion_control=zenoh.CongestionControl.BLOCK)
             res["mid"] = wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 1299
-                                     and x["input"]["no_model"].get("ghost/Q") == 100)
+                                     and x["input"]["no_model"].get("ghost/Q") == 100
+                                     and x["input"]["key_mismatch"].get("other-machine/Y") == 100)
             res["replay"] = replay(milling, s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0)
             n_mill = res["replay"].samples
             wait_status(s, lambda x: x["axes"]["cnc-mill/X"]["samples_in"] == n_mill)
@@ -456,6 +460,7 @@ def test_daemon_counts_every_bad_burst_exactly(daemon):
                           "duplicate": 100, "out_of_order": 100}, a["drops"]
     assert (a["gaps"], a["missing_samples"], a["counters"]["time_backwards"]) == (100, 100, 100)
     assert st["input"]["no_model"] == {"ghost/Q": 100} and st["input"]["malformed"] == 0
+    assert st["input"]["key_mismatch"] == {"other-machine/Y": 100} and a["last_seq"] == 1299  # forged: not used
     assert st["input"]["internal_errors"] == 0 and st["input"]["queue_full"] == 0
     # every sample that reached the estimator has a row, except the dropped duplicates / out-of-order ones
     assert a["estimates_out"] == a["samples_in"] - 200
@@ -466,7 +471,7 @@ def test_daemon_logs_once_per_burst_not_per_message(daemon):
     mon = daemon["mon"]
     for text in ("dropping malformed message", "rejected: non-finite value", "rejected: absurd magnitude",
                  "duplicate sequence number", "out-of-order sequence number", "after a sequence gap",
-                 "time going backwards", "no model for axis ghost/Q"):
+                 "time going backwards", "no model for axis ghost/Q", "received on key feedmon-bad/other-machine/Y"):
         n = mon.count(text)
         assert 1 <= n <= 3, f"{text!r} logged {n} times for a burst of 100:\n{mon.stderr}"
 
