@@ -189,10 +189,6 @@ class Monitor:
 
     def _on_query(self, query) -> None:
         """Status queryable: a cached document, rate-limited (a refused query gets no reply)."""
-        import zenoh
-
-        from feedio.transport import status_key
-
         with self._status_lock:
             now = time.monotonic()
             lim = self.limits
@@ -211,6 +207,10 @@ class Monitor:
                 self._status_doc = body.encode()
                 self._status_built = now
             doc = self._status_doc
+        import zenoh
+
+        from feedio.transport import status_key
+
         try:
             query.reply(status_key(self.prefix), doc, encoding=zenoh.Encoding.APPLICATION_JSON)
         except Exception as exc:  # noqa: BLE001 - the querier went away, the session is closing
