@@ -48,6 +48,7 @@ the JSON Schema it was written with.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -106,8 +107,9 @@ class SchemaError(ValueError):
 Positive = Annotated[float, msgspec.Meta(gt=0.0)]
 Column = list[float | None]  # measured column: null = missing / non-finite sample
 Form = Literal["velocity-loop", "force-input"]
-#: machine / axis name (see "Bounds" above)
-Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX_LEN, pattern=NAME_PATTERN,
+#: machine / axis name (see "Bounds" above). The pattern is checked in ``__post_init__`` (one
+#: compiled ``fullmatch``, also for constructed objects) and stated in the JSON Schema.
+Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX_LEN, extra_json_schema={"pattern": NAME_PATTERN},
                                    description="1-64 ASCII letters, digits, '_', '.', '-' (not first: '.', '-')")]
 #: sequence number of the first sample of a block; seq + len - 1 <= SEQ_MAX too
 Seq = Annotated[int, msgspec.Meta(ge=0, le=SEQ_MAX, description=f"0 <= seq and seq + len(t) - 1 <= {SEQ_MAX} (2**53 - 1)")]
@@ -130,30 +132,36 @@ def check_name(value: str, what: str) -> str:
 
 def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
     """Common block checks: 1 … BLOCK_SAMPLES_MAX samples, every column as long as ``t``, times in
-    [0, T_MAX], sequence numbers within [0, SEQ_MAX], valid names."""
-    n = len(obj.t)
-    kind = type(obj).__name__
-    if n == 0:
-        raise ValueError(f"{kind} is empty: 't' has no samples (a block holds at least one sample)")
-    if n > BLOCK_SAMPLES_MAX:
-        raise ValueError(f"{kind} has {n} samples; a block holds at most {BLOCK_SAMPLES_MAX}")
+    [0, T_MAX], sequence numbers within [0, SEQ_MAX], valid names. Runs on every decoded message:
+    kept to a few C-level calls on the good path (``sum`` is NaN/inf for any non-finite time,
+    after which ``min``/``max`` are exact)."""
+    t = obj.t
+    n = len(t)
+    if not 0 < n <= BLOCK_SAMPLES_MAX:
+        raise ValueError(f"{type(obj).__name__} has {n} samples in 't'; a block holds 1 to {BLOCK_SAMPLES_MAX}")
     for name in columns:
         col = getattr(obj, name)
         if col is not None and len(col) != n:
-            raise ValueError(
-                f"{kind} field '{name}' has {len(col)} values but 't' has {n}; every column must have one value per sample"
-            )
+            raise ValueError(f"{type(obj).__name__} field '{name}' has {len(col)} values but 't' has {n}; "
+                             "every column must have one value per sample")
     seq = obj.seq
     if type(seq) is not int or seq < 0 or seq + n - 1 > SEQ_MAX:  # bool is not a sequence number either
-        raise ValueError(f"{kind} field 'seq' = {seq!r} with {n} samples: need 0 <= seq and "
+        raise ValueError(f"{type(obj).__name__} field 'seq' = {seq!r} with {n} samples: need 0 <= seq and "
                          f"seq + {n} - 1 <= {SEQ_MAX} (2**53 - 1)")
-    for i, ti in enumerate(obj.t):
-        if not 0.0 <= ti <= T_MAX:  # also catches NaN
-            raise ValueError(f"{kind} field 't' has {ti!r} at index {i}; controller time must be finite, "
-                             f"0 <= t <= {T_MAX:g} s")
-    if hasattr(obj, "machine"):
-        check_name(obj.machine, f"{kind} field 'machine'")
-        check_name(obj.axis, f"{kind} field 'axis'")
+    if not (math.isfinite(sum(t)) and min(t) >= 0.0 and max(t) <= T_MAX):
+        i, ti = next((i, x) for i, x in enumerate(t) if not 0.0 <= x <= T_MAX)
+        raise ValueError(f"{type(obj).__name__} field 't' has {ti!r} at index {i}; controller time must be "
+                         f"finite, 0 <= t <= {T_MAX:g} s")
+    machine = getattr(obj, "machine", None)
+    if machine is not None and not (machine in _GOOD_NAMES and obj.axis in _GOOD_NAMES):
+        for what in ("machine", "axis"):
+            value = check_name(getattr(obj, what), f"{type(obj).__name__} field '{what}'")
+            if len(_GOOD_NAMES) < 4096:  # bounded: names a peer invents only cost the regex
+                _GOOD_NAMES.add(value)
+
+
+#: names already seen to match NAME_PATTERN (a set lookup instead of a regex per message)
+_GOOD_NAMES: set[str] = set()
 
 
 class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
