@@ -37,6 +37,9 @@ Notes on zenoh-python 1.x found while writing this
   after ``declare_publisher`` may reach nobody, and a ``get`` right after a
   remote ``declare_queryable`` may get no reply. Wait for ``matching`` / retry.
 * ``Handler.recv()`` has no timeout; poll ``try_recv()`` or use a callback.
+* ``transport/link/rx/max_message_size`` (default 1 GiB) bounds what a link reassembles; a larger
+  message is dropped silently and the link stays up (:func:`limit_message_size`). A key
+  expression longer than a batch (~64 kB) makes the *sending* session panic, so keys stay short.
 * All errors are ``zenoh.ZError`` (a plain ``Exception``); :func:`open_session`
   turns them into ``ValueError`` (bad configuration) or ``OSError`` (cannot
   listen / connect) so the CLI prints them as user errors.

@@ -161,3 +161,19 @@ def test_offline_truncated_input_fails_clearly_without_hanging(work, capsys, tmp
     err = capsys.readouterr().err
     assert str(cut) in err and "truncated" in err and "feedmon recover" in err, err
     assert time.monotonic() - t0 < 60
+
+
+def test_offline_applies_the_block_limit_like_live(work, capsys, tmp_path):
+    """``max_block_samples`` refuses the same blocks offline as live (same Pipeline): counted, not copied."""
+    out = tmp_path / "limited.mcap"
+    src = read_trial(work / "trial.mcap")
+    sizes = [len(b.t) for _, b in iter_blocks(work / "trial.mcap")]
+    limit = max(sizes) - 1  # every full-size block is refused, a shorter last one is not
+    assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml",
+                "--limit", f"max_block_samples={limit}") == 0
+    refused = sum(n > limit for n in sizes)
+    assert f"{refused} blocks refused (too_large)" in capsys.readouterr().err
+    kept = sum(n for n in sizes if n <= limit)
+    assert len(read_trial(out)) == kept < len(src)
+    est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
+    assert sum(len(b.t) for b in est) == kept
