@@ -34,6 +34,8 @@ __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args"
 
 #: keys whose values are paths (relative to the config file's directory)
 PATH_KEYS = ("model", "mcap", "rrd", "state_dir", "zenoh_config")
+#: a larger file is refused before it is parsed
+MAX_CONFIG_BYTES = 1 << 20
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -107,13 +109,17 @@ def _as_list(value: Any) -> Any:
     return [value] if isinstance(value, str) else value
 
 
-def load_config_file(path: str | Path) -> tuple[ConfigFile, set[str]]:
-    """The decoded file (paths made absolute) and the set of ``run`` keys it sets.
+def load_config_file(path: str | Path) -> ConfigFile:
+    """The decoded file, its paths made absolute.
 
-    Raises ``FileNotFoundError``, or ``ValueError`` naming the file, the key and the allowed range.
+    Raises ``FileNotFoundError``, or ``ValueError`` naming the file, the key and the allowed range
+    (also for a file over :data:`MAX_CONFIG_BYTES` or nested too deeply to parse).
     """
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ValueError(f"config file {path} is {size} bytes; a config file has at most {MAX_CONFIG_BYTES}")
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise FileNotFoundError(f"config file {str(path)!r} does not exist") from None
@@ -121,6 +127,8 @@ def load_config_file(path: str | Path) -> tuple[ConfigFile, set[str]]:
         raise ValueError(f"config file {path}: not UTF-8 text ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"config file {path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"config file {path}: nested too deeply") from None
     run = doc.get("run")
     if isinstance(run, dict):
         base = path.resolve().parent
@@ -134,12 +142,11 @@ def load_config_file(path: str | Path) -> tuple[ConfigFile, set[str]]:
             elif isinstance(v, list):
                 run[key] = [str(base / x) if isinstance(x, str) else x for x in v]
     try:
-        cfg = msgspec.convert(doc, ConfigFile)
+        return msgspec.convert(doc, ConfigFile)
     except msgspec.ValidationError as exc:
         key, msg = _explain(exc, ConfigFile)
         hint = " (the options of feedmon run go in a [run] table)" if key == "(top level)" else ""
         raise ValueError(f"config file {path}: key {key}: {msg}{hint}") from None
-    return cfg, set(run) if isinstance(run, dict) else set()
 
 
 # ---- the command line --------------------------------------------------------------------------
@@ -162,8 +169,7 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
     """The :class:`RunConfig` of ``feedmon run``: the ``--config`` file (if any), then the options
     given on the command line on top (``None`` / absent flags do not override)."""
     if getattr(args, "config", None):
-        file_cfg, _ = load_config_file(args.config)
-        cfg = file_cfg.run
+        cfg = load_config_file(args.config).run
     else:
         cfg = RunConfig()
     cli: dict[str, Any] = {}

@@ -425,7 +425,10 @@ class Monitor:
             p50, p99 = np.percentile(lat, [50.0, 99.0])
             latency.update(p50=round(float(p50), 1), p99=round(float(p99), 1))
         pc = dict(p.counters)
-        axis_sum = lambda reason: sum(int(ax.status.counters.get(reason, 0)) for ax in self.axes.values())  # noqa: E731
+
+        def axis_sum(reason: str) -> int:
+            return sum(int(ax.status.counters.get(reason, 0)) for ax in self.axes.values())
+
         lim = self.limits
         return {
             "monitor": {

@@ -23,6 +23,7 @@ import random
 import time
 
 import pytest
+import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from monitor_proc import MonitorProc
@@ -276,8 +277,6 @@ def test_feedmon_run_survives_a_fuzzed_batch_and_counts_every_message(rig):
         with T.open_session(connect=mon.endpoint) as s:
             pub = s.declare_publisher(T.samples_key(PREFIX, MACHINE, AXIS_NAME))
             assert T.wait_for_matching(pub, 15.0)
-            import zenoh
-
             for key, payload, _ in batch:
                 s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
             st = wait_status(s, pid=mon.proc.pid, timeout=60,

@@ -90,6 +90,15 @@ def test_bad_options_name_the_option_and_range(argv, needle):
     assert needle in str(exc.value), str(exc.value)
 
 
+def test_config_file_size_and_nesting_are_bounded(tmp_path):
+    big = _write(tmp_path, "# " + "x" * (1 << 20) + "\n[run]\n")
+    with pytest.raises(ValueError, match="at most 1048576"):
+        load_config_file(big)
+    deep = _write(tmp_path, "[run]\nmodel = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ValueError, match="nested too deeply|not valid TOML|run.model"):
+        load_config_file(deep)
+
+
 def test_cli_reports_config_errors_without_traceback(tmp_path):
     cfg = _write(tmp_path, "[run]\nmodel = [\"x.toml\"]\n[run.limits]\nqueue_messages = 0\n")
     r = subprocess.run([sys.executable, "-m", "feedmon.cli", "run", "--config", str(cfg)], capture_output=True,
