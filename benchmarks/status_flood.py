@@ -11,13 +11,15 @@ publisher send → estimate arrival measured in this process (same clock). Alter
 *quiet* (only the samples) and *flood* (a second session asks ``<prefix>/monitor/status`` at
 ``--qps`` queries per second, default 1000, without reading the replies). The monitor serves
 status from a cache rebuilt at most every ``status_refresh_s`` and rate-limits replies
-(``status_rate``), so the flood should cost the estimator little. Prints p50/p99/max per period
-and the median p99 ratio flood/quiet; on a shared machine compare ratios within one run.
+(``status_rate``), so the flood should cost the estimator little. Prints p50/p99/max per period,
+the monitor process' CPU use per period (/proc; steadier than latency on a busy machine) and the
+median p99 ratio flood/quiet; on a shared machine compare ratios within one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import threading
 import time
@@ -28,6 +30,12 @@ from monitor_latency import PREFIX, Harness, Monitor, Stream, _model, _pct, _tri
 
 from feedio import transport as T
 from feedio.transport import query_status
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (Linux /proc), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 class Flood:
@@ -96,14 +104,16 @@ def main(argv=None) -> int:
                             time.sleep(0.5)  # the flood is under way
                         first = stream.next
                         sent0 = flood.sent
+                        cpu0, wall0 = cpu_seconds(mon.proc.pid), time.perf_counter()
                         n, t_end = h.run(333.0, seconds, 1)
+                        cpu = (cpu_seconds(mon.proc.pid) - cpu0) / (time.perf_counter() - wall0) * 100.0
                         qps = (flood.sent - sent0) / max(1e-9, seconds)
                         flood.on.clear()
                         deadline = time.perf_counter() + 5
                         while h.est_samples < first + n and time.perf_counter() < deadline:
                             time.sleep(0.05)
                         lat = h.latencies_us(range(first, first + n))
-                        rows.append((r, kind, *_pct(lat), n - lat.size, qps))
+                        rows.append((r, kind, *_pct(lat), n - lat.size, qps, cpu))
                         time.sleep(0.5)
                 flood.close()
                 time.sleep(1.0)  # tokens come back: our own query is answered
@@ -111,13 +121,17 @@ def main(argv=None) -> int:
                 h.close()
         finally:
             mon.stop()
-    print(f"{'round':>5} {'period':>6} {'p50 µs':>9} {'p99 µs':>9} {'max µs':>9} {'lost':>5} {'queries/s':>10}")
-    for r, kind, p50, p99, mx, lost, qps in rows:
-        print(f"{r:>5} {kind:>6} {p50:>9.0f} {p99:>9.0f} {mx:>9.0f} {lost:>5} {qps:>10.0f}")
+    print(f"{'round':>5} {'period':>6} {'p50 µs':>9} {'p99 µs':>9} {'max µs':>9} {'lost':>5} {'queries/s':>10} "
+          f"{'monitor CPU %':>14}")
+    for r, kind, p50, p99, mx, lost, qps, cpu in rows:
+        print(f"{r:>5} {kind:>6} {p50:>9.0f} {p99:>9.0f} {mx:>9.0f} {lost:>5} {qps:>10.0f} {cpu:>14.1f}")
     quiet = np.array([x[3] for x in rows if x[1] == "quiet"])
     loud = np.array([x[3] for x in rows if x[1] == "flood"])
     print(f"median p99: quiet {np.median(quiet):.0f} µs, flood {np.median(loud):.0f} µs, "
           f"ratio {np.median(loud) / np.median(quiet):.2f}")
+    cq = np.median([x[7] for x in rows if x[1] == "quiet"])
+    cf = np.median([x[7] for x in rows if x[1] == "flood"])
+    print(f"median monitor CPU: quiet {cq:.1f} %, flood {cf:.1f} % (+{cf - cq:.1f} points for the flood)")
     print(f"status queries: {st['status']['served']} answered, {st['status']['refused']} refused (rate limit "
           f"{st['limits']['status_rate']:g}/s, burst {st['limits']['status_burst']})")
     return 0
