@@ -28,7 +28,7 @@ What runs
   of a block lost: GAP, chain restart) and re-sent blocks (duplicates: no rows).
 * **The monitor path**: the model file (true β, thesis tracker hyperparameters) is written with
   ``save_model`` and loaded with ``monitor.axes.load_axes``; ``warm_up`` compiles first. Every
-  SampleBlock is encoded to JSON and decoded by :meth:`Pipeline.decode` (the wire path of
+  SampleBlock is encoded to JSON and decoded by :meth:`Pipeline.receive` (the wire path of
   ``feedmon run``; ``--no-wire`` skips it), estimated by :meth:`Pipeline.estimate` (the
   :class:`~monitor.estimator.AxisEstimator` of ``feedmon run`` and ``feedmon run --from``) and the
   EstimateBlock is encoded as the live monitor publishes it. ``--mcap FILE`` (off by default;
@@ -359,7 +359,7 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
 
     def handle(block: S.SampleBlock) -> S.EstimateBlock | None:
         if opts.wire:
-            decoded = pipe.decode(key, S.encode(block))
+            decoded = pipe.receive(key, S.encode(block))
             if decoded is None:
                 raise AssertionError("the soak stream produced a malformed block")
             block = decoded

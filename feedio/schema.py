@@ -14,6 +14,18 @@ Conventions
   This is checked on decode (``__post_init__``) and on construction, and the
   error names the field and both lengths.
 
+Bounds (:mod:`feedio.limits`, checked on decode and on construction)
+----------------------------------------------------------------------
+* ``machine`` and ``axis`` match ``NAME_PATTERN`` = ``^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$``:
+  1 to 64 ASCII letters, digits, ``_``, ``.``, ``-`` (not starting with ``.`` or ``-``).
+  Such a name is safe in a Zenoh key, a file name, a log line and a table.
+* ``0 ≤ seq`` and ``seq + len(block) − 1 ≤ SEQ_MAX = 2**53 − 1``: every sequence number of
+  every sample is exact as an int64 and as a float64.
+* Controller time ``0 ≤ t ≤ T_MAX = 1e10`` s and finite: every time is a valid MCAP log time
+  (ns since 0 in a uint64), so no sink ever sees a time it cannot store.
+* A block holds 1 … ``BLOCK_SAMPLES_MAX`` = 1 000 000 samples (the monitor's configurable
+  ``max_block_samples``, default 10 000, is tighter).
+
 Non-finite values
 -----------------
 JSON has no NaN; ``msgspec`` writes NaN/±inf as ``null``. Measured columns are
@@ -21,8 +33,9 @@ therefore typed ``list[float | None]``: a ``null`` is one missing or non-finite
 sample (a dropped encoder read, a NaN from the controller). It decodes to
 ``None`` and becomes ``NaN`` in the NumPy arrays of :mod:`feedio.mcapio`, so
 the monitor can reject that one sample (flag ``REJECTED``) instead of losing
-the whole block. ``t`` is strictly ``list[float]``: a sample without a time
-cannot be placed, so a block with a ``null`` time is rejected as a whole.
+the whole block. ``t`` is strictly ``list[float]`` within the bounds below: a
+sample without a (possible) time cannot be placed, so a block with a ``null`` or
+out-of-range time is rejected as a whole.
 
 Unknown fields
 --------------
@@ -40,15 +53,19 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
+from feedio.limits import BLOCK_SAMPLES_MAX, NAME_MAX_LEN, NAME_PATTERN, NAME_RE, SEQ_MAX, T_MAX
 from kernels.flags import EstimateFlag
 
 __all__ = [
     "SchemaError",
+    "SEQ_MAX",
+    "T_MAX",
+    "NAME_PATTERN",
+    "check_name",
     "SampleBlock",
     "TruthBlock",
     "EstimateBlock",
     "DisturbanceScalars",
-    "SEQ_MAX",
     "Provenance",
     "TrialTruth",
     "TrialMeta",
@@ -88,38 +105,68 @@ def flag_names(flags: int) -> list[str]:
     return [flag.name for flag in EstimateFlag if int(flags) & flag]
 
 
-#: largest sequence number of a sample (CONTRACTS.md: seq + len(block) − 1 ≤ SEQ_MAX); integers up to
-#: 2**53 − 1 survive any JSON reader (doubles) unchanged. Branch `service` enforces it on decode.
-SEQ_MAX = 2**53 - 1
-
-
 class SchemaError(ValueError):
     """A message does not follow the feedmon schema (says which field and why)."""
 
 
-NonNeg = Annotated[int, msgspec.Meta(ge=0)]
 Positive = Annotated[float, msgspec.Meta(gt=0.0)]
 Column = list[float | None]  # measured column: null = missing / non-finite sample
 Form = Literal["velocity-loop", "force-input"]
+#: machine / axis name (see "Bounds" above). The pattern is checked in ``__post_init__`` (one
+#: compiled ``fullmatch``, also for constructed objects) and stated in the JSON Schema.
+Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX_LEN, extra_json_schema={"pattern": NAME_PATTERN},
+                                   description="1-64 ASCII letters, digits, '_', '.', '-' (not first: '.', '-')")]
+#: sequence number of the first sample of a block; seq + len - 1 <= SEQ_MAX too
+Seq = Annotated[int, msgspec.Meta(ge=0, le=SEQ_MAX, description=f"0 <= seq and seq + len(t) - 1 <= {SEQ_MAX} (2**53 - 1)")]
+#: controller time (s) of every sample
+Times = Annotated[list[Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]],
+                  msgspec.Meta(min_length=1, max_length=BLOCK_SAMPLES_MAX,
+                               description=f"controller time (s), 0 <= t <= {T_MAX:g}; 1 to {BLOCK_SAMPLES_MAX} samples")]
 
 _STRUCT_OPTS = dict(forbid_unknown_fields=True, omit_defaults=True)
 
 
+def check_name(value: str, what: str) -> str:
+    """``value`` if it is a valid machine/axis name, else ``ValueError`` naming ``what`` and the rule."""
+    if not isinstance(value, str) or NAME_RE.fullmatch(value) is None:
+        shown = repr(value[:80]) + ("…" if isinstance(value, str) and len(value) > 80 else "")
+        raise ValueError(f"{what} {shown} is not a valid name: 1-{NAME_MAX_LEN} ASCII letters, digits, "
+                         "'_', '.' or '-', not starting with '.' or '-'")
+    return value
+
+
 def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
-    """Common block checks: non-empty, finite times, every column as long as ``t``."""
-    n = len(obj.t)
-    kind = type(obj).__name__
-    if n == 0:
-        raise ValueError(f"{kind} is empty: 't' has no samples (a block holds at least one sample)")
+    """Common block checks: 1 … BLOCK_SAMPLES_MAX samples, every column as long as ``t``, times in
+    [0, T_MAX], sequence numbers within [0, SEQ_MAX], valid names. Runs on every decoded message:
+    kept to a few C-level calls on the good path (``sum`` is NaN/inf for any non-finite time,
+    after which ``min``/``max`` are exact)."""
+    t = obj.t
+    n = len(t)
+    if not 0 < n <= BLOCK_SAMPLES_MAX:
+        raise ValueError(f"{type(obj).__name__} has {n} samples in 't'; a block holds 1 to {BLOCK_SAMPLES_MAX}")
     for name in columns:
         col = getattr(obj, name)
         if col is not None and len(col) != n:
-            raise ValueError(
-                f"{kind} field '{name}' has {len(col)} values but 't' has {n}; every column must have one value per sample"
-            )
-    for i, ti in enumerate(obj.t):
-        if not math.isfinite(ti):
-            raise ValueError(f"{kind} field 't' has a non-finite time at index {i}")
+            raise ValueError(f"{type(obj).__name__} field '{name}' has {len(col)} values but 't' has {n}; "
+                             "every column must have one value per sample")
+    seq = obj.seq
+    if type(seq) is not int or seq < 0 or seq + n - 1 > SEQ_MAX:  # bool is not a sequence number either
+        raise ValueError(f"{type(obj).__name__} field 'seq' = {seq!r} with {n} samples: need 0 <= seq and "
+                         f"seq + {n} - 1 <= {SEQ_MAX} (2**53 - 1)")
+    if not (math.isfinite(sum(t)) and min(t) >= 0.0 and max(t) <= T_MAX):
+        i, ti = next((i, x) for i, x in enumerate(t) if not 0.0 <= x <= T_MAX)
+        raise ValueError(f"{type(obj).__name__} field 't' has {ti!r} at index {i}; controller time must be "
+                         f"finite, 0 <= t <= {T_MAX:g} s")
+    machine = getattr(obj, "machine", None)
+    if machine is not None and not (machine in _GOOD_NAMES and obj.axis in _GOOD_NAMES):
+        for what in ("machine", "axis"):
+            value = check_name(getattr(obj, what), f"{type(obj).__name__} field '{what}'")
+            if len(_GOOD_NAMES) < 4096:  # bounded: names a peer invents only cost the regex
+                _GOOD_NAMES.add(value)
+
+
+#: names already seen to match NAME_PATTERN (a set lookup instead of a regex per message)
+_GOOD_NAMES: set[str] = set()
 
 
 class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
@@ -130,10 +177,10 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
     ``position`` (m), ``spindle_rpm`` (rpm). ``None`` inside a column = missing sample.
     """
 
-    machine: str
-    axis: str
-    seq: NonNeg
-    t: list[float]
+    machine: Name
+    axis: Name
+    seq: Seq
+    t: Times
     v_ref: Column
     v_meas: Column
     u: Column | None = None
@@ -169,8 +216,8 @@ class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
     ``v_meas`` repeats the previous value (recording glitch).
     """
 
-    seq: NonNeg
-    t: list[float]
+    seq: Seq
+    t: Times
     force: Column
     f: Column
     dynamometer: Column | None = None
@@ -200,10 +247,10 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
     (-1 none), ``flags`` bitmask of :class:`EstimateFlag` (STALE, GAP, REJECTED, WARMUP, REDUCED).
     """
 
-    machine: str
-    axis: str
-    seq: NonNeg
-    t: list[float]
+    machine: Name
+    axis: Name
+    seq: Seq
+    t: Times
     v_meas: Column
     v_pred: Column
     residual: Column
@@ -311,8 +358,8 @@ class TrialMeta(msgspec.Struct, **_STRUCT_OPTS):
 
     Ts: Positive
     form: Form
-    machine: str
-    axis: str
+    machine: Name
+    axis: Name
     provenance: Provenance
     units: dict[str, str] = {}
     spindle_rpm: float | None = None
@@ -320,6 +367,10 @@ class TrialMeta(msgspec.Struct, **_STRUCT_OPTS):
     loop_gain: float | None = None
     truth: TrialTruth | None = None
     description: str = ""
+
+    def __post_init__(self) -> None:
+        check_name(self.machine, "TrialMeta field 'machine'")
+        check_name(self.axis, "TrialMeta field 'axis'")
 
 
 # ---- encode / decode --------------------------------------------------------------------------
@@ -343,6 +394,8 @@ def decode(data: bytes | str, type_: type, *, what: str = "message"):
         raise SchemaError(f"{what} is not a valid {type_.__name__}: {exc}") from None
     except msgspec.DecodeError as exc:
         raise SchemaError(f"{what} is not valid JSON: {exc}") from None
+    except UnicodeDecodeError as exc:  # msgspec raises it for invalid UTF-8 inside a string
+        raise SchemaError(f"{what} is not valid JSON: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
 def decode_samples(data: bytes | str, *, what: str = "sample block") -> SampleBlock:

@@ -37,6 +37,9 @@ Notes on zenoh-python 1.x found while writing this
   after ``declare_publisher`` may reach nobody, and a ``get`` right after a
   remote ``declare_queryable`` may get no reply. Wait for ``matching`` / retry.
 * ``Handler.recv()`` has no timeout; poll ``try_recv()`` or use a callback.
+* ``transport/link/rx/max_message_size`` (default 1 GiB) bounds what a link reassembles; a larger
+  message is dropped silently and the link stays up (:func:`limit_message_size`). A key
+  expression longer than a batch (~64 kB) makes the *sending* session panic, so keys stay short.
 * All errors are ``zenoh.ZError`` (a plain ``Exception``); :func:`open_session`
   turns them into ``ValueError`` (bad configuration) or ``OSError`` (cannot
   listen / connect) so the CLI prints them as user errors.
@@ -70,6 +73,7 @@ __all__ = [
     "free_tcp_port",
     "wait_for_matching",
     "query_status",
+    "limit_message_size",
 ]
 
 DEFAULT_PREFIX = "feedmon"
@@ -253,6 +257,17 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
         if mode == "client":
             listen = None
     return zenoh_config(mode=mode, listen=listen, connect=connect, multicast_scouting=multicast, config_file=cfg_file)
+
+
+def limit_message_size(config: zenoh.Config, nbytes: int) -> zenoh.Config:
+    """Make the links of sessions opened with ``config`` drop every received message larger than
+    ``nbytes`` (``transport/link/rx/max_message_size``; Zenoh's default is 1 GiB): such a message is
+    never reassembled in memory and never reaches a callback. Zenoh does not say it dropped one,
+    so give callbacks that count refusals a smaller limit of their own. Returns ``config``."""
+    if not 1 <= int(nbytes) <= 1 << 32:
+        raise ValueError(f"message size limit must be 1 … 2**32 bytes, got {nbytes}")
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(int(nbytes)))
+    return config
 
 
 def session_from_args(args: argparse.Namespace) -> zenoh.Session:

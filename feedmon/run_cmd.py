@@ -13,11 +13,16 @@ Live: listens on tcp/127.0.0.1:7448 (see ``feedio.transport``), subscribes to
 answers ``<prefix>/monitor/status`` (``feedmon status``). SIGINT/SIGTERM stop it
 cleanly (input stopped, queue drained, MCAP finished, tracker state saved), exit 0.
 
-``--config FILE`` (TOML) holds defaults for the options, in a ``[run]`` table with
-the long option names (``model = [...]``, ``mcap``, ``rrd``, ``serve_rerun``,
-``state_dir``, ``rotate_mb``, ``rotate_minutes``, ``queue``, ``record_truth``,
-``listen``, ``connect``, ``prefix``); paths are relative to the config file;
-options on the command line win.
+``--config FILE`` (TOML) holds the options in a ``[run]`` table with the long option names
+(``model = [...]``, ``mcap``, ``rrd``, ``serve_rerun``, ``state_dir``, ``rotate_mb``,
+``rotate_minutes``, ``record_truth``, ``drain_seconds``, ``listen``, ``connect``, ``mode``,
+``zenoh_config``, ``multicast``, ``prefix``) and the input limits in ``[run.limits]``
+(:class:`feedio.limits.InputLimits`); see :mod:`feedmon.run_config`. Paths are relative to the
+config file; options on the command line win.
+
+Exit code 0 after a clean stop; 1 when the stop could not finish everything (a tracker state not
+saved, a sink not finished, the estimator not stopped: each said on stderr); 2 for bad options,
+configuration or model files.
 """
 
 from __future__ import annotations
@@ -29,17 +34,12 @@ import signal
 import sys
 import threading
 import time
-import tomllib
 from pathlib import Path
 
+from feedio.limits import InputLimits
 from feedio.transport import add_zenoh_arguments
 
-_CONFIG_KEYS = {
-    "model": list, "mcap": str, "rrd": str, "serve_rerun": int, "state_dir": str, "fresh": bool,
-    "rotate_mb": (int, float), "rotate_minutes": (int, float), "queue": int, "record_truth": bool,
-    "listen": list, "connect": list, "prefix": str, "zenoh_config": str,
-}
-_PATH_KEYS = ("model", "mcap", "rrd", "state_dir", "zenoh_config")
+from .run_config import RunConfig, run_config_from_args
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -69,53 +69,29 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="serve the Rerun recording live on this port (viewer: rerun --connect ...)")
     g.add_argument("--record-truth", action="store_true",
                    help="also record ground-truth blocks (<prefix>/*/*/truth, from 'feedmon replay') in the sinks")
-    g.add_argument("--queue", type=int, default=None, metavar="N",
-                   help="input queue capacity in messages (default 8192); a full queue drops and counts")
+    lim = p.add_argument_group("input limits (README: Input limits; file: [run.limits])")
+    lim.add_argument("--queue", type=int, default=None, metavar="N",
+                     help=f"input queue capacity in messages (default {InputLimits().queue_messages}); "
+                          "a full queue refuses and counts")
+    lim.add_argument("--limit", action="append", default=None, metavar="NAME=VALUE",
+                     help="set an input limit, repeatable; NAME one of: " + ", ".join(InputLimits.__struct_fields__))
+    lim.add_argument("--drain-seconds", type=float, default=None, metavar="S",
+                     help="at stop, how long the estimator may work off queued input before the rest is "
+                          "discarded and counted (default 30)")
     s = p.add_argument_group("tracker state")
     s.add_argument("--state-dir", default=None, metavar="DIR",
                    help="where tracker states are saved on exit and restored on start "
                         "(default: next to each model file, <model>.state.npz)")
     s.add_argument("--fresh", action="store_true", help="do not restore a saved tracker state")
     add_zenoh_arguments(p, role="listen")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, prefix=None)  # None: not given (the config file or the default applies)
     return p
 
 
-# ---- configuration -----------------------------------------------------------------------------
-def _apply_config(args: argparse.Namespace) -> None:
-    path = Path(args.config)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise FileNotFoundError(f"config file {str(path)!r} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"config file {path}: not valid TOML ({exc})") from None
-    table = doc.get("run", doc)
-    if not isinstance(table, dict):
-        raise ValueError(f"config file {path}: [run] must be a table")
-    base = path.resolve().parent
-    for key, value in table.items():
-        if key not in _CONFIG_KEYS:
-            raise ValueError(f"config file {path}: unknown key {key!r}; known: {', '.join(sorted(_CONFIG_KEYS))}")
-        kind = _CONFIG_KEYS[key]
-        if kind is list and isinstance(value, str):
-            value = [value]
-        if isinstance(value, bool) and kind is not bool or not isinstance(value, kind):
-            raise ValueError(f"config file {path}: key {key!r} has the wrong type ({type(value).__name__})")
-        if key in _PATH_KEYS:
-            value = [str(base / v) for v in value] if isinstance(value, list) else str(base / value)
-        if key == "fresh" or key == "record_truth":
-            setattr(args, key, bool(getattr(args, key)) or value)
-        elif getattr(args, key, None) is None:
-            setattr(args, key, value)
-    if args.prefix is None:
-        args.prefix = "feedmon"
-
-
-def _mcap_path(spec: str, args) -> tuple[Path, int | None, float | None]:
+def _mcap_path(spec: str, cfg: RunConfig) -> tuple[Path, int | None, float | None]:
     p = Path(spec)
-    rb = None if args.rotate_mb is None else int(args.rotate_mb * 1024 * 1024)
-    rs = None if args.rotate_minutes is None else args.rotate_minutes * 60.0
+    rb = None if cfg.rotate_mb is None else int(cfg.rotate_mb * 1024 * 1024)
+    rs = None if cfg.rotate_minutes is None else cfg.rotate_minutes * 60.0
     if p.suffix.lower() == ".mcap" and not p.is_dir():
         if not p.parent.is_dir():
             raise FileNotFoundError(f"directory of --mcap {spec!r} does not exist")
@@ -131,53 +107,62 @@ def _say(msg: str) -> None:
 
 
 # ---- entry point -----------------------------------------------------------------------------
+def _setup_logging() -> None:
+    from monitor.status import EscapingFormatter
+
+    root = logging.getLogger()
+    if root.handlers:  # configured by the embedding program (or a test runner): leave it
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(EscapingFormatter("feedmon run: %(levelname)s: %(message)s"))  # one record, one line
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+
+
 def run(args: argparse.Namespace) -> int:
-    raw_prefix = args.prefix
-    if args.config:
-        # the parser's --prefix default must not hide the config file's value
-        if raw_prefix == "feedmon":
-            args.prefix = None
-        _apply_config(args)
-    if not args.model:
-        raise ValueError("at least one --model FILE is needed (or 'model = [...]' in --config)")
-    if args.rotate_mb is not None and not args.rotate_mb > 0:
-        raise ValueError(f"--rotate-mb must be > 0, got {args.rotate_mb}")
-    if args.rotate_minutes is not None and not args.rotate_minutes > 0:
-        raise ValueError(f"--rotate-minutes must be > 0, got {args.rotate_minutes}")
-    if args.queue is not None and args.queue < 1:
-        raise ValueError(f"--queue must be ≥ 1, got {args.queue}")
-    logging.basicConfig(level=logging.INFO, format="feedmon run: %(levelname)s: %(message)s", stream=sys.stderr)
+    cfg = run_config_from_args(args)
+    if not cfg.model:
+        raise ValueError("at least one --model FILE is needed (or 'model = [...]' in the [run] table of --config)")
+    _setup_logging()
     if args.source is not None:
-        return _run_offline(args)
+        return _run_offline(args, cfg)
     if args.output is not None:
         raise ValueError("-o/--output is for --from (offline); use --mcap for the live log")
-    return _run_live(args)
+    return _run_live(cfg)
 
 
-def _run_offline(args) -> int:
+def _run_offline(args, cfg: RunConfig) -> int:
     from monitor.axes import load_axes
     from monitor.offline import run_offline
 
     if args.output is None:
         raise ValueError("--from needs -o/--output FILE.mcap")
     for opt in ("mcap", "rrd", "serve_rerun"):
-        if getattr(args, opt) is not None:
+        if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
-    axes = load_axes(args.model)
-    res = run_offline(args.source, args.output, axes)
+    axes = load_axes(cfg.model)
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     for ax in axes.values():
         c = ax.estimator.counters
+        refused = f", {ax.status.counters['too_large']} blocks refused (too_large)" \
+            if ax.status.counters.get("too_large") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
-             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}")
+             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
           f"({res.rate:,.0f} samples/s) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
     return 0
 
 
-def _run_live(args) -> int:
-    from feedio.transport import config_from_args, describe_config, open_session
+def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:
+    """The Zenoh options of ``cfg`` as :func:`feedio.transport.config_from_args` reads them."""
+    return argparse.Namespace(connect=cfg.connect, listen=cfg.listen, mode=cfg.mode, zenoh_config=cfg.zenoh_config,
+                              multicast=cfg.multicast, prefix=cfg.prefix, _zenoh_role="listen")
+
+
+def _run_live(cfg: RunConfig) -> int:
+    from feedio.transport import config_from_args, describe_config, limit_message_size, open_session
     from monitor.axes import live_meta, load_axes, warm_up
     from monitor.daemon import Monitor
     from monitor.state import StateStore
@@ -185,44 +170,47 @@ def _run_live(args) -> int:
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
     sys.setswitchinterval(0.0005)
-    axes = load_axes(args.model)
+    axes = load_axes(cfg.model)
     warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
-    store = StateStore(args.state_dir)
+    store = StateStore(cfg.state_dir)
     for ax in axes.values():
-        how = store.load(ax, fresh=args.fresh).detail  # restored (when saved, samples learned) / why not
+        how = store.load(ax, fresh=cfg.fresh).detail  # restored (when saved, samples learned) / why not
         _say(f"axis {ax.status.name}: model {ax.status.model_path} (sha256 {ax.status.model_sha256[:12]}…), "
              f"tracker state {how}: {ax.status.state_path}")
 
     sinks = []
     session = None
     monitor = None
+    problems: list[str] = []
     try:
-        if args.mcap is not None:
+        if cfg.mcap is not None:
             from monitor.sinks.mcap_sink import McapSink
 
-            path, rb, rs = _mcap_path(args.mcap, args)
+            path, rb, rs = _mcap_path(cfg.mcap, cfg)
             sinks.append(McapSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
             rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") + ")" \
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
-        if args.rrd is not None or args.serve_rerun is not None:
+        if cfg.rrd is not None or cfg.serve_rerun is not None:
             from monitor.sinks.rerun_layout import describe_model
             from monitor.sinks.rerun_process import RerunProcessSink
 
             info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
-            rs_ = RerunProcessSink(args.rrd, args.serve_rerun, axis_info=info)  # own process: never holds our GIL
+            rs_ = RerunProcessSink(cfg.rrd, cfg.serve_rerun, axis_info=info)  # own process: never holds our GIL
             sinks.append(rs_)
-            if args.rrd:
-                _say(f"Rerun recording: {args.rrd}")
+            if cfg.rrd:
+                _say(f"Rerun recording: {cfg.rrd}")
             if rs_.server_uri:
                 _say(f"Rerun live: rerun --connect {rs_.server_uri}")
-        zconfig = config_from_args(args)
+        # Zenoh itself drops what is far too large, before reassembling it (the callback counts the rest)
+        zconfig = limit_message_size(config_from_args(_zenoh_args(cfg)), cfg.limits.transport_max_message_bytes)
         session = open_session(zconfig)
         zdesc = describe_config(zconfig)  # what the session really does (also with --zenoh-config)
         listen, connect = zdesc["listen"], zdesc["connect"]
         endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in connect]
-        monitor = Monitor(axes, session, prefix=args.prefix, sinks=sinks, queue_size=args.queue or 8192,
-                          record_truth=args.record_truth, state=store, endpoints=endpoints)
+        monitor = Monitor(axes, session, prefix=cfg.prefix, sinks=sinks, limits=cfg.limits,
+                          record_truth=cfg.record_truth, state=store, endpoints=endpoints,
+                          drain_seconds=cfg.drain_seconds)
         stop = threading.Event()
         received = []
 
@@ -239,33 +227,59 @@ def _run_live(args) -> int:
             gc.freeze()
             where = ", ".join(listen) if listen else "(no listen endpoint)"
             conn = f", connected to {', '.join(connect)}" if connect else ""
-            _say(f"ready — Zenoh {zdesc['mode']}, listening on {where}{conn}; prefix {args.prefix!r}; axes "
+            _say(f"ready — Zenoh {zdesc['mode']}, listening on {where}{conn}; prefix {cfg.prefix!r}; axes "
                  f"{', '.join(a.status.name for a in axes.values())}; status: feedmon status; Ctrl-C to stop")
             while not stop.wait(0.5):
                 pass
             _say(f"{signal.Signals(received[0]).name}: stopping (draining input, finishing outputs)")
-            monitor.stop()
+            problems = monitor.stop()
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
     finally:
         if monitor is not None:
-            monitor.stop()
+            problems = monitor.stop()  # idempotent; always finishes
         else:
             for s in sinks:
-                s.close()
+                try:
+                    s.close()
+                except Exception as exc:  # noqa: BLE001 - report, keep closing the others
+                    _say(f"closing sink {s.name} failed: {exc}")
         if session is not None:
-            session.close()
+            try:
+                session.close()
+            except Exception as exc:  # noqa: BLE001
+                _say(f"closing the Zenoh session failed: {exc}")
+    try:
+        _summary(monitor)
+    except Exception as exc:  # noqa: BLE001 - the summary must not turn a clean stop into a traceback
+        _say(f"cannot print the summary: {type(exc).__name__}: {exc}")
+    if problems:
+        _say(f"stopped with {len(problems)} problem(s): " + "; ".join(problems))
+        return 1
+    return 0
+
+
+def _summary(monitor) -> None:
     st = monitor.status()
+    inp = st["input"]
+    _say(f"input: {inp['received']} messages received, {inp['handled']} handled")
     for name, a in st["axes"].items():
         lat = a["latency_us"]
-        _say(f"{name}: {a['samples_in']} samples in, {a['estimates_out']} estimates out, "
+        _say(f"{name}: {a['blocks']} blocks, {a['samples_in']} samples in, {a['estimates_out']} estimates out, "
              f"{a['dropped_total']} dropped{' ' + str(a['drops']) if a['drops'] else ''}, {a['gaps']} gaps; "
              f"latency p50 {lat['p50']} µs, p99 {lat['p99']} µs")
+    refused = {k: inp[k] for k in ("too_large", "queue_full", "malformed", "key_mismatch_total", "shutdown_discarded")
+               if inp.get(k)}
+    nm = sum(inp["no_model"].values()) + inp["no_model_overflow"]
+    if refused or nm:
+        _say("input refused (messages): " + ", ".join(f"{k}={v}" for k, v in refused.items())
+             + (f"; samples of axes without a model: {nm}" if nm else ""))
+    if st["status"]["refused"]:
+        _say(f"status queries: {st['status']['served']} answered, {st['status']['refused']} refused (rate limit)")
     for s in st["sinks"]:
         files = s.get("files") or ([s["rrd_path"]] if s.get("rrd_path") else [])
         _say(f"sink {s['name']}: {s['written']} written, {s['dropped']} dropped, {s['failures']} failures; "
-             + ", ".join(files))
+             + ", ".join(map(str, files)))
     for p in monitor.saved_states:
         _say(f"tracker state saved: {p}")
-    return 0

@@ -31,13 +31,19 @@ class AxisRuntime:
 
 
 def load_axes(model_paths: Sequence[str | os.PathLike]) -> dict[tuple[str, str], AxisRuntime]:
-    """Load model files (one per axis); two files for the same axis are an error."""
+    """Load model files (one per axis); two files for the same axis, or a machine/axis name the
+    message schema does not allow (:data:`feedio.limits.NAME_PATTERN`), are errors."""
     if not model_paths:
         raise ValueError("at least one --model file is needed")
     axes: dict[tuple[str, str], AxisRuntime] = {}
     for p in model_paths:
         path = Path(p)
         model = load_model(path)
+        for what in ("machine", "axis"):  # the names a message must carry (feedio.schema): else no block could match
+            try:
+                S.check_name(getattr(model, what), f"model {what}")
+            except ValueError as exc:
+                raise ValueError(f"model file {path}: {exc}") from None
         key = (model.machine, model.axis)
         if key in axes:
             raise ValueError(f"two model files for axis {model.machine}/{model.axis}: "

@@ -53,6 +53,7 @@ from numbers import Integral
 
 import numpy as np
 
+from feedio.limits import LIMITS  # magnitudes beyond which a sample is physically absurd (SI)
 from feedio.schema import EstimateBlock, SampleBlock
 from kernels import KRLST, online
 
@@ -61,9 +62,6 @@ from .state_check import StateError, check_snapshot
 
 __all__ = ["AxisEstimator", "LIMITS", "StateError"]
 
-#: magnitudes beyond which a value is physically absurd for a machine-tool axis (SI):
-#: velocities (m/s), force command (N), controller time (s)
-LIMITS = {"v": 50.0, "u": 1e7, "t": 1e10}
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
 _TRAINED = "estimator.trained"

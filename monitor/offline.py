@@ -16,6 +16,8 @@ from typing import Any
 
 import msgspec
 
+from feedio.limits import DEFAULT, InputLimits
+
 from .axes import AxisRuntime
 from .pipeline import Pipeline
 
@@ -54,7 +56,7 @@ def _merged_blocks(path: str, axes: list[str]) -> Iterator[tuple[str, str, int, 
 
 
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
-                axes: dict[tuple[str, str], AxisRuntime]) -> OfflineResult:
+                axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT) -> OfflineResult:
     """Estimate a recorded trial without Zenoh, as fast as the machine goes.
 
     Every samples block of the axes that have a model goes through the same
@@ -93,7 +95,7 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                        model_sha256=ax.status.model_sha256, tracker_state=ax.status.state)
         out_metas.append(msgspec.structs.replace(meta, provenance=msgspec.structs.replace(meta.provenance,
                                                                                            details=details)))
-    pipe = Pipeline(axes)
+    pipe = Pipeline(axes, limits=limits)
     names = [f"{m}/{a}" for (m, a) in metas]
     pairer = ScalarsPairer(expect_truth=has_truth)
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
@@ -109,7 +111,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 truth += 1
                 continue
             samples += len(block.t)
-            _, est = pipe.estimate(block)
+            ax, est = pipe.estimate(block)
+            if ax is None:  # refused (too long): counted, not copied, as live
+                continue
             out.put(partial(w.write_samples, block, log_time=lt))
             if est is not None:
                 out.put(partial(w.write_estimates, est, log_time=lt))

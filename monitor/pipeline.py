@@ -1,6 +1,20 @@
-"""Decode → route → estimate: the per-message work shared by the live monitor
+"""Decode → check the key → route → estimate: the per-message work shared by the live monitor
 (:mod:`monitor.daemon`) and the offline runner (:mod:`monitor.offline`), so a trial estimated
-offline gives the same numbers, sample for sample, as the same trial replayed live."""
+offline gives the same numbers, sample for sample, as the same trial replayed live.
+
+Every refusal is counted (status counter in brackets) and logged once per burst:
+
+* :meth:`Pipeline.receive` (live only): the payload is not a valid :class:`~feedio.schema.SampleBlock`
+  [``malformed``]; the payload names another axis than the key it came on
+  (``<prefix>/<machine>/<axis>/samples``) [``key_mismatch``]: a block is routed by its key and
+  the payload must agree, so a peer allowed to publish on one axis' key cannot feed another axis.
+* :meth:`Pipeline.estimate` (live and offline): no model for the axis [``no_model``, a bounded
+  table of names, ``no_model_overflow`` beyond it]; more samples than ``max_block_samples``
+  [``too_large``]; the estimator's own per-sample reasons (rejected, duplicate, gap, ...).
+
+Counts land on the axis the key (or the block) names when it has a model, else in the
+monitor-wide counters.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +22,10 @@ import logging
 from collections import Counter
 
 from feedio import schema as S
+from feedio.limits import DEFAULT, NAME_RE, InputLimits
 
 from .axes import AxisRuntime
-from .status import BurstLog
+from .status import BoundedCounter, BurstLog
 
 __all__ = ["Pipeline"]
 
@@ -31,52 +46,92 @@ _LOGGED_REASONS = (
 
 
 class Pipeline:
-    """Decode → route → estimate. No I/O; one thread only."""
+    """Decode → check the key → route → estimate. No I/O; one thread only."""
 
-    def __init__(self, axes: dict[tuple[str, str], AxisRuntime], *, prefix: str = "feedmon") -> None:
+    def __init__(self, axes: dict[tuple[str, str], AxisRuntime], *, prefix: str = "feedmon",
+                 limits: InputLimits = DEFAULT) -> None:
         self.axes = axes
         self.prefix = prefix
-        self.counters: Counter[str] = Counter()  # global: malformed (axis unknown), ...
-        self.no_model: Counter[str] = Counter()  # "machine/axis" -> samples dropped
+        self.limits = limits
+        self.counters: Counter[str] = Counter()  # monitor-wide: malformed / key_mismatch / too_large of no axis
+        self.no_model = BoundedCounter(limits.max_unknown_axes)  # "machine/axis" -> samples dropped
+        self.key_mismatch = BoundedCounter(limits.max_unknown_axes)  # key's "machine/axis" -> messages refused
         self.burst = BurstLog(log)
+        self._key_prefix = f"{prefix}/"
+        self._axis_by_key = {f"{prefix}/{m}/{a}/{kind}": ax for (m, a), ax in axes.items()
+                             for kind in ("samples", "truth")}
 
     def axis_of_key(self, key: str) -> AxisRuntime | None:
-        parts = key.split("/")
-        if len(parts) >= 3:
-            return self.axes.get((parts[-3], parts[-2]))
-        return None
+        """The modelled axis a ``<prefix>/<machine>/<axis>/samples|truth`` key names (None: no model)."""
+        return self._axis_by_key.get(key)
 
-    def decode(self, key: str, payload: bytes) -> S.SampleBlock | None:
-        try:
-            return S.decode_samples(payload, what=f"sample block on {key}")
-        except S.SchemaError as exc:
-            ax = self.axis_of_key(key)
-            (ax.status.counters if ax is not None else self.counters)["malformed"] += 1
-            self.burst(f"malformed:{key}", "dropping malformed message: %s", exc)
+    def key_name(self, key: str) -> str | None:
+        """``"machine/axis"`` of a ``<prefix>/<machine>/<axis>/<kind>`` key when both are valid names."""
+        if not key.startswith(self._key_prefix):
             return None
+        parts = key[len(self._key_prefix):].split("/")
+        if len(parts) != 3 or not (NAME_RE.fullmatch(parts[0]) and NAME_RE.fullmatch(parts[1])):
+            return None
+        return f"{parts[0]}/{parts[1]}"
+
+    def count(self, reason: str, ax: AxisRuntime | None, n: int = 1) -> None:
+        """Count a refusal on ``ax`` (its ``drops``) or monitor-wide when no modelled axis is concerned."""
+        (ax.status.counters if ax is not None else self.counters)[reason] += n
+
+    def receive(self, key: str, payload: bytes) -> S.SampleBlock | None:
+        """Decode a message received on ``key``; None when refused (counted and logged)."""
+        ax_key = self._axis_by_key.get(key)
+        try:
+            block = S.decode_samples(payload, what="sample block")
+        except S.SchemaError as exc:
+            self.count("malformed", ax_key)
+            self.burst(f"malformed:{ax_key.status.name if ax_key else ''}", "dropping malformed message on %s: %s",
+                       key, str(exc))
+            return None
+        ax = self.axes.get((block.machine, block.axis))
+        if ax is not ax_key or (ax is None and key != f"{self._key_prefix}{block.machine}/{block.axis}/samples"):
+            self.count("key_mismatch", ax_key)
+            name = self.key_name(key) or "(invalid key)"
+            listed = self.key_mismatch.add(name)
+            self.burst(f"key_mismatch:{name if listed else ''}",
+                       "refusing a block for %s/%s received on key %s: the payload must name the axis of its key",
+                       block.machine, block.axis, key)
+            return None
+        return block
 
     def estimate(self, block: S.SampleBlock) -> tuple[AxisRuntime | None, S.EstimateBlock | None]:
-        """Route ``block`` to its axis' estimator; ``(None, None)`` when no model covers it."""
+        """Route ``block`` to its axis' estimator. ``(None, None)``: refused (no model for the axis, or
+        longer than ``max_block_samples``); ``(ax, None)``: no estimate row (every sample dropped, or
+        the estimator could not use the block)."""
         ax = self.axes.get((block.machine, block.axis))
+        n = len(block.t)
         if ax is None:
             name = f"{block.machine}/{block.axis}"
-            self.no_model[name] += len(block.t)
-            self.burst(f"no_model:{name}", "no model for axis %s: dropping its samples (have models for %s)",
-                       name, ", ".join(f"{m}/{a}" for m, a in self.axes) or "none")
+            self.counters["no_model_blocks"] += 1
+            listed = self.no_model.add(name, n)
+            self.burst(f"no_model:{name if listed else ''}",
+                       "no model for axis %s: dropping its samples (have models for %s)%s", name,
+                       ", ".join(f"{m}/{a}" for m, a in self.axes) or "none",
+                       "" if listed else f"; more than {self.no_model.limit} such axes: counted in no_model_overflow")
             return None, None
         st = ax.status
         st.blocks += 1
+        if n > self.limits.max_block_samples:
+            st.counters["too_large"] += 1
+            self.burst(f"too_large:{st.name}", "axis %s: refusing a block of %d samples (max_block_samples = %d)",
+                       st.name, n, self.limits.max_block_samples)
+            return None, None
         c = ax.estimator.counters
         before = [c.get(k, 0) for k, _ in _LOGGED_REASONS]
         try:
             est = ax.estimator.process(block)
         except ValueError as exc:  # e.g. the model's form needs a column the block lacks
-            self.burst(f"error:{st.name}", "axis %s: block dropped: %s", st.name, exc)
+            self.burst(f"error:{st.name}", "axis %s: block dropped: %s", st.name, str(exc))
             return ax, None
         except Exception as exc:  # noqa: BLE001 - never fatal; counted and logged
-            st.counters["estimator_error"] += len(block.t)
+            st.counters["estimator_error"] += n
             self.burst(f"error:{st.name}", "axis %s: estimator failed on a block: %s: %s", st.name,
-                       type(exc).__name__, exc, level=logging.ERROR)
+                       type(exc).__name__, str(exc), level=logging.ERROR)
             return ax, None
         for (k, what), b in zip(_LOGGED_REASONS, before):
             d = c.get(k, 0) - b
@@ -86,4 +141,3 @@ class Pipeline:
             st.last_seq = est.seq + len(est.t) - 1
             st.last_t = est.t[-1]
         return ax, est
-

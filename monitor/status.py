@@ -10,6 +10,13 @@ percentiles are computed on demand (``np.percentile`` over at most ``size``
 values), so recording is O(1) and memory is fixed however long the monitor runs.
 :class:`BurstLog` logs the first event of a burst and counts the rest until the
 source has been quiet for ``quiet`` seconds (one log line per burst, never a flood).
+:class:`BoundedCounter` counts per name up to a fixed number of names (the rest in
+``overflow``), so names chosen by a peer never grow memory or the status document.
+
+Names and keys that come from the network end up in log lines and tables:
+:func:`safe_text` escapes control characters repr-style (CR LF → ``\\r\\n``, ESC →
+``\\x1b``) and shortens long strings, so one log record stays one line and no peer can
+forge log lines or drive the terminal; :func:`format_status` also escapes rich markup.
 """
 
 from __future__ import annotations
@@ -23,9 +30,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["LatencyRing", "BurstLog", "AxisStatus", "DROP_REASONS", "format_status"]
+__all__ = ["LatencyRing", "BurstLog", "BoundedCounter", "AxisStatus", "DROP_REASONS", "format_status",
+           "safe_text", "EscapingFormatter"]
 
-#: counter names that mean "a sample produced no (or a NaN) estimate row"
+#: counter names that mean "input produced no (or a NaN) estimate row"; units in the README
 DROP_REASONS = (
     "duplicate",
     "out_of_order",
@@ -34,9 +42,58 @@ DROP_REASONS = (
     "rejected_missing_field",
     "rejected_seq_range",
     "malformed",
+    "too_large",
+    "key_mismatch",
     "input_queue_full",
+    "shutdown_discarded",
     "estimator_error",
 )
+
+
+def safe_text(value: Any, limit: int = 200) -> str:
+    """``str(value)`` for a log line or a table cell: control and other non-printable characters
+    escaped repr-style (``\\n``, ``\\x1b``, ``\\u2028``), cut to ``limit`` characters (``…(+N)``)."""
+    s = value if isinstance(value, str) else str(value)
+    cut = len(s) - limit
+    if cut > 0:
+        s = s[:limit]
+    if not s.isprintable():
+        s = "".join(c if c.isprintable() else repr(c)[1:-1] for c in s)
+    return f"{s}…(+{cut} chars)" if cut > 0 else s
+
+
+class EscapingFormatter(logging.Formatter):
+    """A formatter whose message part is always one line of printable text (:func:`safe_text`,
+    no length cut); tracebacks keep their lines."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:  # noqa: N802 - logging's name
+        record.message = safe_text(record.message, limit=1 << 30)
+        return super().formatMessage(record)
+
+
+class BoundedCounter:
+    """Counts per name for at most ``limit`` distinct names; counts of further names go to
+    :attr:`overflow`. Written by one thread; :meth:`to_dict` may be called from another."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = int(limit)
+        self.counts: dict[str, int] = {}
+        self.overflow = 0
+
+    def add(self, name: str, n: int = 1) -> bool:
+        """Count ``n`` for ``name``; False when the table is full and ``name`` is not in it."""
+        c = self.counts
+        if name in c:
+            c[name] += n
+            return True
+        if len(c) < self.limit:
+            c[name] = n
+            return True
+        self.overflow += n
+        return False
+
+    def to_dict(self) -> dict[str, int]:
+        return dict(self.counts)  # one C call: consistent under the GIL
 
 
 class LatencyRing:
@@ -76,16 +133,27 @@ class LatencyRing:
 
 
 class BurstLog:
-    """Log once per burst: the first event is logged, later ones counted until ``quiet`` s without events."""
+    """Log once per burst: the first event is logged, later ones counted until ``quiet`` s without events.
 
-    def __init__(self, logger: logging.Logger, quiet: float = 10.0) -> None:
+    String arguments are passed through :func:`safe_text`. At most ``max_keys`` burst keys are
+    tracked; events of further keys share one key (a peer inventing keys cannot grow memory or
+    the number of log lines).
+    """
+
+    OVERFLOW_KEY = "(other keys)"
+
+    def __init__(self, logger: logging.Logger, quiet: float = 10.0, max_keys: int = 4096) -> None:
         self.log = logger
         self.quiet = float(quiet)
+        self.max_keys = int(max_keys)
         self._last: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
 
     def __call__(self, key: str, msg: str, *args: Any, level: int = logging.WARNING) -> None:
         now = time.monotonic()
+        if key not in self._last and len(self._last) >= self.max_keys:
+            key = self.OVERFLOW_KEY
+        args = tuple(safe_text(a) if isinstance(a, str) else a for a in args)
         last = self._last.get(key)
         self._last[key] = now
         if last is not None and now - last < self.quiet:
@@ -117,10 +185,14 @@ class AxisStatus:
     def name(self) -> str:
         return f"{self.machine}/{self.axis}"
 
-    def report(self, estimator_counters: Counter, dict_size: int) -> dict[str, Any]:
+    def report(self, estimator_counters: Counter, dict_size: int,
+               refused: dict[str, int] | None = None) -> dict[str, Any]:
+        """The axis' status; ``refused``: per-reason counts kept outside this object (the Zenoh
+        callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``."""
         c = dict(estimator_counters)
-        for k, v in dict(self.counters).items():
-            c[k] = c.get(k, 0) + v
+        for src in (dict(self.counters), refused or {}):
+            for k, v in src.items():
+                c[k] = c.get(k, 0) + v
         drops = {r: int(c[r]) for r in DROP_REASONS if c.get(r)}
         return {
             "machine": self.machine,
@@ -146,49 +218,78 @@ class AxisStatus:
 
 
 def _fmt_us(v) -> str:
-    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:,.0f}"
+    return f"{v:,.0f}" if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else "–"
+
+
+def _cell(value: Any, limit: int = 200):
+    """A table cell / text from a status document (which may come from any peer): control
+    characters escaped, long text cut, no rich markup interpreted."""
+    from rich.text import Text
+
+    return Text(safe_text("" if value is None else value, limit))
+
+
+def _dict(value: Any) -> dict:
+    return value if isinstance(value, dict) else {}
+
+
+def _counts(value: Any) -> str:
+    return ", ".join(f"{k}={v}" for k, v in _dict(value).items())
 
 
 def format_status(status: dict[str, Any], console=None) -> None:
-    """Print a status dict (as answered by the monitor) as rich tables."""
+    """Print a status dict (as answered by a monitor) as rich tables.
+
+    Every value is shown as plain text (:func:`safe_text`, no markup): a machine named ``[/]``
+    or a name with ANSI escapes prints as itself. A document of an unexpected shape prints
+    what it can instead of raising.
+    """
     from rich.console import Console
     from rich.table import Table
+    from rich.text import Text
 
     console = console or Console()
-    mon = status.get("monitor", {})
-    inp = status.get("input", {})
-    console.print(
-        f"[bold]feedmon monitor[/] pid {mon.get('pid')} on {mon.get('host')}, "
-        f"prefix {mon.get('prefix')!r}, {mon.get('state')}, up {mon.get('uptime_s', 0):.1f} s; "
+    status = _dict(status)
+    mon, inp = _dict(status.get("monitor")), _dict(status.get("input"))
+    up = mon.get("uptime_s")
+    up = f"{up:.1f}" if isinstance(up, int | float) and not isinstance(up, bool) else "?"
+    head = Text("feedmon monitor", style="bold")
+    head.append(safe_text(
+        f" pid {mon.get('pid')} on {mon.get('host')}, prefix {mon.get('prefix')!r}, {mon.get('state')}, up {up} s; "
         f"input: {inp.get('received', 0)} msgs, queue {inp.get('pending', 0)}/{inp.get('capacity', 0)}, "
-        f"dropped {inp.get('queue_full', 0)}, malformed {inp.get('malformed', 0)}"
-    )
+        f"refused: queue_full {inp.get('queue_full', 0)}, too_large {inp.get('too_large', 0)}, "
+        f"malformed {inp.get('malformed', 0)}, key_mismatch {inp.get('key_mismatch_total', 0)}", limit=2000))
+    console.print(head)
     t = Table(title="axes")
     for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state"):
         t.add_column(col, justify="left" if col in ("axis", "dropped", "state") else "right")
-    for name, a in status.get("axes", {}).items():
-        drops = ", ".join(f"{k}={v}" for k, v in a.get("drops", {}).items()) or "0"
-        lat = a.get("latency_us", {})
-        t.add_row(name, str(a.get("samples_in")), str(a.get("estimates_out")), drops, str(a.get("gaps")),
-                  _fmt_us(lat.get("p50")), _fmt_us(lat.get("p99")), str(a.get("dict_size")),
-                  a.get("state", {}).get("origin", ""))
+    axes = _dict(status.get("axes"))
+    for name, a in axes.items():
+        a = _dict(a)
+        lat = _dict(a.get("latency_us"))
+        t.add_row(_cell(name), _cell(a.get("samples_in")), _cell(a.get("estimates_out")),
+                  _cell(_counts(a.get("drops")) or "0"), _cell(a.get("gaps")), _fmt_us(lat.get("p50")),
+                  _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")))
     console.print(t)
-    for name, a in status.get("axes", {}).items():
-        m = a.get("model", {})
-        console.print(f"  {name}: model {m.get('path')} sha256 {m.get('sha256')}")
-    nm = inp.get("no_model") or {}
-    if nm:
-        console.print("samples of axes without a model (dropped): " + ", ".join(f"{k}={v}" for k, v in nm.items()))
-    sinks = status.get("sinks") or []
+    for name, a in axes.items():
+        m = _dict(_dict(a).get("model"))
+        console.print(_cell(f"  {name}: model {m.get('path')} sha256 {m.get('sha256')}", 1000))
+    for key, what in (("no_model", "samples of axes without a model (dropped)"),
+                      ("key_mismatch", "messages whose payload names another axis than their key (refused)")):
+        table = _dict(inp.get(key))
+        over = inp.get(f"{key}_overflow") or 0
+        if table or over:
+            console.print(_cell(f"{what}: {_counts(table)}" + (f"; more names: {over}" if over else ""), 2000))
+    sinks = status.get("sinks") if isinstance(status.get("sinks"), list) else []
     if sinks:
         st = Table(title="sinks")
-        for col in ("sink", "state", "accepted", "written", "dropped", "failures", "pending"):
-            st.add_column(col)
-        for s in sinks:
-            st.add_row(str(s.get("name")), str(s.get("state")), str(s.get("accepted")), str(s.get("written")),
-                       str(s.get("dropped")), str(s.get("failures")), str(s.get("pending")))
+        cols = ("name", "state", "accepted", "written", "dropped", "failures", "pending")
+        for col in cols:
+            st.add_column("sink" if col == "name" else col)
+        for s in map(_dict, sinks):
+            st.add_row(*(_cell(s.get(c)) for c in cols))
         console.print(st)
-        for s in sinks:
+        for s in map(_dict, sinks):
             where = [x for x in (s.get("current_file"), s.get("rrd_path"), s.get("server_uri")) if x]
             if where:
-                console.print(f"  {s.get('name')}: {', '.join(map(str, where))}")
+                console.print(_cell(f"  {s.get('name')}: {', '.join(map(str, where))}", 1000))

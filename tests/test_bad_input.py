@@ -32,6 +32,7 @@ from monitor_proc import MonitorProc
 
 from feedio import schema as S
 from feedio import transport as T
+from feedio.limits import InputLimits
 from feedio.mcapio import iter_blocks, read_trial
 from feedio.transport import query_status
 from monitor.axes import load_axes, warm_up
@@ -208,6 +209,16 @@ def _malformed(trial):
         _j(**{**g, "t": [], "v_ref": [], "v_meas": []}),  # empty block
         raw_nan,  # a raw NaN token (not JSON; msgspec rejects it)
         raw_inf,  # a number out of float range
+        # bounds of the schema (feedio.limits): sequence numbers, times, names
+        _j(**{**g, "seq": 2**53 - 2}),  # seq + len - 1 > SEQ_MAX
+        _j(**{**g, "seq": 2**64}),  # beyond int64
+        _j(**{**g, "t": [g["t"][0], 2e10, g["t"][2]]}),  # not an MCAP log time (> T_MAX)
+        _j(**{**g, "t": [-1.0, g["t"][1], g["t"][2]]}),  # negative controller time
+        _j(**{**g, "machine": "[/]"}),  # rich markup
+        _j(**{**g, "machine": "mill\r\nfeedmon run: WARNING: forged"}),  # a forged log line
+        _j(**{**g, "axis": "\x1b[31mX"}),  # an ANSI escape
+        _j(**{**g, "axis": "X" * 65}),  # too long
+        _j(**{**g, "axis": ""}),  # empty
     ]
 
 
@@ -218,14 +229,29 @@ def _with(trial, seq, n, col, i, value):
     return _j(**g)
 
 
+def _too_long(trial, n):
+    """A block of ``n`` samples (times spaced by Ts from sample 300 on)."""
+    t0, ts = float(trial.t[300]), float(trial.meta.Ts)
+    return _j(machine=trial.machine, axis=trial.axis, seq=300, t=[t0 + i * ts for i in range(n)],
+              v_ref=[0.0] * n, v_meas=[0.0] * n)
+
+
+def _padded(trial, size):
+    """A valid block padded with JSON whitespace to ``size`` bytes: refused for its size alone."""
+    raw = _j(**_good(trial, 300, 5))
+    return raw[:-1] + b" " * (size - len(raw)) + b"}"
+
+
 # name -> (bad payloads [(key|None, bytes)], B start, reference blocks between A and B, counters, resync)
 def _cases(trial):
     other = T.samples_key(PREFIX, "ghost-machine", "Q")
     ghost = S.SampleBlock(machine="ghost-machine", axis="Q", seq=300, t=trial.t[:10].tolist(),
                           v_ref=trial.v_ref[:10].tolist(), v_meas=trial.v_meas[:10].tolist())
+    forged = [S.encode(b) for b in blocks_of(trial, 300, 320)]  # our axis' next samples, on another key
     skip = lambda *ks: [b for b in blocks_of(trial, 300, 305, 1) if b.seq not in ks]  # noqa: E731
+    limits = InputLimits()
     return {
-        "malformed": ([(None, p) for p in _malformed(trial)], 300, [], {"drops.malformed": 16}, False),
+        "malformed": ([(None, p) for p in _malformed(trial)], 300, [], {"drops.malformed": 25}, False),
         "malformed_unknown_axis_key": ([(T.samples_key(PREFIX, "nope", "W"), b"{garbage")], 300, [],
                                        {"input.malformed": 1}, False),
         "null_v_meas": ([(None, _with(trial, 300, 5, "v_meas", 2, None))], 305, skip(302),
@@ -234,18 +260,29 @@ def _cases(trial):
                        {"drops.rejected_non_finite": 1}, True),
         "absurd_v_meas": ([(None, _with(trial, 300, 5, "v_meas", 2, 3.0e5))], 305, skip(302),
                           {"drops.rejected_out_of_range": 1}, True),
-        "absurd_time": ([(None, _with(trial, 300, 5, "t", 2, 1e12))], 305, skip(302),
-                        {"drops.rejected_out_of_range": 1}, True),
+        # a time no log can store: the whole block is refused by the schema before any sink sees it;
+        # the samples it held are a hole (a gap of 5) for the monitor and the reference alike
+        "absurd_time": ([(None, _with(trial, 300, 5, "t", 2, 2e10))], 305, [], {"drops.malformed": 1}, "hole"),
         "duplicate": ([(None, _j(**{**_good(trial, 299, 1), "v_meas": [0.7]}))] * 5, 300, [],
                       {"drops.duplicate": 5}, False),
         "out_of_order": ([(None, S.encode(b)) for b in blocks_of(trial, 100, 130)], 300, [],
                          {"drops.out_of_order": 30}, False),
         "no_model_axis": ([(other, S.encode(ghost))] * 7, 300, [], {"no_model.ghost-machine/Q": 70}, False),
+        # routing by key: our axis' samples on another machine's key are refused, counted per key
+        "key_mismatch_foreign_key": ([(T.samples_key(PREFIX, "other-machine", "Y"), p) for p in forged], 300, [],
+                                     {"key_mismatch.other-machine/Y": 2}, False),
+        "key_mismatch_own_key": ([(None, S.encode(ghost))] * 3, 300, [], {"drops.key_mismatch": 3}, False),
+        "block_too_long": ([(None, _too_long(trial, limits.max_block_samples + 1))], 300, [],
+                           {"drops.too_large": 1}, False),
+        "message_too_large": ([(None, _padded(trial, limits.max_message_bytes + 1))], 300, [],
+                              {"drops.too_large": 1}, False),
     }
 
 
 @pytest.mark.parametrize("case", ["malformed", "malformed_unknown_axis_key", "null_v_meas", "null_v_ref",
-                                  "absurd_v_meas", "absurd_time", "duplicate", "out_of_order", "no_model_axis"])
+                                  "absurd_v_meas", "absurd_time", "duplicate", "out_of_order", "no_model_axis",
+                                  "key_mismatch_foreign_key", "key_mismatch_own_key", "block_too_long",
+                                  "message_too_large"])
 def test_bad_input_in_process(case, work, trial):
     bad, b_start, between, expected, resync = _cases(trial)[case]
     model = load_model(work / "z.model.toml")
@@ -270,14 +307,15 @@ def test_bad_input_in_process(case, work, trial):
         where, name = path.split(".", 1)
         if where == "drops":
             got = a["drops"].get(name, 0)
-        elif where == "no_model":
-            got = st["input"]["no_model"].get(name, 0)
+        elif where in ("no_model", "key_mismatch"):
+            got = st["input"][where].get(name, 0)
         else:
             got = st["input"][name]
         assert got == n, (path, st)
     other_drops = {k: v for k, v in a["drops"].items() if f"drops.{k}" not in expected}
     assert other_drops == {}, other_drops
-    assert a["gaps"] == 0 and st["input"]["internal_errors"] == 0 and st["input"]["queue_full"] == 0
+    assert a["gaps"] == (1 if resync == "hole" else 0)
+    assert st["input"]["internal_errors"] == 0 and st["input"]["queue_full"] == 0
     # reference: an estimator that never saw the bad input (a hole where the monitor re-synced)
     ref = AxisEstimator(model)
     for b in A:
@@ -289,14 +327,17 @@ def test_bad_input_in_process(case, work, trial):
     in_b = got["seq"] >= b_start
     for name, col in want.items():
         g = got[name][in_b]
-        if name == "flags" and resync:
+        if name == "flags" and resync is True:
             g, col = g & ~S.GAP, col & ~S.GAP  # the reference restarted at a hole, the monitor at a rejection
         np.testing.assert_array_equal(g, col, err_msg=f"{case}: {name} after the bad input")
     ref_snap = ref.snapshot()
     assert snap.keys() == ref_snap.keys()
     for k in ref_snap:  # the tracker is exactly that of a monitor that never saw the bad input
         np.testing.assert_array_equal(snap[k], ref_snap[k], err_msg=f"{case}: tracker {k}")
-    if resync:  # one REJECTED row (NaN estimates) for the bad sample, then the chain restarts
+    if resync == "hole":  # the refused block left a hole: rows for A and B only, B starts with GAP
+        np.testing.assert_array_equal(got["seq"], np.r_[np.arange(300), np.arange(b_start, b_start + 300)])
+        assert got["flags"][got["seq"] == b_start][0] & S.GAP
+    elif resync:  # one REJECTED row (NaN estimates) for the bad sample, then the chain restarts
         rej = got["seq"] == 302
         assert got["flags"][rej].tolist() == [S.REJECTED]
         assert np.isnan(got["f"][rej]).all() and np.isnan(got["f_next"][rej]).all()
@@ -393,8 +434,12 @@ def daemon(work, trial, milling):
             ghost = S.encode(S.SampleBlock(machine="ghost", axis="Q", seq=0, t=[0.0], v_ref=[0.0], v_meas=[0.0]))
             for _ in range(100):
                 s.put(T.samples_key(PREFIX, "ghost", "Q"), ghost, congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in range(1300, 1400):  # our axis' next samples from a peer allowed to publish elsewhere only
+                s.put(T.samples_key(PREFIX, "other-machine", "Y"), one(k, ts[k % len(trial)]),
+                      congestion_control=zenoh.CongestionControl.BLOCK)
             res["mid"] = wait_status(s, lambda x: x["axes"][AXIS]["last_seq"] == 1299
-                                     and x["input"]["no_model"].get("ghost/Q") == 100)
+                                     and x["input"]["no_model"].get("ghost/Q") == 100
+                                     and x["input"]["key_mismatch"].get("other-machine/Y") == 100)
             res["replay"] = replay(milling, s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0)
             n_mill = res["replay"].samples
             wait_status(s, lambda x: x["axes"]["cnc-mill/X"]["samples_in"] == n_mill)
@@ -415,6 +460,7 @@ def test_daemon_counts_every_bad_burst_exactly(daemon):
                           "duplicate": 100, "out_of_order": 100}, a["drops"]
     assert (a["gaps"], a["missing_samples"], a["counters"]["time_backwards"]) == (100, 100, 100)
     assert st["input"]["no_model"] == {"ghost/Q": 100} and st["input"]["malformed"] == 0
+    assert st["input"]["key_mismatch"] == {"other-machine/Y": 100} and a["last_seq"] == 1299  # forged: not used
     assert st["input"]["internal_errors"] == 0 and st["input"]["queue_full"] == 0
     # every sample that reached the estimator has a row, except the dropped duplicates / out-of-order ones
     assert a["estimates_out"] == a["samples_in"] - 200
@@ -425,7 +471,7 @@ def test_daemon_logs_once_per_burst_not_per_message(daemon):
     mon = daemon["mon"]
     for text in ("dropping malformed message", "rejected: non-finite value", "rejected: absurd magnitude",
                  "duplicate sequence number", "out-of-order sequence number", "after a sequence gap",
-                 "time going backwards", "no model for axis ghost/Q"):
+                 "time going backwards", "no model for axis ghost/Q", "received on key feedmon-bad/other-machine/Y"):
         n = mon.count(text)
         assert 1 <= n <= 3, f"{text!r} logged {n} times for a burst of 100:\n{mon.stderr}"
 

@@ -44,7 +44,7 @@ import pytest
 
 from feedio import transport as T
 from feedmon.cli import build_parser
-from feedmon.run_cmd import _apply_config
+from feedmon.run_config import run_config_from_args
 from monitor.model_file import AxisModel, TrackerConfig, save_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,19 +181,19 @@ def _config_for(tmp: Path) -> tuple[Path, Path, Path, Path]:
 
 def test_example_config_is_accepted_by_run_config_loader(tmp_path):
     args = build_parser().parse_args(["run", "--config", str(CONFIG)])
-    _apply_config(args)  # the shipped file as is: keys known, types right
-    assert args.model == ["/var/lib/feedmon/models/axis-x.model.toml"]
-    assert args.state_dir == "/var/lib/feedmon/state" and args.mcap == "/var/log/feedmon"
-    assert args.prefix == "feedmon" and args.queue == 8192
+    run = run_config_from_args(args)  # the shipped file as is: keys known, types and ranges right
+    assert run.model == ["/var/lib/feedmon/models/axis-x.model.toml"]
+    assert run.state_dir == "/var/lib/feedmon/state" and run.mcap == "/var/log/feedmon"
+    assert run.prefix == "feedmon" and run.limits.queue_messages == 8192
 
     cfg, model, state, logs = _config_for(tmp_path)
     args = build_parser().parse_args(["run", "--config", str(cfg), "--queue", "100"])
-    _apply_config(args)
-    assert args.model == [str(model)] and args.state_dir == str(state) and args.mcap == str(logs)
-    assert args.queue == 100  # the command line wins
+    run = run_config_from_args(args)
+    assert run.model == [str(model)] and run.state_dir == str(state) and run.mcap == str(logs)
+    assert run.limits.queue_messages == 100  # the command line wins
     from monitor.axes import load_axes
 
-    axes = load_axes(args.model)  # the model file named by the config loads
+    axes = load_axes(run.model)  # the model file named by the config loads
     assert list(axes) == [("mill-1", "X")]
 
 

@@ -116,6 +116,25 @@ def _router(endpoint: str) -> subprocess.Popen:
     return p
 
 
+PROBE = b"route probe (not a sample block)"
+
+
+def _probe_until_seen(session, pub, pid: int, timeout: float = 60.0) -> int:
+    """Put a probe (an undecodable payload, counted ``malformed`` on the publisher's axis and nothing
+    else) through ``pub`` until the monitor's status counts one; returns the probes sent."""
+    deadline = time.monotonic() + timeout
+    sent = 0
+    while True:
+        pub.put(PROBE)
+        sent += 1
+        try:
+            wait_status(session, pid=pid, timeout=2.0,
+                        pred=lambda x: x["axes"][AXIS]["drops"].get("malformed", 0) >= 1)
+            return sent
+        except AssertionError:
+            assert time.monotonic() < deadline, "no probe reached the monitor after the router restart"
+
+
 def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
     endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
     router = _router(endpoint)
@@ -133,12 +152,11 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
             router.wait(10)
             for b in blocks_of(trial, 300, 400):  # published while the router is down: lost
                 pub.put(S.encode(b))
-            time.sleep(0.5)
             router = _router(endpoint)  # same port; both clients reconnect by themselves
-            deadline = time.monotonic() + 30
-            while not pub.matching_status.matching:
-                assert time.monotonic() < deadline, "publisher did not see the monitor again after the restart"
-                time.sleep(0.05)
+            # The publisher's matching status survives the router's death (nobody told it the subscriber
+            # went away), so it proves nothing. Proof that the route publisher -> router -> monitor exists
+            # again: a probe sent through the same publisher shows up in the monitor's status.
+            probes = _probe_until_seen(s, pub, mon.proc.pid)
             for b in blocks_of(trial, 400, 700):
                 pub.put(S.encode(b))
             st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 699)
@@ -150,6 +168,7 @@ def test_router_restart_monitor_reconnects_and_reports_gap(work, trial):
     assert rc == 0, mon.stderr
     a = st["axes"][AXIS]
     assert (a["gaps"], a["missing_samples"], a["samples_in"], a["estimates_out"]) == (1, 100, 600, 600)
+    assert 1 <= a["drops"]["malformed"] <= probes and set(a["drops"]) == {"malformed"}  # the probes, nothing else
 
 
 # ---- sinks ---------------------------------------------------------------------------------
@@ -164,11 +183,9 @@ def test_no_rerun_viewer_nothing_blocks(work, trial):
             replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0, block=5)
             st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=20)
     finally:
-        t0 = time.monotonic()
-        rc = mon.stop(timeout=30)
-        stop_s = time.monotonic() - t0
+        rc = mon.stop(timeout=90)
     assert rc == 0, mon.stderr
-    assert stop_s < 20, f"stopping took {stop_s:.1f} s with no viewer attached"
+    assert "did not finish" not in mon.stderr  # every sink closed by itself, none waited for a viewer
     sinks = {x["name"]: x for x in st["sinks"]}
     assert sinks["rerun"]["state"] == "ok" and sinks["rerun"]["failures"] == 0
     assert st["axes"][AXIS]["dropped_total"] == 0
@@ -224,7 +241,6 @@ def test_full_disk_mcap_sink_fails_visibly_estimator_runs(work, trial, tiny_fs):
                              and x["sinks"][0]["failures"] > 0 and x["sinks"][0]["flush_failures"] > 0, timeout=30)
     finally:
         rc = mon.stop()
-    assert rc == 0, mon.stderr
     sink = st["sinks"][0]
     assert sink["name"] == "mcap" and why in sink["last_error"], sink
     assert sink["failures"] >= sink["flush_failures"] > 0 and sink["dropped"] == 0
@@ -233,9 +249,10 @@ def test_full_disk_mcap_sink_fails_visibly_estimator_runs(work, trial, tiny_fs):
     assert mon.count("sink mcap failed") <= 3  # logged once per burst, not per block
     assert mon.count("sink mcap failed") >= 1
     if tiny_fs is not None:
+        assert rc == 0, mon.stderr
         assert (work / "st-full" / "linear-drive_Z.state.npz").exists()  # the state went elsewhere: saved
     else:  # RLIMIT_FSIZE is per process: it hits the state file too, which must be said, not crash
-        assert "cannot save the tracker state" in mon.stderr
+        assert rc == 1 and "cannot save the tracker state" in mon.stderr, mon.stderr
     rep = recover(out, work / "full-fixed.mcap")  # what reached the disk (header, metadata, …) is intact
     assert rep.skipped_ranges == 0 and rep.bytes_dropped == 0 and rep.metadata == 1, rep.summary()
 
@@ -278,19 +295,17 @@ def test_slow_disk_mcap_sink_never_stalls_estimation(work, trial, monkeypatch):
         mon.start()
         try:
             with T.open_session(connect=ep) as s:
-                t0 = time.monotonic()
                 replay(work / "trial.mcap", s, rate=None, prefix=PREFIX, truth=False, wait_for_subscriber=10.0,
                        block=1)
-                st = wait_status(s, pid=os.getpid(), pred=lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=30)
-                took = time.monotonic() - t0
+                st = wait_status(s, pid=os.getpid(), pred=lambda x: x["axes"][AXIS]["estimates_out"] == n, timeout=60)
         finally:
             fast.set()
             mon.stop()
     sk = st["sinks"][0]
     assert sk["dropped"] > 0 and sk["written"] < sk["accepted"], sk  # the sink fell behind, visibly
     a = st["axes"][AXIS]
+    # every estimate was out while the sink was still behind: estimation never waited for the disk
     assert a["dropped_total"] == 0 and a["estimates_out"] == n and st["input"]["queue_full"] == 0
-    assert took < 25, took
     tr = read_trial(out)  # complete file with what was written
     assert 0 < len(tr) < n
 

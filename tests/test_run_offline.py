@@ -9,10 +9,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import zenoh
 from test_run_e2e import make_trial, model_from_truth
 
 from feedio import schema as S
 from feedio import transport as T
+from feedio.limits import InputLimits
 from feedio.mcapio import iter_blocks, read_trial
 from feedmon import cli
 from monitor.axes import load_axes
@@ -70,12 +72,14 @@ def test_monitor_counts_malformed_no_model_and_queue_full(work):
     endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
     axes = load_axes([work / "z.model.toml"])
     with T.open_session(listen=endpoint) as session:
-        mon = Monitor(axes, session, prefix="feedmon-unit", queue_size=1)
-        fake = SimpleNamespace(key_expr="feedmon-unit/linear-drive/Z/samples", payload=SimpleNamespace(to_bytes=lambda: b"x"))
+        mon = Monitor(axes, session, prefix="feedmon-unit", limits=InputLimits(queue_messages=1))
+        # the callback's view of a Zenoh sample: its key and a real Zenoh payload buffer
+        fake = SimpleNamespace(key_expr="feedmon-unit/linear-drive/Z/samples", payload=zenoh.ZBytes(b"x"))
         mon._on_sample(fake)  # not started: stays queued
         mon._on_sample(fake)  # queue full: dropped and counted
-        assert mon.queue_full["feedmon-unit/linear-drive/Z/samples"] == 1
+        assert mon.status()["axes"]["linear-drive/Z"]["drops"] == {"input_queue_full": 1}
         mon._q.get_nowait()
+        mon._bytes_out += 1
         mon.start()
         try:
             t = time.perf_counter()
@@ -130,3 +134,19 @@ def test_offline_truncated_input_fails_clearly_without_hanging(work, capsys, tmp
     err = capsys.readouterr().err
     assert str(cut) in err and "truncated" in err and "feedmon recover" in err, err
     assert time.monotonic() - t0 < 60
+
+
+def test_offline_applies_the_block_limit_like_live(work, capsys, tmp_path):
+    """``max_block_samples`` refuses the same blocks offline as live (same Pipeline): counted, not copied."""
+    out = tmp_path / "limited.mcap"
+    src = read_trial(work / "trial.mcap")
+    sizes = [len(b.t) for _, b in iter_blocks(work / "trial.mcap")]
+    limit = max(sizes) - 1  # every full-size block is refused, a shorter last one is not
+    assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml",
+                "--limit", f"max_block_samples={limit}") == 0
+    refused = sum(n > limit for n in sizes)
+    assert f"{refused} blocks refused (too_large)" in capsys.readouterr().err
+    kept = sum(n for n in sizes if n <= limit)
+    assert len(read_trial(out)) == kept < len(src)
+    est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
+    assert sum(len(b.t) for b in est) == kept

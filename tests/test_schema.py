@@ -38,7 +38,7 @@ def test_inconsistent_lengths_name_field_and_lengths():
 
 
 def test_empty_block_unknown_field_bad_types_negative_seq():
-    with pytest.raises(S.SchemaError, match="empty"):
+    with pytest.raises(S.SchemaError, match=r"length >= 1 - at `\$.t`"):
         S.decode_samples(b'{"machine":"m","axis":"X","seq":0,"t":[],"v_ref":[],"v_meas":[]}')
     with pytest.raises(S.SchemaError, match="unknown field `curent`"):
         S.decode_samples(b'{"machine":"m","axis":"X","seq":0,"t":[0],"v_ref":[1],"v_meas":[1],"curent":[1]}')
@@ -98,3 +98,52 @@ def test_json_schema_validates_encoded_message_when_jsonschema_available():
     except ImportError:  # the structural checks above still run
         return
     jsonschema.validate(json.loads(S.encode(_block(u=[1.0, math.nan, 2.0]))), S.JSON_SCHEMAS["feedmon.SampleBlock"])
+
+
+# ---- bounds (feedio.limits): names, seq, t, block length; checked on decode and on construction -------
+def _raw(**kw) -> bytes:
+    base = dict(machine="m1", axis="X", seq=0, t=[0.0, 0.003], v_ref=[0.1, 0.1], v_meas=[0.1, 0.1])
+    base.update(kw)
+    return json.dumps(base).encode()
+
+
+@pytest.mark.parametrize("name", ["", "a" * 65, "[/]", "a\n", "a\r\nb", "x\x1b[31m", "-x", ".x", "a b", "a/b", "ä"])
+def test_names_outside_the_pattern_are_refused(name):
+    for field in ("machine", "axis"):
+        with pytest.raises(S.SchemaError, match=field):
+            S.decode_samples(_raw(**{field: name}))
+        with pytest.raises(ValueError, match=field):
+            _block(**{field: name})
+    assert S.check_name("a" * 64, "name") == "a" * 64 and S.check_name("mill_1.x-2", "name")
+
+
+def test_seq_and_time_bounds():
+    assert S.SEQ_MAX == 2**53 - 1
+    S.decode_samples(_raw(seq=S.SEQ_MAX - 1))  # last sample exactly at SEQ_MAX
+    for seq in (S.SEQ_MAX, 2**63, 2**64, -1):
+        with pytest.raises(S.SchemaError, match="seq"):
+            S.decode_samples(_raw(seq=seq))
+    S.decode_samples(_raw(t=[0.0, S.T_MAX]))
+    for bad in (2e10, -1.0, -1e-300, 1e308):
+        with pytest.raises(S.SchemaError, match=r"\$\.t\[1\]|'t'"):
+            S.decode_samples(_raw(t=[0.0, bad]))
+        with pytest.raises(ValueError, match="'t'"):
+            _block(t=[0.0, bad, 1.0])
+    with pytest.raises(ValueError, match="'t'"):
+        _block(t=[0.0, math.nan, 1.0])
+    with pytest.raises(ValueError, match="seq"):
+        _block(seq=True)
+
+
+def test_invalid_utf8_inside_a_string_is_a_schema_error():
+    raw = _raw().replace(b'"v_meas"', b'"v\xa0meas"')
+    with pytest.raises(S.SchemaError, match="UTF-8"):
+        S.decode_samples(raw)
+
+
+def test_json_schema_states_the_bounds():
+    sch = S.JSON_SCHEMAS["feedmon.SampleBlock"]["properties"]
+    assert sch["machine"]["pattern"] == S.NAME_PATTERN and sch["machine"]["maxLength"] == 64
+    assert sch["seq"]["maximum"] == S.SEQ_MAX and sch["seq"]["minimum"] == 0
+    assert sch["t"]["items"] == {"type": "number", "minimum": 0.0, "maximum": S.T_MAX}
+    assert sch["t"]["minItems"] == 1 and sch["t"]["maxItems"] == 1_000_000

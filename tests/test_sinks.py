@@ -252,8 +252,11 @@ def test_mcap_sink_bad_block_is_a_counted_failure(tmp_path):
     from monitor.sinks.mcap_sink import McapSink
 
     sink = McapSink(tmp_path / "neg.mcap", metas=[meta("X")])
-    bad = S.SampleBlock(machine="mill", axis="X", seq=2**60, t=[-1.0], v_ref=[0.0], v_meas=[0.0])
-    absurd_t = S.SampleBlock(machine="mill", axis="X", seq=10, t=[2e10, -1e300], v_ref=[0.0] * 2, v_meas=[0.0] * 2)
+    # the schema refuses these on construction; edited in place they reach the sink's own checks
+    bad = S.SampleBlock(machine="mill", axis="X", seq=0, t=[0.0], v_ref=[0.0], v_meas=[0.0])
+    bad.seq, bad.t = 2**60, [-1.0]
+    absurd_t = S.SampleBlock(machine="mill", axis="X", seq=10, t=[0.0, 1.0], v_ref=[0.0] * 2, v_meas=[0.0] * 2)
+    absurd_t.t = [2e10, -1e300]
     sink.offer(bad)  # seq beyond the schema: refused by the writer
     sink.offer("not a block")
     sink.offer(samples("X", 0))

@@ -155,3 +155,23 @@ def test_queryable_answers_json(pair):
         assert str(replies[0].key_expr) == key
     finally:
         q.undeclare()
+
+
+def test_limit_message_size_drops_larger_messages_and_the_link_survives():
+    """A listening session with a 1 MiB receive limit: a 2 MiB message never arrives (never reassembled),
+    the messages before and after it do, in order, on the same link."""
+    port = T.free_tcp_port()
+    cfg = T.limit_message_size(T.zenoh_config(listen=f"tcp/127.0.0.1:{port}"), 1 << 20)
+    got: queue.Queue = queue.Queue()
+    with T.open_session(cfg) as m, T.open_session(connect=f"tcp/127.0.0.1:{port}") as s:
+        m.declare_subscriber("feedmon/big/**", lambda x: got.put(len(x.payload)))
+        pub = s.declare_publisher("feedmon/big/X", congestion_control=zenoh.CongestionControl.BLOCK)
+        assert T.wait_for_matching(pub, WAIT)
+        for size in (100, 2 << 20, 900 << 10, 101):
+            pub.put(b"x" * size)
+        sizes = []
+        while 101 not in sizes:
+            sizes.append(got.get(timeout=WAIT))
+    assert sizes == [100, 900 << 10, 101]
+    with pytest.raises(ValueError, match="message size limit"):
+        T.limit_message_size(T.zenoh_config(), 0)

@@ -1,0 +1,208 @@
+"""The ``feedmon run`` configuration: one msgspec Struct for the ``--config`` file and the options.
+
+The TOML file has a ``[run]`` table (the long option names, dashes as underscores) with a
+``[run.limits]`` sub-table (:class:`feedio.limits.InputLimits`)::
+
+    [run]
+    model = ["/var/lib/feedmon/models/axis-x.model.toml"]
+    mcap = "/var/log/feedmon"
+
+    [run.limits]
+    max_message_bytes = 4_194_304
+
+Decoding checks every key, type and range; an error names the file, the key (``run.limits.queue_bytes``)
+and the allowed range. Options given on the command line override the file, key by key, and are
+checked against the same ranges (an error then names the option). Relative paths in the file are
+relative to the file's directory. Further top-level tables (e.g. tracker overrides) go next to
+``run`` in :class:`ConfigFile`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from feedio.limits import InputLimits, range_text
+
+__all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
+
+#: keys whose values are paths (relative to the config file's directory)
+PATH_KEYS = ("model", "mcap", "rrd", "state_dir", "zenoh_config")
+#: a larger file is refused before it is parsed
+MAX_CONFIG_BYTES = 1 << 20
+
+
+class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Everything ``feedmon run`` is told, from the ``[run]`` table and the command line."""
+
+    model: list[str] = []
+    mcap: str | None = None
+    rotate_mb: Annotated[float, msgspec.Meta(gt=0.0, le=1e6)] | None = None
+    rotate_minutes: Annotated[float, msgspec.Meta(gt=0.0, le=1e6)] | None = None
+    rrd: str | None = None
+    serve_rerun: Annotated[int, msgspec.Meta(ge=1, le=65535)] | None = None
+    record_truth: bool = False
+    state_dir: str | None = None
+    fresh: bool = False
+    drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0
+    listen: list[str] | None = None
+    connect: list[str] | None = None
+    mode: Literal["peer", "client"] | None = None
+    zenoh_config: str | None = None
+    multicast: bool = False
+    prefix: Annotated[str, msgspec.Meta(min_length=1, max_length=200)] = "feedmon"
+    limits: InputLimits = InputLimits()
+
+
+class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """The whole ``--config`` file: one table per concern."""
+
+    run: RunConfig = RunConfig()
+
+
+# ---- error messages ----------------------------------------------------------------------------
+_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
+
+
+def _walk(root: type, path: str) -> tuple[type | None, str | None]:
+    """(Struct type holding the last key, last key) of a msgspec error path such as
+    ``.run.limits.queue_bytes``; ``(Struct, None)`` for a path naming a Struct itself."""
+    parts = [p for p in re.split(r"\.|\[\d+\]", path) if p]
+    t: Any = root
+    for i, name in enumerate(parts):
+        fields = {f.name: f.type for f in msgspec.inspect.type_info(t).fields}
+        if name not in fields:
+            return None, None
+        nxt = getattr(fields[name], "cls", None)  # a nested Struct
+        if i == len(parts) - 1:
+            return (nxt, None) if nxt is not None else (t, name)
+        if nxt is None:
+            return None, None
+        t = nxt
+    return t, None
+
+
+def _explain(exc: msgspec.ValidationError, root: type) -> tuple[str, str]:
+    """``(key, message)`` of a validation error, with the allowed range of a numeric key or the
+    known keys of a table with an unknown key."""
+    m = _AT.match(str(exc))
+    msg, path = m.group("msg"), (m.group("path") or "")
+    key = path.lstrip(".") or "(top level)"
+    struct, name = _walk(root, path)
+    if struct is not None and name is not None:
+        allowed = range_text(struct, name)
+        if allowed:
+            msg += f" (allowed: {allowed})"
+    elif struct is not None and "unknown field" in msg:
+        msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
+    return key, msg
+
+
+# ---- the file ----------------------------------------------------------------------------------
+def _as_list(value: Any) -> Any:
+    return [value] if isinstance(value, str) else value
+
+
+def load_config_file(path: str | Path) -> ConfigFile:
+    """The decoded file, its paths made absolute.
+
+    Raises ``FileNotFoundError``, or ``ValueError`` naming the file, the key and the allowed range
+    (also for a file over :data:`MAX_CONFIG_BYTES` or nested too deeply to parse).
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ValueError(f"config file {path} is {size} bytes; a config file has at most {MAX_CONFIG_BYTES}")
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"config file {str(path)!r} does not exist") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"config file {path}: not UTF-8 text ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"config file {path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"config file {path}: nested too deeply") from None
+    run = doc.get("run")
+    if isinstance(run, dict):
+        base = path.resolve().parent
+        for key in ("model", "listen", "connect"):
+            if key in run:
+                run[key] = _as_list(run[key])
+        for key in PATH_KEYS:
+            v = run.get(key)
+            if isinstance(v, str):
+                run[key] = str(base / v)
+            elif isinstance(v, list):
+                run[key] = [str(base / x) if isinstance(x, str) else x for x in v]
+    try:
+        return msgspec.convert(doc, ConfigFile)
+    except msgspec.ValidationError as exc:
+        key, msg = _explain(exc, ConfigFile)
+        hint = " (the options of feedmon run go in a [run] table)" if key == "(top level)" else ""
+        raise ValueError(f"config file {path}: key {key}: {msg}{hint}") from None
+
+
+# ---- the command line --------------------------------------------------------------------------
+def parse_limit_option(text: str) -> tuple[str, Any]:
+    """``NAME=VALUE`` of ``--limit`` (VALUE a JSON number, ``_`` allowed as in TOML)."""
+    name, sep, value = text.partition("=")
+    name = name.strip().replace("-", "_")
+    if not sep or not name:
+        raise ValueError(f"--limit {text!r}: expected NAME=VALUE, e.g. --limit max_message_bytes=1048576")
+    try:
+        parsed = json.loads(value.strip().replace("_", ""))
+    except ValueError:
+        raise ValueError(f"--limit {text!r}: {value!r} is not a number") from None
+    if not isinstance(parsed, int | float) or isinstance(parsed, bool):
+        raise ValueError(f"--limit {text!r}: {value!r} is not a number")
+    return name, parsed
+
+
+def run_config_from_args(args: argparse.Namespace) -> RunConfig:
+    """The :class:`RunConfig` of ``feedmon run``: the ``--config`` file (if any), then the options
+    given on the command line on top (``None`` / absent flags do not override)."""
+    if getattr(args, "config", None):
+        cfg = load_config_file(args.config).run
+    else:
+        cfg = RunConfig()
+    cli: dict[str, Any] = {}
+    for name in RunConfig.__struct_fields__:
+        if name == "limits" or not hasattr(args, name):
+            continue
+        value = getattr(args, name)
+        if value is None or value is False:  # not given (flags cannot switch off what the file switches on)
+            continue
+        cli[name] = value
+    for name, value in cli.items():  # each option against the same ranges as the file's key
+        try:
+            msgspec.convert({name: value}, RunConfig)
+        except msgspec.ValidationError as exc:
+            _, msg = _explain(exc, RunConfig)
+            raise ValueError(f"option --{name.replace('_', '-')}: {msg}") from None
+    given: dict[str, tuple[Any, str]] = {}  # limit -> (value, option that gave it)
+    if getattr(args, "queue", None) is not None:
+        given["queue_messages"] = (args.queue, "--queue")
+    for text in getattr(args, "limit", None) or []:
+        k, v = parse_limit_option(text)
+        given[k] = (v, f"--limit {k}")
+    for k, (v, opt) in given.items():
+        if k not in InputLimits.__struct_fields__:
+            raise ValueError(f"{opt}: unknown limit; known: {', '.join(InputLimits.__struct_fields__)}")
+        try:
+            msgspec.convert({k: v}, InputLimits)
+        except msgspec.ValidationError as exc:
+            raise ValueError(f"option {opt}: {_explain(exc, InputLimits)[1]}") from None
+    try:
+        merged = msgspec.convert({**msgspec.to_builtins(cfg.limits), **{k: v for k, (v, _) in given.items()}},
+                                 InputLimits)
+    except msgspec.ValidationError as exc:  # a cross-field rule (queue_bytes >= max_message_bytes)
+        where = f"config file {args.config} and options" if getattr(args, "config", None) else "options"
+        raise ValueError(f"limits ({where}): {_explain(exc, InputLimits)[1]}") from None
+    return msgspec.structs.replace(cfg, limits=merged, **cli)

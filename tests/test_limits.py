@@ -1,0 +1,66 @@
+"""One source of truth for the input limits: ``feedio.limits`` is what the schema, the pipeline, the
+daemon and the config loader use, and what the README's "Input limits" table says."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from feedio import limits as L
+from feedio import schema as S
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _section(title: str) -> str:
+    text = README.read_text(encoding="utf-8")
+    start = text.index(f"## {title}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start:end]
+
+
+def _rows(section: str) -> dict[str, list[str]]:
+    """First-column name (backticks stripped) → cells of every table row of a section."""
+    out = {}
+    for line in section.splitlines():
+        m = re.match(r"^\| `([^`]+)`(.*)\|$", line)
+        if m:
+            out[m.group(1)] = [c.strip() for c in m.group(2).split("|")[1:]]
+    return out
+
+
+def test_readme_table_lists_every_configurable_limit_with_its_default_and_range():
+    rows = _rows(_section("Input limits"))
+    for name in L.InputLimits.__struct_fields__:
+        assert name in rows, f"README 'Input limits' has no row for {name}"
+        default, allowed = rows[name][0], rows[name][1]
+        assert default.split()[0] == repr(getattr(L.DEFAULT, name)), (name, default)
+        lo, hi = L.field_range(L.InputLimits, name)
+        assert allowed.startswith(f"{lo:g} … {hi:g}" if isinstance(lo, float) else f"{lo} … {hi}"), (name, allowed)
+
+
+def test_contract_bounds_are_the_schemas():
+    sec = _section("Input limits")
+    assert L.NAME_PATTERN in README.read_text(encoding="utf-8")
+    assert "2**53 − 1" in sec and "1e10" in sec and "1 000 000" in sec
+    assert S.SEQ_MAX == L.SEQ_MAX == 2**53 - 1 and S.T_MAX == L.T_MAX == 1e10
+    assert L.BLOCK_SAMPLES_MAX == L.field_range(L.InputLimits, "max_block_samples")[1]
+    assert L.T_MAX * 1e9 < 2**64  # every allowed time is an MCAP log time (uint64 ns)
+
+
+def test_estimator_uses_the_physical_limits_of_feedio_limits():
+    from monitor.estimator import LIMITS
+
+    assert LIMITS == L.LIMITS == {"v": L.PHYSICAL.v_max, "u": L.PHYSICAL.u_max, "t": L.PHYSICAL.t_max}
+
+
+def test_limits_are_validated_with_their_ranges():
+    with pytest.raises(msgspec.ValidationError, match=r">= 1024 - at `\$.max_message_bytes`"):
+        msgspec.convert({"max_message_bytes": 10}, L.InputLimits)
+    with pytest.raises(msgspec.ValidationError, match="queue_bytes .* must be >= max_message_bytes"):
+        msgspec.convert({"queue_bytes": 4096, "max_message_bytes": 8192}, L.InputLimits)
+    assert L.range_text(L.InputLimits, "queue_messages") == "1 ≤ queue_messages ≤ 1000000"
+    assert L.range_text(L.InputLimits, "status_refresh_s") == "0 ≤ status_refresh_s ≤ 60"
