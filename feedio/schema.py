@@ -151,8 +151,8 @@ def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
                              "every column must have one value per sample")
     seq = obj.seq
     if type(seq) is not int or seq < 0 or seq + n - 1 > SEQ_MAX:  # bool is not a sequence number either
-        raise ValueError(f"{type(obj).__name__} field 'seq' = {seq!r} with {n} samples: need 0 <= seq and "
-                         f"seq + {n} - 1 <= {SEQ_MAX} (2**53 - 1)")
+        raise ValueError(f"{type(obj).__name__} field 'seq': sequence number {seq!r} with {n} samples is out of "
+                         f"range: need 0 <= seq and seq + {n} - 1 <= SEQ_MAX = {SEQ_MAX} (2**53 - 1)")
     if not (math.isfinite(sum(t)) and min(t) >= 0.0 and max(t) <= T_MAX):
         i, ti = next((i, x) for i, x in enumerate(t) if not 0.0 <= x <= T_MAX)
         raise ValueError(f"{type(obj).__name__} field 't' has {ti!r} at index {i}; controller time must be "

@@ -38,7 +38,8 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
   session (``seq`` jumps ahead of the clock, or goes back while the clock moves on, or ``W``
   old-looking samples continue each other) restarts the chain (GAP flag; counted ``gaps`` +
   ``missing_samples``, ``time_backwards`` or ``seq_resets``); no residual is formed across it;
-* a block whose sequence numbers do not fit in int64 is refused whole (``rejected_seq_range``);
+* a block whose sequence numbers lie beyond the schema's ``SEQ_MAX`` (2**53 − 1) is refused whole
+  (``rejected_seq_range``; the decoder already refuses them, this guards direct callers);
 * stale samples — the controller repeated the previous measured velocity while
   the axis moves (the thesis' recording glitch): STALE flag, the tracker is not
   trained on them (predict only) and the model's velocity prediction stands in
@@ -53,7 +54,7 @@ from numbers import Integral
 
 import numpy as np
 
-from feedio.limits import LIMITS  # magnitudes beyond which a sample is physically absurd (SI)
+from feedio.limits import LIMITS, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
 from feedio.schema import EstimateBlock, SampleBlock
 from kernels import KRLST, online
 
@@ -155,8 +156,8 @@ class AxisEstimator:
             )
         self.counters["samples_in"] += n
         seq0 = block.seq
-        if isinstance(seq0, bool) or not isinstance(seq0, Integral) or not 0 <= seq0 <= online.SEQ_LIMIT - (n - 1):
-            self.counters["rejected_seq_range"] += n  # cannot be an int64: never handed to compiled code
+        if isinstance(seq0, bool) or not isinstance(seq0, Integral) or not 0 <= seq0 <= SEQ_MAX - (n - 1):
+            self.counters["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
             return None
         seq0 = int(seq0)
         t = np.asarray(block.t, dtype=np.float64)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from feedio import schema as S
+from feedio.schema import SEQ_MAX
 from kernels import KRLST, LocallyPeriodic, online
 from kernels.feed_drive import physical_to_beta
 from monitor.estimator import AxisEstimator
@@ -39,10 +40,19 @@ def _stream(n=1500, seed=0):
     return t, v_ref, v, f
 
 
+def _unchecked(block: S.SampleBlock, **fields) -> S.SampleBlock:
+    """A copy of ``block`` with ``fields`` set *after* the schema's checks: the decoder refuses such values
+    (e.g. seq beyond SEQ_MAX), but the estimator and its compiled loop must be safe on their own."""
+    out = msgspec.structs.replace(block)
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out
+
+
 def _blocks(t, v_ref, v, size, seq0=0):
     for a in range(0, t.size, size):
-        yield S.SampleBlock(machine="m", axis="x", seq=seq0 + a, t=t[a:a + size].tolist(),
-                            v_ref=v_ref[a:a + size].tolist(), v_meas=v[a:a + size].tolist())
+        yield _unchecked(S.SampleBlock(machine="m", axis="x", seq=0, t=t[a:a + size].tolist(),
+                                       v_ref=v_ref[a:a + size].tolist(), v_meas=v[a:a + size].tolist()), seq=seq0 + a)
 
 
 def _run(est, blocks):
@@ -196,11 +206,12 @@ def test_ordering_checked_after_a_rejected_sample():
     assert out.flags[0] & S.GAP and est.counters["time_backwards"] == 1
 
 
-# ---- sequence numbers are integers: exact up to int64, refused beyond -----------------------------------
-@pytest.mark.parametrize("offset", [2**53 - 1000, 2**53 + 1, 2**60, online.SEQ_LIMIT - 1499])
-def test_sequence_numbers_stay_exact_up_to_int64(offset):
-    """Consecutive blocks near 2**53 … 2**63 − 1: the numbers are those of the same stream at seq 0
-    (one code path run twice: bit for bit), counters exact (a float64 seq broke from 2**53 and crashed at 2**60)."""
+# ---- sequence numbers are integers: exact up to SEQ_MAX, refused beyond --------------------------------
+@pytest.mark.parametrize("offset", [2**40 + 7, SEQ_MAX - 2999, SEQ_MAX - 1499])
+def test_sequence_numbers_stay_exact_up_to_seq_max(offset):
+    """Consecutive blocks up to the schema's SEQ_MAX = 2**53 − 1: the numbers are those of the same stream at
+    seq 0 (one code path run twice: bit for bit), counters exact (a float64 seq broke from 2**53 and crashed
+    at 2**60)."""
     t, v_ref, v, _ = _stream(1500)
     ref_est, est = AxisEstimator(_model()), AxisEstimator(_model())
     ref = _run(ref_est, _blocks(t, v_ref, v, 50))
@@ -214,15 +225,15 @@ def test_sequence_numbers_stay_exact_up_to_int64(offset):
     assert est.counters["restarts"] == 1 and est.counters["trained"] == 1499 and est.counters["estimates_out"] == 1500
 
 
-def test_sequence_numbers_beyond_int64_are_refused_not_crashed():
+def test_sequence_numbers_beyond_seq_max_are_refused_not_crashed():
     t, v_ref, v, _ = _stream(300)
     est = AxisEstimator(_model())
     first, *rest = list(_blocks(t, v_ref, v, 10))
     est.process(first)
     before = est.snapshot()
-    for seq in (online.SEQ_LIMIT - 5, 2**64, 2**70, -1):  # the last sample's number would not fit in int64
-        assert est.process(msgspec.structs.replace(rest[0], seq=seq)) is None
-    assert est.counters["rejected_seq_range"] == 40
+    for seq in (SEQ_MAX - 5, 2**60, online.SEQ_LIMIT - 5, 2**64, 2**70, -1):  # beyond SEQ_MAX, or not an int64
+        assert est.process(_unchecked(rest[0], seq=seq)) is None
+    assert est.counters["rejected_seq_range"] == 60
     assert all(np.array_equal(v, est.snapshot()[k]) for k, v in before.items())  # nothing learned
     out = est.process(rest[0])  # the stream goes on
     assert out.seq == 10 and est.counters["gaps"] == 0 and math.isfinite(out.residual[0])  # chain unbroken
@@ -246,8 +257,8 @@ def _seq_blocks(t, v_ref, v, seqs, size):
     starts = [0] + [k for k in range(1, len(seqs)) if seqs[k] != seqs[k - 1] + 1 or k % size == 0]
     out = []
     for a, b in zip(starts, starts[1:] + [len(seqs)]):
-        out.append(S.SampleBlock(machine="m", axis="x", seq=int(seqs[a]), t=t[a:b].tolist(),
-                                 v_ref=v_ref[a:b].tolist(), v_meas=v[a:b].tolist()))
+        out.append(_unchecked(S.SampleBlock(machine="m", axis="x", seq=0, t=t[a:b].tolist(),
+                                            v_ref=v_ref[a:b].tolist(), v_meas=v[a:b].tolist()), seq=int(seqs[a])))
     return out
 
 
@@ -285,7 +296,7 @@ def test_bridge_restarting_its_count_with_the_clock_running_restarts_the_chain_a
 def test_one_far_future_seq_costs_two_restarts_not_the_axis(stream, size):
     t, v_ref, v, _ = stream
     k = np.arange(t.size)
-    seqs = np.where(k == 800, 2**60, k)  # one absurd seq, then the count goes on
+    seqs = np.where(k == 800, 2**50, k)  # one far-future (but valid) seq, then the count goes on
     got, c = _rows_and_counters(t, v_ref, v, seqs, size)
     assert (c["seq_resets"], c["gaps"], c["missing_samples"], c["out_of_order"]) == (2, 0, 0, 0)
     assert c["estimates_out"] == 1500 and got["flags"][800] & S.GAP and got["flags"][801] & S.GAP

@@ -135,12 +135,13 @@ def test_live_log_has_per_sample_scalars_that_other_tools_read(work):
 
 def test_absurd_controller_time_does_not_poison_the_live_log(work):
     """A finite t = 2e10 s (which used to overflow the log time, fail every later write and leave the
-    file without a footer): the live log time is the receive time, the block is logged, every later
-    block too, the file closes complete, and the sink counts no failure."""
+    file without a footer) is refused by the schema before any sink sees it (counted ``malformed``);
+    every block before and after is logged, the file closes complete, and the sink counts no failure."""
     tr = read_trial(work / "trial.mcap")
     good1, good2 = blocks_of(tr, 0, 300), blocks_of(tr, 310, 600)
-    absurd = S.SampleBlock(machine=tr.machine, axis=tr.axis, seq=300, t=[2e10 + 0.003 * i for i in range(10)],
+    absurd = S.SampleBlock(machine=tr.machine, axis=tr.axis, seq=300, t=tr.t[300:310].tolist(),
                            v_ref=tr.v_ref[300:310].tolist(), v_meas=tr.v_meas[300:310].tolist())
+    absurd.t = [2e10 + 0.003 * i for i in range(10)]  # set after the schema's checks, as a peer may send it
     blocks = good1 + [absurd] + good2
     mon = MonitorProc(prefix=PREFIX, cwd=work, args=["--model", "z.model.toml", "--mcap", "poison.mcap",
                                                      "--fresh", "--state-dir", "st-poison"])
@@ -151,15 +152,17 @@ def test_absurd_controller_time_does_not_poison_the_live_log(work):
             assert T.wait_for_matching(pub, 15.0)
             for b in blocks:
                 pub.put(S.encode(b))
-            st = wait_status(s, prefix=PREFIX, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["samples_in"] == 600, timeout=30)
+            st = wait_status(s, prefix=PREFIX, pid=mon.proc.pid, timeout=30,
+                             pred=lambda x: x["axes"][AXIS]["samples_in"] == 590
+                             and x["axes"][AXIS]["drops"].get("malformed", 0) == 1)
     finally:
         rc = mon.stop()
     assert rc == 0, mon.stderr
     sink = st["sinks"][0]
     assert sink["failures"] == 0 and sink["messages_lost"] == 0 and sink["incomplete_files"] == [], sink
     log = read_trial(work / "poison.mcap")  # footer and summary: a complete file
-    assert log.seq.tolist() == list(range(600))
-    assert log.t[300] == 2e10
+    assert log.seq.tolist() == list(range(300)) + list(range(310, 600))
+    assert np.all(log.t < 1e3)
     scalars = _plain(work / "poison.mcap", f"/{AXIS}/disturbance/scalars")
     times = [lt for lt, _ in scalars]
     assert times[0] > Y2020 and all(b > a for a, b in zip(times, times[1:])) and times[-1] < time.time_ns()

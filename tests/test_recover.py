@@ -340,9 +340,13 @@ def test_recover_skips_unknown_record_types(tmp_path, trial_bytes):
 @pytest.fixture(scope="module")
 def long_trial(tmp_path_factory):
     """A 12 s trial: 12 chunks of ~1 s; (bytes, [(chunk offset, record length, messages)], total messages)."""
-    path = tmp_path_factory.mktemp("recover-long") / "long.mcap"
+    folder = tmp_path_factory.mktemp("recover-long")
+    path = folder / "long.mcap"
+    # 1 kHz: each ~1 s chunk holds > 128 kB of JSON, i.e. several zstd blocks, so a flip late in a chunk
+    # leaves its start (with the channel declarations) decompressible, whatever the messages hold
+    (folder / "rate.toml").write_text("rate = 1000.0\n")
     assert main(["simulate", "shaker-constant", "-o", str(path), "--seed", "4", "--duration", "12",
-                 "--created", "2024-05-01T08:00:00Z"]) == 0
+                 "--created", "2024-05-01T08:00:00Z", "--config", str(folder / "rate.toml")]) == 0
     data = path.read_bytes()
     chunks = []
     with open(path, "rb") as f:

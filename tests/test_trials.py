@@ -130,8 +130,13 @@ def _meta(axis="X", machine="m"):
 
 
 def _samples(axis="X", seq=0, n=10, t0=0.0, machine="m"):
+    """A sample block; ``seq`` and ``t0`` are set after the schema's checks, so tests can hand the writer
+    what a hostile caller might (its own validation must refuse it)."""
     t = (t0 + np.arange(n) * 1e-3).tolist()
-    return S.SampleBlock(machine=machine, axis=axis, seq=seq, t=t, v_ref=[0.0] * n, v_meas=[0.0] * n, u=[1.0] * n)
+    block = S.SampleBlock(machine=machine, axis=axis, seq=0, t=(np.arange(n) * 1e-3).tolist(), v_ref=[0.0] * n,
+                          v_meas=[0.0] * n, u=[1.0] * n)
+    block.seq, block.t = seq, t
+    return block
 
 
 def test_multi_axis_and_live_flush(tmp_path):
@@ -244,12 +249,11 @@ def test_refused_blocks_leave_the_writer_consistent(tmp_path):
         for k in range(3):
             w.write_samples(_samples(seq=10 * k, t0=0.01 * k))
             good += 1
-        with pytest.raises(ValueError, match=r"refused\.mcap: sample block seq 30 at controller time "
-                                              r"t = 20000000000\.0\d* s cannot be logged.*1970…2262"):
+        with pytest.raises(ValueError, match=r"field 't' has 20000000000\.0 at index 0; controller time must be finite"):
             w.write_samples(_samples(seq=30, t0=2e10))
-        with pytest.raises(ValueError, match=r"t = -10000000000\.0 s cannot be logged"):
+        with pytest.raises(ValueError, match=r"field 't' has -10000000000\.0 at index 0"):
             w.write_samples(_samples(seq=30, n=1, t0=-1e10))
-        with pytest.raises(ValueError, match=r"sequence numbers must lie in 0…SEQ_MAX"):
+        with pytest.raises(ValueError, match=r"sequence number 18446744073709551616 .*SEQ_MAX"):
             w.write_samples(_samples(seq=2**64, t0=0.03))
         n = MAX_MESSAGE_BYTES // 20
         with pytest.raises(ValueError, match=r"more than the limit of 16777216; write it as several blocks"):
@@ -262,7 +266,7 @@ def test_refused_blocks_leave_the_writer_consistent(tmp_path):
         assert w.failed is None and w.messages == good
     tr = read_trial(p)  # footer, summary, every good block
     assert tr.seq.tolist() == list(range(10 * good))
-    with pytest.raises(ValueError, match="lone surrogate"):  # would fail inside the mcap writer: refused before
+    with pytest.raises(ValueError, match="is not a valid name"):  # would fail inside the mcap writer: refused before
         TrialWriter(tmp_path / "bad-name.mcap", _meta(axis="X\udc80"))
     with open(p, "rb") as fh:
         r = make_reader(fh)
