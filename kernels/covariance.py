@@ -6,7 +6,8 @@ drives
 
 * the vectorised NumPy evaluation ``kernel(X1, X2)`` used by PL-LSSVM and tests,
 * the stationary lag function ``kernel.lag(d)`` used by the Toeplitz solver,
-* the ``@njit`` row evaluation :func:`kernel_row` used by the KRLS-T step,
+* the ``@njit`` row evaluations :func:`kernel_row` and :func:`kernel_row_phased` (the
+  KRLS-T step: one ``exp`` per entry, the periodic terms from cached phases),
 
 so there is exactly one formula per kernel (method §5).
 
@@ -41,6 +42,8 @@ __all__ = [
     "kernel_value_at",
     "kernel_row",
     "kernel_row_at",
+    "kernel_phases",
+    "kernel_row_phased",
 ]
 
 KIND_SE = 0
@@ -442,3 +445,88 @@ def kernel_row(kinds, params, cols, X, n, x, out):
 def kernel_row_at(kinds, params, cols, X, idx, n, x, out):
     """``out[idx[l]] = k(X[idx[l]], x)`` for ``l < n`` (rows picked by an index list, e.g. slots)."""
     _rows(kinds, params, cols, X, idx, True, n, x, out)
+
+
+# ---------------------------------------------------------------------------
+# Row evaluation with cached phases (the KRLS-T step).
+#
+# Every factor is exp(−E) with E ≥ 0, so a row needs one ``exp`` per entry of
+# the sum of the factors' E (the same products as above, up to rounding). For a
+# periodic term sin(π(x − x')/ψ) = sin a cos a' − cos a sin a' with
+# a = π·fmod(x, ψ)/ψ: fmod is exact and ψ-periodic, so the identity holds for
+# any magnitude of x (a time stamp of days, a cumulative spindle angle) and the
+# sines and cosines of small arguments are accurate to rounding. Each input's
+# (sin a, cos a) per periodic factor is computed once (:func:`kernel_phases`)
+# and kept with it; a row then costs multiplications and one exp per entry.
+# ---------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _period(kinds, params, f):
+    """ψ of factor ``f`` (0 for a squared exponential)."""
+    if kinds[f] == KIND_PERIODIC:
+        return params[f, 1]
+    if kinds[f] == KIND_LOCALLY_PERIODIC:
+        return params[f, 2]
+    return 0.0
+
+
+@njit(cache=True, nogil=True)
+def kernel_phases(kinds, params, cols, x, out):
+    """``out[2f], out[2f+1] = sin a_f, cos a_f`` with ``a_f = π·fmod(x_c, ψ_f)/ψ_f`` (``fmod`` is exact) for each
+    periodic or locally periodic factor ``f`` on column ``c`` (0, 0 for a squared exponential)."""
+    for f in range(kinds.shape[0]):
+        psi = _period(kinds, params, f)
+        if psi > 0.0:
+            a = math.pi * (np.fmod(x[cols[f, 0]], psi) / psi)
+            out[2 * f] = math.sin(a)
+            out[2 * f + 1] = math.cos(a)
+        else:
+            out[2 * f] = 0.0
+            out[2 * f + 1] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def kernel_row_phased(kinds, params, cols, X, Ph, w, lo, hi, x, xph, out):
+    """``out[i] = w[i]·k(X[i], x)`` for ``lo ≤ i < hi`` (the KRLS-T ``k_t`` over slots; ``w``: 1 for
+    an occupied slot, 0 for a free one).
+
+    ``Ph[i]`` and ``xph`` are :func:`kernel_phases` of ``X[i]`` and ``x``. The exponent is summed
+    factor by factor (each factor's loop runs over all rows), then one ``exp`` per entry:
+    squared exponential ``−‖d‖²/(2ℓ²)``, periodic ``−s²/(2σ2²)`` with ``s = sin(π d/ψ)`` from the
+    phases, locally periodic both (``d = x − x'``, method §5).
+    """
+    for i in range(lo, hi):
+        out[i] = 0.0
+    for f in range(kinds.shape[0]):
+        kind = kinds[f]
+        start = cols[f, 0]
+        stop = cols[f, 1]
+        if stop == -1:
+            stop = x.shape[0]
+        if kind == KIND_SE:
+            c1 = 1.0 / (2.0 * params[f, 0] * params[f, 0])
+            for i in range(lo, hi):
+                r = 0.0
+                for j in range(start, stop):
+                    d = X[i, j] - x[j]
+                    r += d * d
+                out[i] -= r * c1                                   # −‖d‖²/(2ℓ²)
+            continue
+        sa = xph[2 * f]
+        ca = xph[2 * f + 1]
+        if kind == KIND_PERIODIC:
+            c2 = 1.0 / (2.0 * params[f, 0] * params[f, 0])
+            for i in range(lo, hi):
+                s = sa * Ph[i, 2 * f + 1] - ca * Ph[i, 2 * f]      # sin(a − a_i) = sin(π d/ψ) (mod π)
+                out[i] -= (s * s) * c2                             # −sin²(π d/ψ)/(2σ2²)
+        else:
+            c1 = 1.0 / (2.0 * params[f, 0] * params[f, 0])
+            c2 = 1.0 / (2.0 * params[f, 1] * params[f, 1])
+            x0 = x[start]
+            for i in range(lo, hi):
+                d = x0 - X[i, start]
+                s = sa * Ph[i, 2 * f + 1] - ca * Ph[i, 2 * f]
+                out[i] -= (d * d) * c1 + (s * s) * c2              # −d²/(2σ1²) − sin²(π d/ψ)/(2σ2²)
+    for i in range(lo, hi):
+        out[i] = w[i] * math.exp(out[i])

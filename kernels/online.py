@@ -71,18 +71,19 @@ def _linear(beta, coulomb, omega, force_input, e, v):
 
 
 @njit(cache=True, nogil=True)
-def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
-                beta, coulomb, omega, force_input, limits, stale_detection, warmup,
+def track_block(state, beta, coulomb, omega, force_input, limits, stale_detection, warmup,
                 carry, seq0, t, e, v, rows, dict_size, removed, flags, counts, xbuf, obuf):
     """Process one block of samples (method §6); returns the number of leading samples dropped.
 
+    ``state``: the tracker's :class:`kernels._krlst_core.State` (``KRLST.core_state``).
     ``limits = [v_max, e_max, t_max]``; ``rows`` (n, :data:`N_ROW`), ``dict_size``,
     ``removed``, ``flags`` (n,) receive one row per sample from index ``first`` on
     (the return value: samples whose sequence number is not newer than the last one
     seen are dropped — duplicates and out-of-order). ``counts`` accumulates the
     :data:`COUNTERS`; ``carry`` (:data:`CARRY`) links consecutive blocks.
-    ``xbuf`` (1,) and ``obuf`` (≥ 10,) are scratch.
+    ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``,) are scratch.
     """
+    st = core.unowned(state)                      # (no reference counting in the calls below)
     n = t.shape[0]
     first = 0
     if carry[K_HAS] != 0.0 and seq0 <= carry[K_SEQ]:
@@ -110,7 +111,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             fl = FLAG_REJECTED
         if fl == FLAG_REJECTED:
             flags[j] = fl
-            dict_size[j] = ist[core.I_N]
+            dict_size[j] = st.ist[core.I_N]
             carry[K_HAS] = 1.0
             carry[K_SEQ] = seq
             carry[K_CHAIN] = 0.0                   # the next good sample restarts the chain
@@ -147,12 +148,12 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
                 resid = vj - base
                 r[R_RESID] = resid
                 # ---- 3. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) -------------
-                if core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, obuf):
-                    s02 = obuf[8]
-                    r[R_F] = obuf[6]               # filtered f: ŷ + σ_f²(y − ŷ)/σ_y²
-                    r[R_FVAR] = obuf[7] * s02      # (σ_f² − σ_f⁴/σ_y²)·s0²
-                    removed[j] = int(obuf[4])
-                    if obuf[5] != 0.0:
+                if core.update(st, resid, obuf):
+                    s02 = obuf[core.O_S02]
+                    r[R_F] = obuf[core.O_FILT]     # filtered f: ŷ + σ_f²(y − ŷ)/σ_y²
+                    r[R_FVAR] = obuf[core.O_FILTVAR] * s02   # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    removed[j] = int(obuf[core.O_REMOVED])
+                    if obuf[core.O_REDUCED] != 0.0:
                         fl |= FLAG_REDUCED
                     carry[K_TRAINED] += 1.0
                     counts[C_TRAINED] += 1
@@ -165,13 +166,13 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             counts[C_RESTART] += 1
             fl |= FLAG_WARMUP
         # ---- 4. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------
-        was_empty = ist[core.I_N] == 0
+        was_empty = st.ist[core.I_N] == 0
         xbuf[0] = tj
-        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, obuf)
-        r[R_FNEXT] = obuf[0]
-        r[R_FNEXTVAR] = np.nan if was_empty else obuf[1] * fst[core.F_S02]
+        core.arm(st, xbuf, obuf)
+        r[R_FNEXT] = obuf[core.A_MEAN]
+        r[R_FNEXTVAR] = np.nan if was_empty else obuf[core.A_SF2] * st.fst[core.F_S02]
         flags[j] = fl
-        dict_size[j] = ist[core.I_N]
+        dict_size[j] = st.ist[core.I_N]
         carry[K_HAS] = 1.0
         carry[K_SEQ] = seq
         carry[K_T] = tj

@@ -135,7 +135,7 @@ class AxisEstimator:
         counts[:] = 0
         m = self.model
         first = online.track_block(
-            *self.tracker.core_arrays(self._xbuf),
+            self.tracker.core_state(self._xbuf),
             self.beta, m.coulomb, m.omega, m.form == "force-input", self._limits, self.stale_detection,
             self.warmup, self._carry, block.seq, t, e, v, rows, size, removed, flags, counts, self._xbuf, self._obuf,
         )
