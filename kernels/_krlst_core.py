@@ -10,10 +10,11 @@ Everything a tracker reads or writes is one :class:`State` (a ``NamedTuple`` of 
 the kernel's factor table and lag table, the dictionary, the matrices, the pending and
 armed vectors and the scratch. :func:`new_state` is the single definition of every
 field's shape and dtype. All fields are views of two base buffers (``float64`` and
-``int64``): a compiled function takes a ``State`` (``arm(st, x, out)``), and Python calls
-go through ``*_buffers`` twins that take the two buffers and rebuild the views inside
-(:func:`state_of`), because numba unboxes each array of a tuple argument separately
-(~0.1 µs per array, ~2 µs per call for a whole ``State``).
+``int64``; :func:`new_buffers`, :func:`state_views`). A compiled function takes a ``State``
+(``arm(st, x, out)``); Python calls go through ``*_buffers`` twins that take the two
+buffers and rebuild the views inside (:func:`state_of`), because numba types and unboxes
+each array of a tuple argument separately (~0.1 µs per array, ~2 µs per call for a whole
+``State``). Compiled code passes a ``State`` on without reference counting (:func:`unowned`).
 
 Slots and storage
 -----------------
@@ -22,24 +23,32 @@ dictionary elements in the dictionary's logical order (kafbox's order, oldest fi
 ``order[n:]`` the free slots; ``occ[s]`` is 1 for an occupied slot. A free slot has a zero
 row and column in every matrix and zero entries in every vector, so the sweeps run over
 the contiguous range ``[0, hw)`` (``hw``: high-water mark of used slots) without gathering.
-Adding a basis writes one row/column into a free slot, removing one zeroes them; nothing
-is shifted and no kernel value is recomputed. Only the pruning ``argmin`` walks the
-logical order, so ties resolve to the first (oldest) element as Matlab's ``min``.
+Adding a basis writes one row/column into a free slot; when a basis is pruned in the same
+step the new one takes over its slot (one row/column written instead of one zeroed and one
+written). Nothing is shifted and no kernel value is recomputed. Only the pruning ``argmin``
+walks the logical order, so ties resolve to the first (oldest) element as Matlab's ``min``.
 
 The symmetric matrices ``Q ≈ K_D⁻¹``, ``Δ = Σ − K_D`` and ``K_D = k(D, D) + ε_j I`` are kept
 as strict upper triangles (``Q``, ``D``, ``K``, ``(n8, n8)``, ``n8 = ⌈(M+1)/8⌉·8``) plus
 diagonals (``Qd``, ``Dd``, ``Kd``), swept by the 8-lane kernels of
-:mod:`kernels._krlst_simd` (half the matrix per pass). ``Δ`` instead of ``Σ`` makes the
-forgetting ``Σ ← λΣ + (1−λ)K_D`` (2.19) the scaling ``Δ ← λΔ``, and the ``h`` pass yields
-``K_D q`` (needed by ``refine``) along with ``h = Σ q = Δq + K_D q``.
+:mod:`kernels._krlst_simd` (half of each matrix per pass; the lanes are explicit, so the
+results do not depend on the vector width or on the caller). ``Δ`` instead of ``Σ`` makes the
+forgetting ``Σ ← λΣ + (1−λ)K_D`` (2.19) the scaling ``Δ ← λΔ``, which is kept as a scalar:
+``Δ = c·D`` with ``c = fst[F_DSC]`` (folded into ``D`` before it underflows), and the ``h``
+pass yields ``K_D q`` (needed by ``refine``) along with ``h = Σ q = c·Dq + K_D q``.
 
 Deferred rank-one updates
 -------------------------
 The rank-one (rank-two with a removal) updates of ``Q`` and ``Δ`` at the end of step ``t``
 are stored as *pending* vectors and applied inside the passes of step ``t+1`` (``q = Q k_t``
-and ``Δ ← λΔ; h = Σq``), so each matrix is swept once per step for them. :func:`predict`
+and ``h = Σq``), so each matrix is swept once per step for them. :func:`predict`
 applies pending updates on the fly without writing; ``KRLST`` materialises them for its
 ``Q``/``Sigma`` properties.
+
+Cost per step at ``M = 100`` (2-core Xeon, numbers from ``benchmarks/krlst_step.py``): the three
+sweeps do ~13 multiply–adds per stored matrix entry (``Q``: pending rank-two, ``Q k_t``,
+``Q μ_new``, ``Q(k_t − K_D q)``; ``D``: pending rank-one, ``D q``; ``K``: ``K_D q``), ~70 % of the
+step; the rest is the ``k_t`` row, the pruning criterion and the row/column writes.
 
 Uniform-grid lag table
 ----------------------
@@ -50,7 +59,8 @@ row costs ``n`` lookups instead of ``n`` ``exp``. A lag further than ``1e-6·Ts`
 integer falls back to the direct evaluation, and so does a lag beyond the table (which
 ends where the kernel underflows to 0, or at ``nmax`` entries for a kernel that does not
 decay). Without a table the row is :func:`kernels.covariance.kernel_row_phased` (one
-``exp`` per entry; the sines of periodic factors from each slot's cached phases ``Ph``).
+``exp`` per entry; the sines of periodic factors from each slot's cached phases ``Ph``,
+e.g. the spindle angle of ``x = (t, θ)``).
 
 Split step (predict_next / update)
 ----------------------------------
@@ -603,11 +613,22 @@ def _init(st, y, out):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _criterion(u, q, Qd, sc, pm, hw8, crit):
     """``crit_i = |[Q_new μ_new]_i / [Q_new]_ii|`` for all slots at once (so that it vectorises; a
-    free slot gives 0/0 = NaN, which no comparison picks)."""
+    free slot gives 0/0 = NaN, which no comparison picks); returns the smallest."""
     for i in range(hw8):
         qii = Qd[i] + sc * (q[i] * q[i])          # [Q_new]_ii
         qmu = u[i] + sc * (q[i] * pm)             # [Q_new μ_new]_i
         crit[i] = abs(qmu / qii)                  # |[Q μ]_i / Q_ii|, MSE pruning criterion
+    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = np.inf
+    for i in range(0, hw8, LANES):                # min is exact in any order: 8 independent chains
+        m0 = crit[i] if crit[i] < m0 else m0
+        m1 = crit[i + 1] if crit[i + 1] < m1 else m1
+        m2 = crit[i + 2] if crit[i + 2] < m2 else m2
+        m3 = crit[i + 3] if crit[i + 3] < m3 else m3
+        m4 = crit[i + 4] if crit[i + 4] < m4 else m4
+        m5 = crit[i + 5] if crit[i + 5] < m5 else m5
+        m6 = crit[i + 6] if crit[i + 6] < m6 else m6
+        m7 = crit[i + 7] if crit[i + 7] < m7 else m7
+    return min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
 
 
 @njit(cache=True, nogil=True)
@@ -687,13 +708,11 @@ def _update(st, y, out):
         q[s] = -1.0
         pm = _dot(q, m, hw8)                      # pᵀ μ_new
         crit = st.W[W_KT]
-        _criterion(u, q, st.Qd, sc, pm, hw8, crit)
-        best = np.inf
-        for l in range(n + 1):
-            i = order[l]                          # order[n] == s: the new sample is last
-            if crit[i] < best:                    # first minimum, as Matlab's min
-                best = crit[i]
+        best = _criterion(u, q, st.Qd, sc, pm, hw8, crit)
+        for l in range(n + 1):                    # order[n] == s: the new sample is last
+            if crit[order[l]] == best:            # first minimum, as Matlab's min
                 r = l
+                break
         q[s] = 0.0
 
     if r == n:

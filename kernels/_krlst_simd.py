@@ -26,10 +26,12 @@ the same bits from every caller, and two CPUs agree to rounding.
 Blocking
 --------
 A call handles :data:`ROWS` = 8 consecutive rows ``j … j+7`` (``j % 8 == 0``, so they share the
-first column block). Per column block each row's entries are loaded, updated and stored once,
-the axpy target ``t`` is loaded and stored once for the four rows, and each row keeps its own
-dot accumulator (four independent dependency chains); the four diagonal entries and the four
-finished entries of ``t`` are then handled as one 4-lane vector.
+first column block, the only one that needs a mask). Per column block each row's entries are
+loaded, updated and stored once, the axpy target ``t`` is loaded and stored once for the eight
+rows, and each row keeps its own dot accumulator (independent dependency chains); the eight
+diagonal entries and the eight finished entries of ``t`` are then handled as one vector.
+On the 2-core Xeon of the benchmarks the sweeps run at about the FMA throughput: at ``M = 100``
+one multiply–add per stored entry costs ~0.2 µs per pass, with 4- or 8-lane vectors alike.
 """
 
 from __future__ import annotations
