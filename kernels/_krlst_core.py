@@ -268,7 +268,7 @@ def state_views(fbuf, ibuf) -> State:
                  vecs[N_VEC:N_VEC + N_P], vecs[N_VEC + N_P:], mats[3])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def state_of(fbuf, ibuf):
     """The :class:`State` of the two base buffers, inside compiled code: the same fields as
     :func:`state_views`, built as reference-free views (valid while the buffers are)."""
@@ -293,7 +293,7 @@ def state_of(fbuf, ibuf):
                  view(fbuf, f_mats + 3 * nn, (n8, n8)))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def unowned(st):
     """``st`` with reference-free arrays (:func:`kernels._krlst_simd.unowned_array`), valid while ``st`` is.
 
@@ -352,6 +352,66 @@ def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: floa
                                     spec, tab))
 
 
+def validate_state(st: State) -> None:
+    """Raise ``ValueError`` (naming the field) unless ``st`` holds a state the core can use safely.
+
+    For a state read from outside (a snapshot): the compiled code indexes with ``order``,
+    ``ist[I_N]`` and ``ist[I_HW]`` without bounds checks and relies on the layout above
+    (free slots, lower triangles and padding zero). Checked: every float finite; ``n ≤ M``,
+    ``n ≤ hw ≤ M+1``, ``order`` a permutation with the dictionary below ``hw``, ``occ`` its
+    indicator; the pending/armed modes; free slots, lower triangles and padding of ``Q``, ``D``,
+    ``K`` zero and ``K_D``'s diagonal positive on the dictionary; ``0 < c ≤ 1``; the phases in
+    ``[−1, 1]``; the signal-power accumulators and an armed ``σ_y²`` possible.
+    """
+    cap, n8 = int(st.layout[0]), int(st.layout[1])
+    ist, fst, order = st.ist, st.fst, st.order
+    for name in ("fst", "X", "Ph", "Q", "Qd", "D", "Dd", "K", "Kd", "mu", "occ", "P"):
+        if not np.isfinite(getattr(st, name)).all():
+            raise ValueError(f"state {name!r} holds non-finite values")
+    M, n, hw = int(ist[I_M]), int(ist[I_N]), int(ist[I_HW])
+    if M != cap - 1:
+        raise ValueError(f"state 'ist' budget {M} does not match its {cap} slots")
+    if not 0 <= n <= M:
+        raise ValueError(f"state 'ist' dictionary size {n} is outside 0…{M}")
+    if not n <= hw <= cap:
+        raise ValueError(f"state 'ist' high-water mark {hw} is outside {n}…{cap}")
+    for name, slot, allowed in (("pending Q update", I_QPEND, (0, 1, 2)), ("pending Σ update", I_SPEND, (0, 1)),
+                                ("armed flag", I_ARMED, (0, 1)), ("refine flag", I_REFINE, (0, 1))):
+        if int(ist[slot]) not in allowed:
+            raise ValueError(f"state 'ist' {name} is {int(ist[slot])}, expected one of {allowed}")
+    if ist[I_STEPS] < 0 or ist[I_REFRESH] < 0:
+        raise ValueError("state 'ist' step count and refresh interval must be >= 0")
+    if not np.array_equal(np.sort(order), np.arange(cap)):
+        raise ValueError(f"state 'order' is not a permutation of 0…{cap - 1}")
+    used = order[:n]
+    if n and int(used.max()) >= hw:
+        raise ValueError("state 'order' puts a dictionary element beyond the high-water mark")
+    occ = np.zeros(n8)
+    occ[used] = 1.0
+    if not np.array_equal(st.occ, occ):
+        raise ValueError("state 'occ' does not mark exactly the dictionary's slots")
+    free = np.setdiff1d(np.arange(n8), used)
+    for name, U, d in (("Q", st.Q, st.Qd), ("D", st.D, st.Dd), ("K", st.K, st.Kd)):
+        if np.tril(U).any():
+            raise ValueError(f"state {name!r} has entries on or below the diagonal (it holds the strict upper triangle)")
+        if U[free, :].any() or U[:, free].any() or d[free].any():
+            raise ValueError(f"state {name!r} has entries in free slots")
+    if n and not (st.Kd[used] > 0.0).all():
+        raise ValueError("state 'Kd': the kernel matrix needs a positive diagonal")
+    if st.mu[free].any() or st.P[P_P:P_G + 1][:, free].any():
+        raise ValueError("state 'mu'/'P' have entries in free slots")
+    if st.P[:, cap:].any():
+        raise ValueError("state 'P' has entries beyond the slots")
+    if np.abs(st.Ph).max(initial=0.0) > 1.0:
+        raise ValueError("state 'Ph' holds a sine or cosine outside [-1, 1]")
+    if not 0.0 < fst[F_DSC] <= 1.0:
+        raise ValueError(f"state 'fst' scale of Σ − K_D is {float(fst[F_DSC])!r}, expected in (0, 1]")
+    if fst[F_NUM] < 0.0 or fst[F_S02] < 0.0 or fst[F_DEN] < (1.0 if n else 0.0):
+        raise ValueError("state 'fst' signal-power accumulators are impossible")
+    if ist[I_ARMED] and n and not fst[F_SY2] > 0.0:
+        raise ValueError("state 'fst' armed predictive variance must be > 0")
+
+
 @njit(cache=True, nogil=True)
 def build_lag_table(kinds, params, cols, step, nmax, tab):
     """``tab[L] = k(L·Ts)`` for ``L < nmax``, stopping where the kernel underflows to 0; returns the length."""
@@ -368,7 +428,7 @@ def build_lag_table(kinds, params, cols, step, nmax, tab):
 
 # ---- k_t ----------------------------------------------------------------------------------------
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _kernel_row(st, x, xph, hw, kt):
     """``k_t = k(D, x)`` into the slots of ``kt`` (zeros elsewhere, up to ``hw8``); returns ``k_tt = k(x,x) + ε_j``."""
     hw8 = (hw + LANES - 1) // LANES * LANES
@@ -415,7 +475,7 @@ _S1_R = sweep(Stream(terms=1), Stream())
 _S0_R = sweep(Stream(), Stream())
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _sweep_q(st, hw, kt, q, write):
     """``q = Q k_t`` (2.17), applying the pending update of ``Q`` on the way (written back when ``write``):
     ``Q ← [[Q,0],[0,0]] + p pᵀ/γ²`` (2.15), then ``− a aᵀ/[Q_new]_rr`` for a removal (2.22)."""
@@ -446,7 +506,7 @@ def _sweep_q(st, hw, kt, q, write):
         st.ist[I_QPEND] = 0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _sweep_sigma(st, hw, c, q, h, kq, write):
     """``h = Σ q`` after the forgetting ``Σ ← λΣ + (1−λ)K_D`` (2.19) and ``kq = K_D q``.
 
@@ -488,7 +548,7 @@ def _sweep_sigma(st, hw, c, q, h, kq, write):
         st.ist[I_SPEND] = 0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _sweep_qq(st, hw, m, r_, u, w):
     """``u = Q m`` and ``w = Q r`` in one read-only sweep (``Q`` has no pending update)."""
     hw8 = (hw + LANES - 1) // LANES * LANES
@@ -499,7 +559,7 @@ def _sweep_qq(st, hw, m, r_, u, w):
         _QQ_R(j, hw8, st.Q, st.Qd, u, m, w, r_)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _dot(a, b, n):
     """``Σ_{i<n} a_i b_i`` in a fixed order (8 lanes, as the sweeps; ``n`` a multiple of 8)."""
     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
@@ -525,7 +585,13 @@ def arm(st, x, out):
     ``k_tt`` are kept and the prior predictive ``0, k_tt, sn2 + k_tt, k_tt`` is reported.
     Arming again before :func:`update` forgets once more and predicts at the new ``x``.
     """
-    st = unowned(st)
+    _arm(unowned(st), x, out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _arm(st, x, out):
+    """:func:`arm` on an unowned state. (The helpers are inlined: numba increments and decrements
+    the reference count of each of a ``State``'s arrays at every call boundary.)"""
     ist = st.ist
     fst = st.fst
     n = ist[I_N]
@@ -572,7 +638,7 @@ def arm(st, x, out):
     _armed(fst, out, ktt, y_mean, gamma2, sf2, sn2 + sf2)   # σ_y² = sn2 + σ_f²
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _armed(fst, out, ktt, y_mean, gamma2, sf2, sy2):
     fst[F_KTT] = ktt
     fst[F_YM] = y_mean
@@ -587,7 +653,7 @@ def _armed(fst, out, ktt, y_mean, gamma2, sf2, sy2):
 
 # ---- steps 3–6: update -------------------------------------------------------------------------
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _init(st, y, out):
     """Step 6, eq. 2.16 (first sample, armed): ``Q = 1/k``, ``μ = y k/(k+sn2)``, ``Σ = k − k²/(k+sn2)``."""
     fst = st.fst
@@ -631,7 +697,7 @@ def _criterion(u, q, Qd, sc, pm, hw8, crit):
     return min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _update(st, y, out):
     """Steps 3–5 for ``n ≥ 1`` from the armed prediction (eq. 2.14, 2.15, 2.20–2.22)."""
     ist = st.ist
@@ -794,7 +860,7 @@ def _update(st, y, out):
     _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, 0.0, fst[F_S02], n_new)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _free_slot(st, s):
     """Zero the input, phases and occupancy of slot ``s``."""
     for c in range(st.X.shape[1]):
@@ -804,7 +870,7 @@ def _free_slot(st, s):
     st.occ[s] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, reduced, s02, n):
     out[O_MEAN] = y_mean
     out[O_SY2] = sy2
@@ -818,7 +884,7 @@ def _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, reduced, s02, n):
     out[O_SIZE] = n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _k_at(st, i, j):
     """``K_D`` entry of slots ``i, j`` from the (strict upper, diagonal) storage."""
     if i == j:
@@ -828,6 +894,12 @@ def _k_at(st, i, j):
 
 @njit(cache=True, nogil=True)
 def refresh_inverse(st):
+    """:func:`_refresh_inverse` (see there) on ``st``."""
+    return _refresh_inverse(unowned(st))
+
+
+@njit(cache=True, nogil=True)
+def _refresh_inverse(st):
     """``Q ← K_D⁻¹`` from the cached ``K_D`` by Cholesky; False (``Q`` untouched) if not PD.
 
     Works in the dense scratch ``A`` in the dictionary's logical order, with row-wise axpys
@@ -840,7 +912,6 @@ def refresh_inverse(st):
        is dropped. A pivot ``≤ 0`` (``K_D`` numerically singular, e.g. ``ε_j = 0`` and a
        repeated input) leaves ``Q`` and its pending update as they were.
     """
-    st = unowned(st)
     n = st.ist[I_N]
     order = st.order
     A = st.A
@@ -909,7 +980,12 @@ def update(st, y, out):
 
     ``out[O_*]``. After the step, every ``refresh_every`` steps, ``Q`` is recomputed from ``K_D``.
     """
-    st = unowned(st)
+    return _update_step(unowned(st), y, out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _update_step(st, y, out):
+    """:func:`update` on an unowned state."""
     ist = st.ist
     if ist[I_ARMED] == 0:
         return False
@@ -920,13 +996,14 @@ def update(st, y, out):
         _update(st, y, out)
     every = ist[I_REFRESH]
     if every > 0 and ist[I_STEPS] % every == 0:
-        refresh_inverse(st)
+        _refresh_inverse(st)
     return True
 
 
 @njit(cache=True, nogil=True)
 def learn(st, x, y, out):
     """One sample: :func:`arm` at ``x`` then :func:`update` with ``y`` (steps 1–5, or 6 first)."""
+    st = unowned(st)
     arm(st, x, out)
     update(st, y, out)
 
@@ -966,12 +1043,17 @@ def track(st, xs, ys, learn_mask, outs):
 
 @njit(cache=True, nogil=True)
 def predict(st, x, forget, out):
+    """:func:`_predict` (see there) on ``st``."""
+    _predict(unowned(st), x, forget, out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _predict(st, x, forget, out):
     """``ŷ, σ_f², σ_y², γ²`` at ``x`` from the current state (2.17) into ``out[A_*]``; state untouched.
 
     With ``forget`` the forgetting (2.19) of the next step is applied virtually, so the
     numbers are bit-identical to what the next :func:`learn` reports for ``x``.
     """
-    st = unowned(st)
     ist = st.ist
     fst = st.fst
     hw = ist[I_HW]
@@ -1047,13 +1129,13 @@ def materialize(st, Qout, Sout):
 @njit(cache=True, nogil=True)
 def arm_buffers(fbuf, ibuf, x, out):
     """:func:`arm` on ``state_of(fbuf, ibuf)``."""
-    arm(state_of(fbuf, ibuf), x, out)
+    _arm(state_of(fbuf, ibuf), x, out)
 
 
 @njit(cache=True, nogil=True)
 def update_buffers(fbuf, ibuf, y, out):
     """:func:`update` on ``state_of(fbuf, ibuf)``."""
-    return update(state_of(fbuf, ibuf), y, out)
+    return _update_step(state_of(fbuf, ibuf), y, out)
 
 
 @njit(cache=True, nogil=True)
@@ -1065,4 +1147,4 @@ def learn_buffers(fbuf, ibuf, x, y, out):
 @njit(cache=True, nogil=True)
 def predict_buffers(fbuf, ibuf, x, forget, out):
     """:func:`predict` on ``state_of(fbuf, ibuf)``."""
-    predict(state_of(fbuf, ibuf), x, forget, out)
+    _predict(state_of(fbuf, ibuf), x, forget, out)

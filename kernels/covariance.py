@@ -27,7 +27,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 __all__ = [
     "Kernel",
@@ -458,7 +460,53 @@ def kernel_row_at(kinds, params, cols, X, idx, n, x, out):
 # sines and cosines of small arguments are accurate to rounding. Each input's
 # (sin a, cos a) per periodic factor is computed once (:func:`kernel_phases`)
 # and kept with it; a row then costs multiplications and one exp per entry.
+# That exp is written out (:func:`_exp_nonpositive`) so that the row loops
+# vectorise (libm's exp is a call per entry: ~4 ns against ~1 ns).
 # ---------------------------------------------------------------------------
+
+
+@intrinsic
+def _double_from_bits(typingctx, bits):
+    """The float64 whose IEEE-754 bit pattern is the int64 ``bits``."""
+    sig = types.float64(types.int64)
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return sig, codegen
+
+
+_LOG2E = 1.4426950408889634
+_LN2_HI = 6.93147180369123816490e-01     # ln 2 in two parts: k·_LN2_HI is exact for |k| < 2^11
+_LN2_LO = 1.90821492927058770002e-10
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _exp_nonpositive(x):
+    """``exp(x)`` for ``x ≤ 0`` (0 below −708), within 1 ulp of libm, without calls or branches.
+
+    ``exp(x) = 2^k · exp(r)``, ``k = round(x/ln 2)``, ``|r| ≤ ln(2)/2``; ``exp(r)`` by its Taylor
+    polynomial of degree 13 (truncation < 2e-16 relative), ``2^k`` from the exponent bits.
+    """
+    xc = max(x, -708.0)
+    k = np.floor(xc * _LOG2E + 0.5)
+    r = (xc - k * _LN2_HI) - k * _LN2_LO
+    p = 1.0 / 6227020800.0
+    p = p * r + 1.0 / 479001600.0
+    p = p * r + 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    v = p * _double_from_bits((np.int64(k) + 1023) << 52)
+    return v if x >= -708.0 else 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -492,7 +540,8 @@ def kernel_row_phased(kinds, params, cols, X, Ph, w, lo, hi, x, xph, out):
     an occupied slot, 0 for a free one).
 
     ``Ph[i]`` and ``xph`` are :func:`kernel_phases` of ``X[i]`` and ``x``. The exponent is summed
-    factor by factor (each factor's loop runs over all rows), then one ``exp`` per entry:
+    factor by factor (each factor's loop runs over all rows), then one ``exp`` per entry
+    (:func:`_exp_nonpositive`):
     squared exponential ``−‖d‖²/(2ℓ²)``, periodic ``−s²/(2σ2²)`` with ``s = sin(π d/ψ)`` from the
     phases, locally periodic both (``d = x − x'``, method §5).
     """
@@ -506,6 +555,12 @@ def kernel_row_phased(kinds, params, cols, X, Ph, w, lo, hi, x, xph, out):
             stop = x.shape[0]
         if kind == KIND_SE:
             c1 = 1.0 / (2.0 * params[f, 0] * params[f, 0])
+            if stop == start + 1:                                  # one column: a loop that vectorises
+                x0 = x[start]
+                for i in range(lo, hi):
+                    d = X[i, start] - x0
+                    out[i] -= (d * d) * c1                         # −d²/(2ℓ²)
+                continue
             for i in range(lo, hi):
                 r = 0.0
                 for j in range(start, stop):
@@ -529,4 +584,4 @@ def kernel_row_phased(kinds, params, cols, X, Ph, w, lo, hi, x, xph, out):
                 s = sa * Ph[i, 2 * f + 1] - ca * Ph[i, 2 * f]
                 out[i] -= (d * d) * c1 + (s * s) * c2              # −d²/(2σ1²) − sin²(π d/ψ)/(2σ2²)
     for i in range(lo, hi):
-        out[i] = w[i] * math.exp(out[i])
+        out[i] = w[i] * _exp_nonpositive(out[i])

@@ -584,7 +584,9 @@ class KRLST:
 
     @classmethod
     def restore(cls, snap: dict) -> KRLST:
-        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot.
+        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot
+        (shapes and dtypes against :func:`~kernels._krlst_core.new_state`, then the state's
+        invariants, :func:`~kernels._krlst_core.validate_state`).
 
         Snapshots of layout 1 (full ``Q``, ``Sigma``, ``K`` matrices, written before the
         triangular core; no ``state_layout`` key) are converted, their pending updates
@@ -612,6 +614,7 @@ class KRLST:
             raise ValueError(f"snapshot 'dim' must be >= 0, got {dim}")
         tracker._start(dim, np.zeros(dim))
         st = tracker._st
+        fresh_fst = st.fst.copy()
         if layout == 1:
             arrays = _from_layout1(tracker, snap, dim)
         elif layout == SNAPSHOT_LAYOUT:
@@ -630,6 +633,11 @@ class KRLST:
             dst[...] = arr
         st.ist[core.I_REFRESH] = tracker.refresh_every
         st.ist[core.I_REFINE] = int(tracker.refine)
+        core.validate_state(st)                      # before the compiled code indexes with it
+        for slot in (core.F_LAM, core.F_SN2, core.F_JIT, core.F_INVTS):
+            if st.fst[slot] != fresh_fst[slot]:
+                raise ValueError(f"snapshot 'fst' holds hyperparameters {st.fst[[core.F_LAM, core.F_SN2, core.F_JIT]]}"
+                                 " that differ from its own gamma/forgetting/jitter/grid_step entries")
         return tracker
 
 

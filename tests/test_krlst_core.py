@@ -266,3 +266,43 @@ def test_named_slots_are_distinct_and_dense():
     fst = [v for k, v in vars(core).items() if k.startswith("F_")]
     assert sorted(fst) == list(range(core.N_FST))
     assert (core.T_NEXT, core.T_S02, core.T_SIZE, core.T_LEARNED, core.N_TRACK) == (10, 14, 15, 16, 17)
+
+
+# -- a state read from outside is checked before the compiled code indexes with it ----------------------
+
+
+def _snapshot():
+    t, y = _stream(300, seed=8)
+    tr = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), gamma=5.85, forgetting=0.996, budget=20, jitter=1e-6, refine=True)
+    tr.learn_many(t[:-1], y[:-1])
+    tr.predict_next(t[-1])
+    return tr.snapshot(), tr
+
+
+def _free_slot(snap):
+    n = int(snap["ist"][core.I_N])
+    return int(snap["order"][n])
+
+
+@pytest.mark.parametrize("corrupt, message", [
+    (lambda s: s["ist"].__setitem__(core.I_N, 10**9), "dictionary size"),
+    (lambda s: s["ist"].__setitem__(core.I_HW, 10**6), "high-water mark"),
+    (lambda s: s["ist"].__setitem__(core.I_QPEND, 7), "pending Q update"),
+    (lambda s: s["order"].__setitem__(0, s["order"][1]), "permutation"),
+    (lambda s: s["Q"].__setitem__((5, 2), 1.0), "below the diagonal"),
+    (lambda s: s["K"].__setitem__((0, _free_slot(s)) if _free_slot(s) > 0 else (_free_slot(s), 1), 0.5),
+     "free slots"),
+    (lambda s: s["occ"].__setitem__(_free_slot(s), 1.0), "'occ'"),
+    (lambda s: s["D"].__setitem__((0, 3), np.nan), "non-finite"),
+    (lambda s: s["fst"].__setitem__(core.F_DSC, 0.0), "scale"),
+    (lambda s: s["fst"].__setitem__(core.F_SY2, -1.0), "armed predictive variance"),
+    (lambda s: s["fst"].__setitem__(core.F_LAM, 0.5), "hyperparameters"),
+    (lambda s: s["Ph"].__setitem__((0, 0), 3.0), "'Ph'"),
+])
+def test_restore_refuses_an_inconsistent_state(corrupt, message):
+    snap, tr = _snapshot()
+    KRLST.restore(snap)                                               # the intact one is fine
+    bad = {k: v.copy() for k, v in snap.items()}
+    corrupt(bad)
+    with pytest.raises(ValueError, match=message):
+        KRLST.restore(bad)
