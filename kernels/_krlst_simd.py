@@ -36,6 +36,8 @@ one multiply–add per stored entry costs ~0.2 µs per pass, with 4- or 8-lane v
 
 from __future__ import annotations
 
+import inspect
+
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -221,11 +223,13 @@ def sweep(*streams: Stream):
 
         return sig, codegen
 
-    # @intrinsic needs a fixed parameter list
-    names = ", ".join(f"a{i}" for i in range(len(kinds)))
-    namespace = {"typer": typer}
-    exec(f"def sweep_intrinsic(typingctx, {names}):\n    return typer(typingctx, {names})\n", namespace)
-    return intrinsic(namespace["sweep_intrinsic"])
+    # @intrinsic reads the parameter list from the signature: give it a fixed one
+    param = inspect.Parameter
+    typer.__signature__ = inspect.Signature([param("typingctx", param.POSITIONAL_OR_KEYWORD)] + [
+        param(f"a{i}", param.POSITIONAL_OR_KEYWORD) for i in range(len(kinds))])
+    typer.__name__ = typer.__qualname__ = "sweep_" + "_".join(
+        f"t{s.terms}{'s' if s.scale else ''}{'w' if s.store else ''}v{s.vecs}" for s in streams)
+    return intrinsic(typer)
 
 
 @intrinsic
