@@ -405,6 +405,13 @@ class KRLST:
             self._start(x_example.shape[0], x_example)
         return self._st
 
+    def core_buffers(self, x_example) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers ``(float64, int64)`` behind :meth:`core_state`, for compiled code that
+        takes plain arrays and names them inside with ``kernels._krlst_core.state_of(fbuf, ibuf)``
+        (two arrays cross the Python/numba boundary instead of the ``State``'s 22)."""
+        self.core_state(x_example)
+        return self._buf
+
     def _stream(self, X, y, mask, xname: str, yname: str) -> tuple[np.ndarray, np.ndarray]:
         """Validated contiguous ``(N, d)`` inputs and ``(N,)`` targets; ``y`` must be finite where
         ``mask`` is set (everywhere when ``mask`` is None). Raises ``ValueError`` naming the first bad index."""

@@ -306,3 +306,29 @@ def test_restore_refuses_an_inconsistent_state(corrupt, message):
     corrupt(bad)
     with pytest.raises(ValueError, match=message):
         KRLST.restore(bad)
+
+
+@njit
+def _split_from_buffers(fbuf, ibuf, ys, xs, out):
+    st = core.state_of(fbuf, ibuf)
+    for j in range(ys.shape[0]):
+        core.update(st, ys[j], out)
+        core.arm(st, xs[j], out)
+
+
+def test_core_buffers_drive_the_same_tracker():
+    # a compiled loop given the two base buffers works on the tracker's own state
+    t, y = _stream(400, seed=9)
+    kw = dict(gamma=5.85, forgetting=0.996, budget=30, jitter=1e-6, grid_step=TS, refine=True)
+    a = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
+    b = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
+    for tr in (a, b):
+        tr.learn_many(t[:200], y[:200])
+        tr.predict_next(t[200])
+    _split_from_buffers(*a.core_buffers(t[:1]), y[200:399], t[201:400].reshape(-1, 1), np.zeros(core.N_OUT))
+    for j in range(200, 399):
+        b.update(y[j])
+        b.predict_next(t[j + 1])
+    sa, sb = a.snapshot(), b.snapshot()
+    for key in sa:
+        np.testing.assert_array_equal(sa[key], sb[key], err_msg=key)
