@@ -456,7 +456,7 @@ def _kernel_row(st, x, xph, hw, kt):
         ktt = tab[0]
     else:
         kernel_row_phased(st.kinds, st.params, st.cols, st.X, st.Ph, st.occ, 0, hw, x, xph, kt)
-        ktt = kernel_value(st.kinds, st.params, st.cols, x, x)
+        ktt = 1.0                                      # k(x, x): every kernel is normalised (Kernel.diag)
     for i in range(hw, hw8):
         kt[i] = 0.0
     return ktt + st.fst[F_JIT]                         # k_tt = k(x, x) + ε_j
