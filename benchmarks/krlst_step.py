@@ -17,7 +17,8 @@ Rows (µs per sample, median and p99 over the timed samples):
   (``refine=True`` as the monitor runs it), two calls from Python per sample
   (``KRLST.update`` / ``KRLST.predict_next`` make the same two calls);
 * ``… compiled``: the same two calls inside a compiled loop, as ``kernels.online.track_block``
-  runs them (chunks of 20 samples timed; p99 is of the chunk means);
+  runs them (chunks of 20 samples timed, the loop given the two base buffers; p99 is of the
+  chunk means);
 * ``step M=400``: one ``learn`` (arm + update) from Python, lag table on, ``refine=False``
   (kafbox's recursion) and ``refine=True``.
 
@@ -40,7 +41,7 @@ from kernels import _krlst_core as core
 from kernels.krlst_numpy import NumpyKRLST
 
 TS = 1 / 333
-HYPER = dict(gamma=5.85, forgetting=0.996, jitter=1e-6)
+HYPER = {"gamma": 5.85, "forgetting": 0.996, "jitter": 1e-6}
 CHUNK = 20
 
 
@@ -78,7 +79,7 @@ def time_split_calls(kernel, X, y, M, grid_step, steps):
     """µs per sample: ``update(y_k)`` then ``arm(x_{k+1})``, two Python calls."""
     tr, w = _warm(kernel, X, y, M, grid_step, True)
     tr.predict_next(X[w])
-    fbuf, ibuf = tr._buf
+    fbuf, ibuf = tr.core_buffers(X[0])
     out = np.zeros(core.N_OUT)
     ns = np.empty(steps, dtype=np.int64)
     pc = time.perf_counter_ns
@@ -93,8 +94,8 @@ def time_split_calls(kernel, X, y, M, grid_step, steps):
 
 
 @njit(nogil=True)
-def _split_loop(st, xs, ys, out):
-    st = core.unowned(st)
+def _split_loop(fbuf, ibuf, xs, ys, out):
+    st = core.state_of(fbuf, ibuf)
     for i in range(ys.shape[0]):
         core.update(st, ys[i], out)
         core.arm(st, xs[i], out)
@@ -104,15 +105,15 @@ def time_split_compiled(kernel, X, y, M, grid_step, steps):
     """µs per sample of the same two calls in a compiled loop (means of CHUNK samples)."""
     tr, w = _warm(kernel, X, y, M, grid_step, True)
     tr.predict_next(X[w])
-    st = tr.core_state(X[0])
+    fbuf, ibuf = tr.core_buffers(X[0])
     out = np.zeros(core.N_OUT)
-    _split_loop(st, X[w + 1:w + 1], y[w:w], out)
+    _split_loop(fbuf, ibuf, X[w + 1:w + 1], y[w:w], out)
     means = []
     pc = time.perf_counter_ns
     for i in range(0, steps - CHUNK + 1, CHUNK):
         xs, ys = X[w + 1 + i:w + 1 + i + CHUNK], y[w + i:w + i + CHUNK]
         a = pc()
-        _split_loop(st, xs, ys, out)
+        _split_loop(fbuf, ibuf, xs, ys, out)
         means.append((pc() - a) / CHUNK)
     return np.array(means) / 1e3
 
@@ -120,7 +121,7 @@ def time_split_compiled(kernel, X, y, M, grid_step, steps):
 def time_learn(kernel, X, y, M, grid_step, refine, steps):
     """µs per ``learn`` (arm + update) call from Python."""
     tr, w = _warm(kernel, X, y, M, grid_step, refine)
-    fbuf, ibuf = tr._buf
+    fbuf, ibuf = tr.core_buffers(X[0])
     out = np.zeros(core.N_OUT)
     ns = np.empty(steps, dtype=np.int64)
     pc = time.perf_counter_ns

@@ -624,8 +624,7 @@ def _arm(st, x, out):
     _sweep_q(st, hw, kt, q, True)                 # q = Q k_t
     y_mean = _dot(q, mu, hw8)                     # ŷ = qᵀ μ
     gamma2 = ktt - _dot(kt, q, hw8)               # γ² = k_tt − k_tᵀ q
-    if gamma2 < 0.0:
-        gamma2 = 0.0
+    gamma2 = max(gamma2, 0.0)
     kq = st.W[W_KQ]
     _sweep_sigma(st, hw, lam * fst[F_DSC], q, h, kq, True)   # Σ ← λΣ + (1−λ)K_D;  h = Σ q, K_D q
     if ist[I_REFINE] != 0:
@@ -633,8 +632,7 @@ def _arm(st, x, out):
         for i in range(hw8):
             res[i] = kt[i] - kq[i]                # k_t − K_D q, for the refinement of q
     sf2 = gamma2 + _dot(q, h, hw8)                # σ_f² = γ² + qᵀ h
-    if sf2 < 0.0:
-        sf2 = 0.0
+    sf2 = max(sf2, 0.0)
     _armed(fst, out, ktt, y_mean, gamma2, sf2, sn2 + sf2)   # σ_y² = sn2 + σ_f²
 
 
@@ -686,14 +684,14 @@ def _criterion(u, q, Qd, sc, pm, hw8, crit):
         crit[i] = abs(qmu / qii)                  # |[Q μ]_i / Q_ii|, MSE pruning criterion
     m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = np.inf
     for i in range(0, hw8, LANES):                # min is exact in any order: 8 independent chains
-        m0 = crit[i] if crit[i] < m0 else m0
-        m1 = crit[i + 1] if crit[i + 1] < m1 else m1
-        m2 = crit[i + 2] if crit[i + 2] < m2 else m2
-        m3 = crit[i + 3] if crit[i + 3] < m3 else m3
-        m4 = crit[i + 4] if crit[i + 4] < m4 else m4
-        m5 = crit[i + 5] if crit[i + 5] < m5 else m5
-        m6 = crit[i + 6] if crit[i + 6] < m6 else m6
-        m7 = crit[i + 7] if crit[i + 7] < m7 else m7
+        m0 = min(m0, crit[i])
+        m1 = min(m1, crit[i + 1])
+        m2 = min(m2, crit[i + 2])
+        m3 = min(m3, crit[i + 3])
+        m4 = min(m4, crit[i + 4])
+        m5 = min(m5, crit[i + 5])
+        m6 = min(m6, crit[i + 6])
+        m7 = min(m7, crit[i + 7])
     return min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
 
 
@@ -1073,13 +1071,11 @@ def _predict(st, x, forget, out):
         mu[i] = sl * st.mu[i]
     y_mean = _dot(q, mu, hw8)
     gamma2 = ktt - _dot(kt, q, hw8)
-    if gamma2 < 0.0:
-        gamma2 = 0.0
+    gamma2 = max(gamma2, 0.0)
     kq = W[W_KQ]
     _sweep_sigma(st, hw, lam * fst[F_DSC], q, h, kq, False)
     sf2 = gamma2 + _dot(q, h, hw8)
-    if sf2 < 0.0:
-        sf2 = 0.0
+    sf2 = max(sf2, 0.0)
     out[A_MEAN] = y_mean
     out[A_SF2] = sf2
     out[A_SY2] = fst[F_SN2] + sf2

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from numba import literal_unroll, njit
@@ -185,7 +187,7 @@ def test_spindle_kernel_is_exact_gp_without_forgetting(theta0):
 
 def test_spindle_kernel_tracks_like_the_numpy_reference():
     X, y = _spindle(700, seed=3)
-    kw = dict(gamma=5.85, forgetting=0.996, budget=60, jitter=1e-6)
+    kw = {"gamma": 5.85, "forgetting": 0.996, "budget": 60, "jitter": 1e-6}
     res = KRLST(spindle_kernel(), refine=True, **kw).learn_many(X, y)
     ref = NumpyKRLST(spindle_kernel(), **kw)
     pm = np.array([ref.learn_one(xi, yi) for xi, yi in zip(X, y)])
@@ -237,13 +239,13 @@ def test_lazy_forgetting_scale_is_folded_and_exact():
     # core and kafbox's recursion (NumPy) run the same algorithm and differ by rounding only
     t, y = _stream(1800, seed=6)
     t, y = t[::3], y[::3]
-    kw = dict(gamma=5.85, forgetting=0.6, budget=650, jitter=1e-6)
+    kw = {"gamma": 5.85, "forgetting": 0.6, "budget": 650, "jitter": 1e-6}
     tr = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
     scales, means = [], []
     for lo in range(0, len(y), 50):
         means.append(tr.learn_many(t[lo:lo + 50], y[lo:lo + 50])["mean"])
         scales.append(tr.core_state(t[:1]).fst[core.F_DSC])
-    assert min(scales) >= 1e-100 and any(b > a for a, b in zip(scales, scales[1:]))   # folded on the way
+    assert min(scales) >= 1e-100 and any(b > a for a, b in itertools.pairwise(scales))   # folded on the way
     ref = NumpyKRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
     pm = np.array([ref.learn_one(ti, yi) for ti, yi in zip(t, y)])
     assert tr.size == len(ref.mu) == len(y)
@@ -300,7 +302,7 @@ def _free_slot(snap):
     (lambda s: s["Ph"].__setitem__((0, 0), 3.0), "'Ph'"),
 ])
 def test_restore_refuses_an_inconsistent_state(corrupt, message):
-    snap, tr = _snapshot()
+    snap, _tr = _snapshot()
     KRLST.restore(snap)                                               # the intact one is fine
     bad = {k: v.copy() for k, v in snap.items()}
     corrupt(bad)
@@ -319,7 +321,7 @@ def _split_from_buffers(fbuf, ibuf, ys, xs, out):
 def test_core_buffers_drive_the_same_tracker():
     # a compiled loop given the two base buffers works on the tracker's own state
     t, y = _stream(400, seed=9)
-    kw = dict(gamma=5.85, forgetting=0.996, budget=30, jitter=1e-6, grid_step=TS, refine=True)
+    kw = {"gamma": 5.85, "forgetting": 0.996, "budget": 30, "jitter": 1e-6, "grid_step": TS, "refine": True}
     a = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
     b = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), **kw)
     for tr in (a, b):
