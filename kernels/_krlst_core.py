@@ -271,7 +271,9 @@ def state_views(fbuf, ibuf) -> State:
 @njit(cache=True, nogil=True, inline="always")
 def state_of(fbuf, ibuf):
     """The :class:`State` of the two base buffers, inside compiled code: the same fields as
-    :func:`state_views`, built as reference-free views (valid while the buffers are)."""
+    :func:`state_views`, built as reference-free views (valid while the buffers are; for compiled
+    code only — from Python, arrays returned by it would not keep the buffers alive: use
+    :func:`state_views`)."""
     cap = ibuf[0]
     n8 = ibuf[1]
     dim = ibuf[2]
@@ -295,7 +297,8 @@ def state_of(fbuf, ibuf):
 
 @njit(cache=True, nogil=True, inline="always")
 def unowned(st):
-    """``st`` with reference-free arrays (:func:`kernels._krlst_simd.unowned_array`), valid while ``st`` is.
+    """``st`` with reference-free arrays (:func:`kernels._krlst_simd.unowned_array`), valid while ``st`` is
+    (compiled code only, as :func:`state_of`).
 
     numba increments and decrements the reference count of every array of a ``State`` each time
     it is passed on (~0.2 µs per call for its 22 arrays); the public functions below start with
