@@ -446,15 +446,16 @@ def _kernel_row(st, x, xph, hw, kt):
         nbad = 0
         for i in range(hw):                            # (two branch-free loops, so that both vectorise)
             dl = abs(x0 - X[i, 0]) * invts             # lag in grid steps
-            L = np.floor(min(dl, top) + 0.5)           # nearest table entry
-            nbad += ((dl > top) | (abs(dl - L) > LAG_TOL)) & (occ[i] != 0.0)
+            inside = dl <= top                         # (False for NaN: the index below stays valid)
+            L = np.floor((dl if inside else top) + 0.5)   # nearest table entry
+            nbad += ((not inside) | (abs(dl - L) > LAG_TOL)) & (occ[i] != 0.0)
             kt[i] = L
         for i in range(hw):
             kt[i] = occ[i] * tab[np.int64(kt[i])]      # k(L Ts), computed once
         if nbad:                                       # off the grid or beyond the table: direct
             for i in range(hw):
                 dl = abs(x0 - X[i, 0]) * invts
-                if ((dl > top) or abs(dl - np.floor(min(dl, top) + 0.5)) > LAG_TOL) and occ[i] != 0.0:
+                if occ[i] != 0.0 and not (dl <= top and abs(dl - np.floor(dl + 0.5)) <= LAG_TOL):
                     kernel_row_phased(st.kinds, st.params, st.cols, X, st.Ph, occ, i, i + 1, x, xph, kt)
         ktt = tab[0]
     else:

@@ -334,3 +334,17 @@ def test_core_buffers_drive_the_same_tracker():
     sa, sb = a.snapshot(), b.snapshot()
     for key in sa:
         np.testing.assert_array_equal(sa[key], sb[key], err_msg=key)
+
+
+def test_core_survives_non_finite_inputs_that_bypass_the_checks():
+    # defence in depth: the classes refuse non-finite x; the compiled core itself must not index
+    # out of its arrays with one (it gives NaN or 0 kernel values, never a crash)
+    t, y = _stream(200, seed=10)
+    tr = KRLST(LocallyPeriodic(1.2, 0.495, 1 / 55), gamma=5.85, forgetting=0.996, budget=30, jitter=1e-6,
+               grid_step=TS, refine=True)
+    tr.learn_many(t, y)
+    st = tr.core_state(t[:1])
+    for bad in (np.nan, np.inf, -np.inf, 1e300):
+        kt = np.zeros(st.Q.shape[0])
+        _row(st, np.array([bad]), kt)
+        assert np.all(np.isnan(kt) | (kt == 0.0)), bad
