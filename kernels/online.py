@@ -54,8 +54,8 @@ Every index the compiled code uses is checked: a block whose sequence numbers do
 in ``int64`` (``seq0 < 0`` or ``seq0 + n − 1 > 2**63 − 1``) is refused whole (counted
 ``rejected_seq_range``); the differences of two sequence numbers are formed only between
 non-negative ``int64`` values (no overflow). The KRLS-T buffers are indexed by the core
-with ``ist[I_N]``/``ist[I_HW]``/``order``, which :mod:`monitor.state_check` validates
-before a saved state is restored.
+with its own indices, which :func:`kernels._krlst_core.validate_state` checks before a
+saved state is restored.
 """
 
 from __future__ import annotations
@@ -88,10 +88,6 @@ REORDER_WINDOW = 256
 
 # where a sample stands in the stream (see the module docstring)
 _FIRST, _NEXT, _GAP, _RESET, _DUPLICATE, _LATE = range(6)
-
-# slots of the core's ``out`` buffer (kernels._krlst_core: ``_write_out`` after ``update``, ``arm``)
-_UPD_REMOVED, _UPD_REDUCED, _UPD_FILTERED, _UPD_FILTERED_VAR, _UPD_S02 = 4, 5, 6, 7, 8
-_ARM_MEAN, _ARM_SIGMA_F2 = 0, 1
 
 
 class OnlineConfig(NamedTuple):
@@ -262,18 +258,19 @@ def _clear(rows, irows, j, ist):
 
 
 @njit(cache=True, nogil=True)
-def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
-                beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e, v, rows, irows, counts, xbuf, obuf):
+def track_block(fbuf, ibuf, beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e, v, rows, irows, counts,
+                xbuf, obuf):
     """Process one block of samples (method §6); returns the number of leading samples dropped.
 
-    ``kinds … tab``: the tracker's arrays (:meth:`kernels.krlst.KRLST.core_arrays`); ``beta …
-    cfg_floats`` a :class:`ConfigBuffers`; ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number
+    ``fbuf, ibuf``: the tracker's two base buffers (:meth:`kernels.krlst.KRLST.core_buffers`, named
+    inside by :func:`kernels._krlst_core.state_of`); ``beta … cfg_floats`` a :class:`ConfigBuffers`; ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number
     of sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64
     (n,), NaN = missing. ``rows`` (:data:`ROWS`, ≥ n) and ``irows`` (:data:`IROWS`, ≥ n) receive one
     column per sample from index ``first`` on (the return value: dropped samples — duplicates and
     late re-sends — always form a prefix, since the sample after an accepted one is its successor);
     ``counts`` accumulates :data:`COUNTERS`. ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``) are scratch.
     """
+    tr = core.unowned(core.state_of(fbuf, ibuf))  # the tracker (no reference counting in the calls below)
     n = t.shape[0]
     if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) or rows.shape[1] < n
             or irows.shape[0] != len(IROWS) or irows.shape[1] < n or counts.shape[0] != len(COUNTERS)
@@ -313,7 +310,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             st.ref_t[0] = tj
         elif where == _RESET:
             st.ref_t[0] = np.nan                  # no clock reference in the new session yet
-        _clear(rows, irows, j, ist)
+        _clear(rows, irows, j, tr.ist)
         # ---- 2. classify its values --------------------------------------------------------------
         if not (math.isfinite(tj) and math.isfinite(ej) and math.isfinite(vj)):
             counts[C_NONFINITE] += 1
@@ -352,11 +349,11 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
                 resid = vj - base
                 rows[R_RESID, j] = resid
                 # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) ---------------------
-                if core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, obuf):
-                    rows[R_F, j] = obuf[_UPD_FILTERED]                          # ŷ + σ_f²(y − ŷ)/σ_y²
-                    rows[R_FVAR, j] = obuf[_UPD_FILTERED_VAR] * obuf[_UPD_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
-                    irows[R_REMOVED, j] = int(obuf[_UPD_REMOVED])
-                    if obuf[_UPD_REDUCED] != 0.0:
+                if core.update(tr, resid, obuf):
+                    rows[R_F, j] = obuf[core.O_FILT]                          # ŷ + σ_f²(y − ŷ)/σ_y²
+                    rows[R_FVAR, j] = obuf[core.O_FILTVAR] * obuf[core.O_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    irows[R_REMOVED, j] = int(obuf[core.O_REMOVED])
+                    if obuf[core.O_REDUCED] != 0.0:
                         fl |= REDUCED_BIT
                     st.trained[0] += 1
                     counts[C_TRAINED] += 1
@@ -369,15 +366,15 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             counts[C_RESTART] += 1
             fl |= WARMUP_BIT
         # ---- 5. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------------
-        was_empty = ist[core.I_N] == 0
+        was_empty = tr.ist[core.I_N] == 0
         xbuf[0] = tj
-        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, obuf)
-        f_next = obuf[_ARM_MEAN]
-        f_next_var = np.nan if was_empty else obuf[_ARM_SIGMA_F2] * fst[core.F_S02]
+        core.arm(tr, xbuf, obuf)
+        f_next = obuf[core.A_MEAN]
+        f_next_var = np.nan if was_empty else obuf[core.A_SF2] * tr.fst[core.F_S02]
         rows[R_FNEXT, j] = f_next
         rows[R_FNEXTVAR, j] = f_next_var
         irows[R_FLAGS, j] = fl
-        irows[R_SIZE, j] = ist[core.I_N]
+        irows[R_SIZE, j] = tr.ist[core.I_N]
         st.chain[0] = 1
         st.last_t[0] = tj
         st.last_e[0] = ej

@@ -164,7 +164,7 @@ class AxisEstimator:
         e = _as_column(exo)
         v = _as_column(block.v_meas)
         rows, irows, counts = online.new_rows(n)
-        first = online.track_block(*self.tracker.core_arrays(self._xbuf), *self._cfg, *self._state, seq0,
+        first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self._cfg, *self._state, seq0,
                                    t, e, v, rows, irows, counts, self._xbuf, self._obuf)
         for name, count in zip(online.COUNTERS, counts.tolist()):
             if count:

@@ -246,7 +246,7 @@ def test_compiled_loop_refuses_any_int64_that_does_not_fit(seq0):
     est = AxisEstimator(_model())
     xbuf, obuf = online.new_scratch()
     rows, irows, counts = online.new_rows(10)
-    first = online.track_block(*est.tracker.core_arrays(xbuf), *est.config, *online.new_state(), np.int64(seq0), t,
+    first = online.track_block(*est.tracker.core_buffers(xbuf), *est.config, *online.new_state(), np.int64(seq0), t,
                                v_ref, v, rows, irows, counts, xbuf, obuf)
     assert first == 10 and counts[online.COUNTERS.index("rejected_seq_range")] == 10
 
