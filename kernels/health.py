@@ -20,7 +20,7 @@ the tracker's one-step predictions fail and ``ν²`` large for as long as it las
     alarm while m ≥ θ_alarm for ≥ t_persist (and until m < θ_warn for ≥ t_hold)
 
 Why these numbers (defaults, measured with :mod:`benchmarks.online_checks`):
-``τ = 0.5 s``, ``θ_warn = 5``, ``θ_alarm = 10``, ``θ_clear = 3``, ``c_max = 16``
+``τ = 0.5 s``, ``θ_warn = 5``, ``θ_alarm = 8``, ``θ_clear = 3``, ``c_max = 16``
 (|ν| clipped at 4), ``t_persist = 0.25 s``, ``t_hold = 2 s``.
 
 * False alarms. For white Gaussian ``ν`` the EWMA has mean 1 and standard
@@ -103,7 +103,7 @@ class HealthConfig:
     tau: float = 0.5            # s, EWMA time constant of ν²            (0.05 … 10)
     clip: float = 4.0           # |ν| clip (standard deviations)          (2 … 20)
     warn: float = 5.0           # EWMA level for warn                     (> clear)
-    alarm: float = 10.0         # EWMA level for alarm                    (> warn)
+    alarm: float = 8.0          # EWMA level for alarm                    (> warn, < clip²)
     clear: float = 3.0          # EWMA level below which warn clears      (> 1)
     persist: float = 0.25       # s above a level before it counts        (0 … 10)
     hold: float = 2.0           # s below before a level clears           (0 … 60)
@@ -126,7 +126,7 @@ class HealthConfig:
                  "must be a finite number")
         need(0.05 <= self.tau <= 10.0, "tau", "0.05 … 10 s")
         need(2.0 <= self.clip <= 20.0, "clip", "2 … 20")
-        need(1.0 < self.clear < self.warn < self.alarm, "clear", "1 < clear < warn < alarm")
+        need(1.0 < self.clear < self.warn < self.alarm < self.clip ** 2, "clear", "1 < clear < warn < alarm < clip²")
         need(0.0 <= self.persist <= 10.0, "persist", "0 … 10 s")
         need(0.0 <= self.hold <= 60.0, "hold", "0 … 60 s")
         need(0.0 < self.z_clear < self.z_warn <= self.z_alarm, "z_clear", "0 < z_clear < z_warn ≤ z_alarm")
@@ -328,8 +328,15 @@ class HealthMonitor:
         if values is None:
             return np.full(len(PARAMS), np.nan)
         if isinstance(values, dict):
+            unknown = set(values) - set(PARAMS) - {"coulomb"}
+            if unknown:
+                raise ValueError(f"unknown health parameter(s) {sorted(unknown)}; known: {', '.join(PARAMS)}")
             return np.array([float(values.get(k, np.nan)) for k in PARAMS])
-        return np.asarray(values, dtype=np.float64)
+        a = np.asarray(values, dtype=np.float64)
+        if a.shape != (len(PARAMS),):
+            raise ValueError(f"health reference arrays must have {len(PARAMS)} entries ({', '.join(PARAMS)}), "
+                             f"got shape {a.shape}")
+        return a
 
     def learn_one(self, nu: float) -> str:
         """Feed one normalised innovation; returns the innovation level (``ok | warn | alarm``)."""
