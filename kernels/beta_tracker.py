@@ -6,94 +6,112 @@ Thesis future work (b), method §2 and §6. The model is the PL-ARX regression
 
 with the disturbance ``f`` tracked by KRLS-T. Offline, PL-LSSVM estimates β by
 generalised least squares with the GP covariance (method §4); this module is the
-recursive counterpart, so the online β has the same meaning as the offline one.
+recursive counterpart with the *tracker's* GP (its kernel, γ, forgetting λ, budget M).
 
 Joint recursion (exact for λ = 1 and no pruning)
 ------------------------------------------------
 KRLS-T's posterior mean is linear in its training targets and every other part
-of its state (dictionary, ``Q``, ``Σ``, the gains) is independent of them. Train
-the tracker on the residual ``r = y − βᵀz`` and keep, next to its mean ``μ``, a
-*shadow* mean ``M_Z`` (one column per regressor, in the tracker's slots) trained
-with the same gains on the regressors ``z`` themselves. Then for every β
+of its state (dictionary, ``Q``, ``Σ``, the gains) is independent of them. Next to
+the tracker's mean ``μ`` (trained on the residual) keep a *shadow* mean ``M_Z`` —
+one column per regressor, in the tracker's slots — trained with the same gains on
+the regressors ``z`` themselves (forget ``√λ``, add ``z̃/σ_y² [h; σ_f²]``, drop the
+pruned slot). Then, for every β,
 
-    μ(β) = μ_y − M_Z β,         f̂(x) = qᵀμ(β),                              (1)
+    μ(β) = μ_y − M_Z β,          f̂(x | β) = qᵀμ(β)                                   (1)
 
-and the one-step prediction error of the joint model splits into GP innovations
+and the one-step prediction error of the joint model is a difference of GP innovations
 
-    e(k) = y − β̂ᵀz − qᵀμ = ỹ − β̂ᵀz̃,     z̃(k) = z(k) − M_Zᵀ q   (ẑ: the GP's
-    prediction of z from the past, exactly as the tracker predicts the residual),
+    e(k) = y − β̂ᵀz − f̂(x | β̂) = ỹ − β̂ᵀz̃,    z̃ = z − ẑ,  ẑ = M_Zᵀq  (the GP's prediction
+    of z from the past, made exactly as the tracker predicts the residual),
+    E[e²] = R + z̃ᵀPz̃,   R = s0² σ_y²  (the tracker's predictive variance, eq. 2.17/2.20).
 
-    E[e²] = R + z̃ᵀ P z̃,         R = s0² σ_y²  (the tracker's predictive variance).
+β given the data is recursive least squares on ``(z̃, e)`` weighted by ``1/R`` — the
+sequential form of PL-LSSVM's ``(Z̃ᵀA⁻¹Z̃)⁻¹ Z̃ᵀA⁻¹ y`` (tested against that dense
+formula). Per trained sample, after the tracker's own update (Λ = information, kept as
+``Λ⁻¹`` by rank-one updates; ζ̃ the instrument, = z̃ without it):
 
-β given the data is then ordinary recursive least squares on ``(z̃, e)`` weighted
-by ``1/R`` — the sequential form of PL-LSSVM's ``(Z̃ᵀA⁻¹Z̃)⁻¹ Z̃ᵀA⁻¹ y``. Per
-trained sample, in information form (``Λ = P⁻¹``), after the tracker's update:
+    g = Λ⁻¹ζ̃,  s = z̃ᵀΛ⁻¹ζ̃ (≥ 0),  S = R + s,  ν = e/√S      gain direction, innovation  (3)
+    w = min(1, c/|ν|),  R_w = R/w                           Huber weight                (4)
+    β̂ ← β̂ + g e/(R_w + s),  Λ⁻¹ ← Λ⁻¹ − g (z̃ᵀΛ⁻¹)/(R_w + s)   RLS update (Λ += ζ̃z̃ᵀ/R_w) (5)
+    Ψ ← Ψ + ζ̃ζ̃ᵀ R/R_w²,   P = Λ⁻¹ Ψ Λ⁻ᵀ                    covariance (sandwich)       (5')
+    every m = 16 learning samples, with λ_m = λ_β^m:
+    Λ ← λ_m Λ + (1 − λ_m) Λ₀,  Ψ likewise,                     forgetting back to the
+    β̂ ← β̂ + (1 − λ_m) Λ⁻¹ Λ₀ (β₀ − β̂)                         prior N(β₀, P₀)             (2)
+    projection onto the physical set when β̂ leaves it                                   (7)
+    μ ← μ − M_Z (β̂ − β_trk),  β_trk ← β̂   every 64 samples;  in between every prediction
+    and residual is corrected exactly by ẑᵀ(β̂ − β_trk)                                   (6)
 
-    Λ ← λ_β Λ + (1 − λ_β) Λ₀                        forgetting back to the prior     (2)
-    g = Λ⁻¹ z̃,   S = R + z̃ᵀ g,   ν = e / √S          gain direction, innovation      (3)
-    w = min(1, c/|ν|),  R_w = R / w,  S_w = R_w + z̃ᵀg  Huber weight                   (4)
-    δ = g e / S_w,   β̂ ← β̂ + δ,   Λ ← Λ + z̃ z̃ᵀ / R_w   Kalman/RLS update             (5)
-    μ ← μ − M_Z δ                                   re-express f̂ with the new β      (6)
-
-and (5) is followed by a projection onto the physical set when β̂ leaves it (7).
-Step (6) keeps (1) true, so the disturbance estimate is always the one that goes
-with the current β̂: no memory of an old β error lingers in the tracker, and the
-filtered and predicted disturbances stay unbiased while β adapts.
+(6) keeps (1) true, so the published disturbance (``f_next`` = ŷ − ẑᵀ(β̂ − β_trk), the
+filtered ``f``) always goes with the current β̂: no memory of an old β error lingers in
+the tracker, and the disturbance estimate stays unbiased while β adapts. The lazy
+re-basing, the scale factor that carries the forgetting of ``M_Z`` (``√λ`` per arm on one
+scalar instead of the matrix) and the batched forgetting (2) save work (one read and one
+update pass over ``M_Z`` per sample). They are exact for the published values; what
+differs from a per-sample re-basing is that the tracker's own ``s0²`` and pruning choice
+see the residual of a β at most 64 samples old.
 
 Why these choices
 -----------------
 * **Two time scales without chasing.** ``z̃`` is the part of ``z`` the GP cannot
-  predict. What the kernel explains — slow variation within σ1, the periodic
-  pattern with period ψ — carries no information about β, exactly as in the
-  batch GLS: a constant feed (z̃ ≈ 0 for the pole and damping columns), a standstill,
-  or a regressor that moves with the periodic disturbance teach β nothing, and
-  β cannot absorb the disturbance. β learns from what is persistently correlated
-  with the unpredictable part of z; the tracker keeps what varies fast or periodically.
-* **Excitation awareness.** The update (5) moves β̂ only along ``Λ⁻¹ z̃`` and adds
-  information only in the direction of ``z̃``; unexcited directions keep their
-  estimate. In addition nothing is learned while ``|v_m(k)| ≤ Ω`` (the model has no
-  static friction: at standstill the force balance is stiction, which the PL-ARX
-  model does not describe), during the tracker's warm-up, on stale/restarted
-  samples, or when adaptation is off.
-* **No wind-up.** (2) forgets *information* toward the prior information ``Λ₀``
-  with time constant ``T_β`` (``λ_β = exp(−Ts/T_β)``); the mean is not moved by
-  forgetting. In a direction without excitation ``P`` relaxes to ``P₀`` — bounded
-  by the prior, never growing without limit — and in an excited direction ``P``
-  settles to the information of the last ~T_β seconds of data: ``P ≈ (Σ λ_β^i z̃z̃ᵀ/R)⁻¹``.
-* **Drift rate trade-off.** ``T_β`` (``memory``) is the documented drift setting:
-  a parameter drifting linearly at rate ``ṙ`` (relative per second) is followed with
-  a lag of about ``ṙ·T_β`` (the mean age of the data), a step is followed with an
-  error decaying like ``exp(−t/T_β)`` once excited, and the standard errors scale like
-  ``1/√T_β``. Short memories track faster and report larger standard errors.
-* **Prior.** ``P₀ = P_file + G diag((ρ θ₀)²) Gᵀ``: the model file's covariance of β
-  plus a *drift allowance* ``ρ`` (relative, on the physical parameters θ₀ =
-  inertia, damping, Coulomb ±, offset, mapped through the Jacobian ``G = ∂β/∂θ``).
-  The model file's least-squares standard errors are far smaller than the
-  parameter changes the monitor must follow (they assume white noise); ρ says how
-  far parameters may plausibly move in the field (default 30 %). ``P₀`` is also the
-  bound the covariance returns to without excitation.
-* **Robustness.** The Huber weight (4) bounds the influence of one sample with a
-  large normalised innovation (a disturbance edge the tracker did not foresee, a
-  glitch) to ``c`` standard deviations (``c = 3``: 0.3 % of Gaussian samples are
-  touched).
-* **Physical constraints** (7): the estimate is projected in the ``Λ`` metric,
-  ``β̂ ← β̂ − Λ⁻¹a (aᵀβ̂ − b)/(aᵀΛ⁻¹a)`` for each violated ``aᵀβ ≤ b`` (Simon & Chia
-  2002, estimate projection), onto pole ``p_d ∈ [p_min, p_max]`` with
-  ``p_max = 1 − 10⁻³(1 − p_d0)`` and ``p_min = 10⁻⁶``, input gain
+  predict. What the kernel explains — slow variation within σ1 and the memory of the
+  forgetting, the periodic pattern with period ψ — carries no information about β,
+  exactly as in the batch GLS: a constant feed (z̃ ≈ 0), a standstill, or a regressor
+  that moves with the periodic disturbance teach β nothing. β learns what is
+  persistently correlated with the unpredictable part of z; the tracker keeps what
+  varies fast or periodically. The price: a drive quantity the kernel can explain
+  (a slowly varying force ∝ v, a Coulomb step the tracker absorbs within a sample) is
+  weakly determined — its standard error says so.
+* **Excitation awareness.** (5) moves β̂ only along ``Λ⁻¹ζ̃`` and adds information only
+  in the direction of ``z̃``: an unexcited direction keeps its estimate (exactly, with
+  an uncorrelated prior). Nothing is learned while ``|v_m(k)| ≤ Ω`` (the model has no
+  static friction: at standstill the force balance is stiction), during the tracker's
+  warm-up (M trained samples), on samples the caller does not gate in (stale,
+  restarted chain), during a disturbance transient (``|ν| ≥ 5`` and 0.1 s after it: the
+  tracker is catching up with a change it could not foresee and its innovations are not
+  white), or when adaptation is off.
+* **No wind-up.** (2) runs on learning samples only, so a standstill neither learns nor
+  forgets. Under excitation the information of a direction is that of the last ~T_β
+  seconds of learning; without it Λ relaxes to Λ₀, so ``P`` is bounded by the prior
+  ``P₀`` and never grows without limit. Forgetting *back to the prior* (mean and
+  covariance, like KRLS-T's own forgetting) also bounds how far a weakly determined
+  direction can wander: there β̂ is the posterior of the prior and a few seconds of data.
+* **Drift rate trade-off.** ``T_β`` (``memory``, default 10 s of learning samples) is the
+  drift setting: a parameter drifting linearly at rate ``ṙ`` (relative per second) is
+  followed with a lag of about ``ṙ·T_β``; an excited step decays like ``exp(−t/T_β)``;
+  standard errors scale like ``1/√T_β``. Measured (benchmarks/online_checks.py): +30 %
+  in 120 s (0.25 %/s) → damping lag ≈ 2.5–3 %.
+* **Prior.** ``P₀ = P_file + G diag((ρθ₀)²) Gᵀ``: the model file's covariance of β plus a
+  drift allowance ρ (default 0.3, relative, on inertia, damping, Coulomb ± and offset —
+  Coulomb and offset relative to the friction scale ``max(d_p, c_n, |offset|, 1 N)`` — mapped
+  through ``G = ∂β/∂θ``). Least-squares standard errors in a model file assume white noise
+  and are far smaller than the changes the monitor must follow; ρ says how far the
+  parameters may plausibly move in the field and is the bound of ``P``.
+* **Closed-loop noise.** The measured velocity ``v_m(k)`` is in ``z(k)`` and its noise is
+  fed back by the loop and sits in ``ε(k) = n(k+1) − p n(k)``: least squares is biased
+  by ``−p σ_n²`` per unit of excitation, which dominates when the excitation is the
+  noise itself (constant-feed milling). The instrument of the ``v_m`` column is the
+  model's own one-step prediction ``v̂(k) = β̂ᵀz(k−1) + f̂(k−1)`` made before ``v_m(k)`` was
+  seen (ζ̃ = ζ − ẑ); the estimate is then recursive IV (Young), consistent under white
+  noise, with the sandwich covariance (5'). The force command ``u`` (force-input form)
+  is its own instrument: the controller law is unknown to the monitor.
+* **Robustness.** The Huber weight (4) bounds one sample's influence to ``c = 3``
+  standard deviations (0.3 % of Gaussian samples are touched).
+* **Physical constraints** (7): β̂ is projected in the metric of ``P``,
+  ``β̂ ← β̂ − P a (aᵀβ̂ − b)/(aᵀPa)`` for each violated ``aᵀβ ≤ b`` (Simon & Chia 2002,
+  estimate projection), onto the pole ``p_d ∈ [10⁻⁶, 1 − 10⁻³(1 − p_d0)]``, input gain
   ``β1 ≥ 10⁻³ β1₀`` and Coulomb magnitudes ≥ 0. The output is always a physical drive.
 
-Physical parameters and standard errors (delta method, method §2): with ``b`` the
-force gain (``β1`` in force-input form, ``β1/K`` in velocity-loop form) and ``p`` the
-pole, ``B = (1 − p)/b``, ``J = B Ts/(−ln p)``, ``d_p = β_sp/b``, ``c_n = −β_sn/b``,
-``offset = −β_one/b`` and ``Cov θ = G P Gᵀ`` with the analytic Jacobian
-``G = ∂θ/∂β`` (:func:`physical_se`). Without the loop gain ``K`` (velocity-loop)
-``K = 1`` is used: the values are then ``J/K, B/K, d/K`` (and flagged so by the caller).
+Physical parameters and standard errors (delta method, method §2): with ``b`` the force
+gain (``β1`` in force-input form, ``β1/K`` in velocity-loop form) and ``p`` the pole,
+``B = (1 − p)/b``, ``J = B Ts/(−ln p)``, ``d_p = β_sp/b``, ``c_n = −β_sn/b``,
+``offset = −β_one/b`` and ``Var θ_k = g_kᵀ P g_k`` with the analytic gradient ``g_k = ∂θ_k/∂β``
+(:func:`physical_se`). Without the loop gain ``K`` (velocity-loop) ``K = 1`` is used: the
+values are then ``J/K, B/K, d/K`` (the caller labels them so).
 
-Wiring (stumpy-style): :func:`joint_arm` and :func:`joint_update` are drop-in
-replacements for ``_krlst_core.arm`` / ``update`` in a compiled loop; they keep
-``M_Z`` in step with the tracker (the tracker-side contract is listed in
-:func:`joint_arm`). :class:`OnlineBeta` is the thin Python API (river-style
-``learn_one`` / ``predict_one``), snapshot/restore as plain arrays.
+Wiring (stumpy-style): :func:`joint_arm` and :func:`joint_update` replace
+``_krlst_core.arm`` / ``update`` in a compiled loop (the tracker-side contract is listed
+in :func:`joint_arm`); :class:`OnlineBeta` is the thin Python API (river-style
+``learn_one`` / ``predict_one``), with snapshot/restore as plain arrays.
 """
 
 from __future__ import annotations
@@ -115,6 +133,7 @@ __all__ = [
     "track_joint",
     "physical_se",
     "prior_covariance",
+    "physical_of",
     "OnlineBeta",
     "JointStep",
     "PHYSICAL",
@@ -126,34 +145,46 @@ PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offs
 N_PHYS = len(PHYSICAL)
 
 #: slots of ``par`` (float settings and small state)
-(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_VHAT, P_WARMUP) = range(9)
-N_PAR = 9
+(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_VHAT, P_WARMUP, P_SCALE, P_REJECT,
+ P_HOLD) = range(12)
+N_PAR = 12
 #: slots of ``cnt`` (counters, column layout, instrument bookkeeping)
 (C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_FORM, C_ISP, C_ISN, C_IONE, C_ARMS,
- C_VHAT_ARM, C_TRAINED) = range(11)
-N_CNT = 11
+ C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE, C_REBASE_EVERY, C_SINCE_FORGET, C_QUIET, C_REJECTED) = range(16)
+N_CNT = 16
+#: learning samples between two applications of the forgetting (2) (with λ_β^m): keeps the
+#: per-sample work at rank-one updates of Λ⁻¹; the forgetting per sample is 1 − λ_β ≈ 3·10⁻⁴
+FORGET_EVERY = 16
+#: scale floor of the lazily scaled shadow means (renormalised below it)
+SCALE_FLOOR = 1e-150
 
 #: named outputs of :func:`joint_update` (``bout``)
 BOUT = ("residual", "innovation", "nu", "variance", "weight", "learned", "filtered", "zt_norm")
 (B_RESID, B_INNOV, B_NU, B_VAR, B_WEIGHT, B_LEARNED, B_FILTERED, B_ZTN) = range(len(BOUT))
 N_BOUT = len(BOUT)
 #: rows of the scratch ``vec``
-V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X = range(6)
+V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X = range(6)  # V_BEFORE: spare
 
 
 class BetaState(NamedTuple):
     """State of the online β estimator (plain arrays; Numba passes it as one argument).
 
-    ``beta`` β̂ (p,); ``info`` Λ = Σ ζ̃z̃ᵀ/R + prior (p, p; symmetric without instruments);
-    ``psi`` Ψ = Σ ζ̃ζ̃ᵀ R/R_w² + prior (the middle of the covariance ``P = Λ⁻¹ΨΛ⁻ᵀ``);
+    ``beta`` β̂ (p,); ``beta_trk`` the β the tracker's mean currently goes with (re-based to β̂
+    every ``cnt[C_REBASE_EVERY]`` learning samples; predictions are corrected for the difference
+    exactly); ``cov`` Λ⁻¹ with Λ = Σ ζ̃z̃ᵀ/R + prior (p, p; symmetric without instruments),
+    kept by rank-one (Sherman–Morrison) updates; ``info`` scratch for Λ; ``psi``
+    Ψ = Σ ζ̃ζ̃ᵀ R/R_w² + prior (the middle of the covariance ``P = Λ⁻¹ΨΛ⁻ᵀ``);
     ``info0`` Λ₀ = P₀⁻¹; ``beta0`` the model file's β; ``MZ`` the shadow GP means of the
-    regressors in the tracker's slots (M+1, p); ``zhat`` ẑ = M_Zᵀq armed with the tracker;
+    regressors in the tracker's slots (M+1, p), stored divided by the scale ``par[P_SCALE]``
+    (the forgetting √λ is applied to that scalar); ``zhat`` ẑ = M_Zᵀq armed with the tracker;
     ``cons`` rows ``[a, b]`` of the constraints ``aᵀβ ≤ b``; ``par`` settings and the stored
     velocity prediction (:data:`P_LAMBDA` …); ``cnt`` counters and the column layout
     (:data:`C_UPDATES` …); ``lu``, ``piv``, ``vec`` scratch.
     """
 
     beta: np.ndarray
+    beta_trk: np.ndarray
+    cov: np.ndarray
     info: np.ndarray
     psi: np.ndarray
     info0: np.ndarray
@@ -296,7 +327,8 @@ def _constraints(form, beta0, i_sp, i_sn) -> np.ndarray:
 
 def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, gain: float | None = None,
                    P0=None, memory: float = 10.0, huber: float = 3.0, instrument: bool = True,
-                   enabled: bool = True, warmup: int | None = None) -> BetaState:
+                   enabled: bool = True, warmup: int | None = None, rebase_every: int = 64,
+                   reject: float = 5.0, hold: float = 0.1) -> BetaState:
     """A fresh :class:`BetaState` for a tracker of budget ``budget`` (M): β̂ = β₀, P = P₀."""
     form, i_sp, i_sn, i_one = _layout(names)
     beta0 = np.asarray(beta0, dtype=np.float64).copy()
@@ -316,6 +348,12 @@ def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, 
         raise ValueError(f"memory must be a positive number of seconds, got {memory!r}")
     if not (math.isfinite(huber) and huber > 0):
         raise ValueError(f"huber must be a positive number of standard deviations, got {huber!r}")
+    if not (math.isfinite(reject) and reject > huber):
+        raise ValueError(f"reject must be a number of standard deviations > huber ({huber}), got {reject!r}")
+    if not (math.isfinite(hold) and 0.0 <= hold <= 60.0):
+        raise ValueError(f"hold must be in [0, 60] s, got {hold!r}")
+    if not (isinstance(rebase_every, int) and rebase_every >= 1):
+        raise ValueError(f"rebase_every must be an integer ≥ 1, got {rebase_every!r}")
     par = np.zeros(N_PAR)
     par[P_LAMBDA] = math.exp(-Ts / memory)
     par[P_HUBER] = huber
@@ -326,11 +364,16 @@ def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, 
     par[P_IV] = 1.0 if instrument else 0.0
     par[P_VHAT] = np.nan
     par[P_WARMUP] = budget if warmup is None else int(warmup)
+    par[P_SCALE] = 1.0
+    par[P_REJECT] = reject
+    par[P_HOLD] = round(hold / Ts)
     cnt = np.zeros(N_CNT, dtype=np.int64)
     cnt[C_FORM] = FORMS.index(form)
     cnt[C_ISP], cnt[C_ISN], cnt[C_IONE] = i_sp, i_sn, i_one
     cnt[C_VHAT_ARM] = -1
-    return BetaState(beta=beta0, info=info0.copy(), psi=info0.copy(), info0=info0, beta0=beta0.copy(),
+    cnt[C_REBASE_EVERY] = rebase_every
+    return BetaState(beta=beta0, beta_trk=beta0.copy(), cov=np.asarray(P0, dtype=np.float64).copy(),
+                     info=info0.copy(), psi=info0.copy(), info0=info0, beta0=beta0.copy(),
                      MZ=np.zeros((budget + 1, p)), zhat=np.zeros(p),
                      cons=_constraints(form, beta0, i_sp, i_sn), par=par, cnt=cnt,
                      lu=np.zeros((p, p)), piv=np.zeros(p, dtype=np.int64), vec=np.zeros((6, p)))
@@ -418,16 +461,72 @@ def _lu_solve_t(LU, piv, b, x):
 
 @njit(cache=True, nogil=True)
 def _cov_apply(bs, a, out, t1, t2):
-    """``out = P a`` with ``P = Λ⁻¹ Ψ Λ⁻ᵀ`` (``bs.lu`` must hold the LU of Λ)."""
+    """``out = P a`` with ``P = Λ⁻¹ Ψ Λ⁻ᵀ`` (``bs.cov`` = Λ⁻¹)."""
     p = a.shape[0]
-    _lu_solve_t(bs.lu, bs.piv, a, t1)             # t1 = Λ⁻ᵀ a
+    C = bs.cov
     psi = bs.psi
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += C[j, i] * a[j]
+        t1[i] = acc                               # t1 = Λ⁻ᵀ a
     for i in range(p):
         acc = 0.0
         for j in range(p):
             acc += psi[i, j] * t1[j]
         t2[i] = acc                               # t2 = Ψ Λ⁻ᵀ a
-    _lu_solve(bs.lu, bs.piv, t2, out)             # out = Λ⁻¹ Ψ Λ⁻ᵀ a
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += C[i, j] * t2[j]
+        out[i] = acc                              # out = Λ⁻¹ Ψ Λ⁻ᵀ a
+
+
+@njit(cache=True, nogil=True)
+def _invert(A, out, LU, piv, b, x):
+    """out = A⁻¹ (p×p) by LU; False if A is singular."""
+    p = A.shape[0]
+    if not _lu_factor(A, LU, piv):
+        return False
+    for c in range(p):
+        for i in range(p):
+            b[i] = 1.0 if i == c else 0.0
+        _lu_solve(LU, piv, b, x)
+        for i in range(p):
+            out[i, c] = x[i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _forget(bs, m):
+    """(2) applied for ``m`` learning samples at once: ``Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀`` (Ψ alike) and
+    ``β̂ ← Λ_new⁻¹(λ_β^m Λ β̂ + (1 − λ_β^m) Λ₀ β₀)``, i.e. back to the prior N(β₀, P₀)."""
+    beta = bs.beta
+    p = beta.shape[0]
+    vec = bs.vec
+    info = bs.info
+    lam = bs.par[P_LAMBDA] ** m
+    if not _invert(bs.cov, info, bs.lu, bs.piv, vec[V_TMP], vec[V_X]):   # Λ = (Λ⁻¹)⁻¹
+        return
+    info0 = bs.info0
+    beta0 = bs.beta0
+    psi = bs.psi
+    d = vec[V_BEFORE]
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += info0[i, j] * (beta0[j] - beta[j])
+            info[i, j] = lam * info[i, j] + (1.0 - lam) * info0[i, j]
+            psi[i, j] = lam * psi[i, j] + (1.0 - lam) * info0[i, j]
+        d[i] = (1.0 - lam) * acc                  # (1 − λ^m) Λ₀ (β₀ − β̂)
+    if not _invert(info, bs.cov, bs.lu, bs.piv, vec[V_TMP], vec[V_X]):
+        return
+    C = bs.cov
+    for i in range(p):
+        acc = 0.0
+        for j in range(p):
+            acc += C[i, j] * d[j]
+        beta[i] += acc
 
 
 @njit(cache=True, nogil=True)
@@ -466,12 +565,14 @@ def _project(bs, a, pa, t1, t2):
 def joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out, bs):
     """Tracker steps 1–2 at ``x`` (``_krlst_core.arm``) and the same on the shadow means.
 
-    ``M_Z ← √λ M_Z`` (the forgetting of μ, eq. 2.19) and ``ẑ = M_Zᵀ q`` (the GP's prediction
-    of z at x, eq. 2.17 applied to the regressors), armed in ``bs.zhat``.
+    ``M_Z ← √λ M_Z`` (the forgetting of μ, eq. 2.19, applied to the scale of the stored
+    means) and ``ẑ = M_Zᵀ q`` (the GP's prediction of z at x, eq. 2.17 applied to the
+    regressors), armed in ``bs.zhat``. ``out[0]`` is the prediction of f at x given β̂:
+    the tracker's ``ŷ`` (for ``β_trk``) minus ``ẑᵀ(β̂ − β_trk)``.
 
     Tracker-side contract (what this relies on in the core): after ``arm``, ``P[4]`` holds
     ``q = Q k_t`` over the slots ``[0, hw)`` and ``P[5]`` holds ``h = Σ q``; ``fst`` holds
-    ``λ, ŷ, σ_f², σ_y²`` of the armed prediction; after ``update`` a pruned slot sits at
+    ``λ, ŷ, σ_f², σ_y², s0²`` of the armed prediction; after ``update`` a pruned slot sits at
     ``order[n]``; ``μ`` and ``M_Z`` share the slots.
     """
     n = ist[core.I_N]
@@ -479,20 +580,57 @@ def joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x
     bs.cnt[C_ARMS] += 1
     MZ = bs.MZ
     zhat = bs.zhat
+    par = bs.par
     p = zhat.shape[0]
     for j in range(p):
         zhat[j] = 0.0
     if n == 0:
         return
     hw = ist[core.I_HW]
-    sl = math.sqrt(fst[core.F_LAM])
+    c = par[P_SCALE] * math.sqrt(fst[core.F_LAM])  # M_Z ← √λ M_Z (on the scale)
+    if c < SCALE_FLOOR:
+        for i in range(hw):
+            for j in range(p):
+                MZ[i, j] *= c
+        c = 1.0
+    par[P_SCALE] = c
     q = P[4]
     for i in range(hw):
         qi = q[i]
         for j in range(p):
-            m = sl * MZ[i, j]                     # M_Z ← √λ M_Z
-            MZ[i, j] = m
-            zhat[j] += qi * m                     # ẑ = M_Zᵀ q
+            zhat[j] += qi * MZ[i, j]
+    corr = 0.0
+    beta = bs.beta
+    btrk = bs.beta_trk
+    for j in range(p):
+        zhat[j] *= c                              # ẑ = M_Zᵀ q
+        corr += zhat[j] * (beta[j] - btrk[j])
+    out[0] -= corr                                # f̂(x | β̂) = ŷ(β_trk) − ẑᵀ(β̂ − β_trk)
+
+
+@njit(cache=True, nogil=True)
+def rebase(mu, ist, bs):
+    """Re-express the tracker's mean with β̂: ``μ ← μ − M_Z (β̂ − β_trk)``, ``β_trk ← β̂`` (eq. 6)."""
+    beta = bs.beta
+    btrk = bs.beta_trk
+    MZ = bs.MZ
+    p = beta.shape[0]
+    d = bs.vec[V_X]
+    c = bs.par[P_SCALE]
+    moved = False
+    for j in range(p):
+        d[j] = c * (beta[j] - btrk[j])
+        if d[j] != 0.0:
+            moved = True
+        btrk[j] = beta[j]
+    bs.cnt[C_SINCE_REBASE] = 0
+    if not moved:
+        return
+    for i in range(ist[core.I_HW]):
+        acc = 0.0
+        for j in range(p):
+            acc += MZ[i, j] * d[j]
+        mu[i] -= acc
 
 
 @njit(cache=True, nogil=True)
@@ -518,10 +656,6 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     p = beta.shape[0]
     zt = vec[V_ZT]
     zeta = vec[V_ZETA]
-    g = vec[V_G]
-    tmp = vec[V_TMP]
-    before = vec[V_BEFORE]
-    xx = vec[V_X]
     n = ist[core.I_N]
     hw = ist[core.I_HW]
     s = order[n]                                  # the slot the new basis goes to
@@ -529,27 +663,35 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     sf2 = fst[core.F_SF2]
     s02 = fst[core.F_S02]
     h = P[5]
+    btrk = bs.beta_trk
     base = 0.0
+    base_trk = 0.0
+    shift = 0.0
     for j in range(p):
         base += beta[j] * z[j]
+        base_trk += btrk[j] * z[j]
         zt[j] = z[j] - zhat[j]                    # z̃ = z − ẑ
         zeta[j] = zt[j]
+        shift += zt[j] * (beta[j] - btrk[j])
     # instrument for the measured velocity: the model's prediction v̂(k) made one step earlier
     # (independent of the noise of v_m(k) and v_m(k+1)); valid only right after the arm that followed it
     if par[P_IV] != 0.0 and cnt[C_VHAT_ARM] == cnt[C_ARMS] and math.isfinite(par[P_VHAT]):
         zeta[1] = par[P_VHAT] - zhat[1]           # ζ̃ = ζ − ẑ with ζ = z, v_m(k) → v̂(k)
+    resid_trk = y - base_trk                      # what the tracker trains on (its mean goes with β_trk)
     resid = y - base                              # r = y − β̂ᵀz (eq. 2.13)
-    e = resid - fst[core.F_YM]                    # e = y − β̂ᵀz − f̂ = ỹ − β̂ᵀz̃
-    par[P_VHAT] = base + fst[core.F_YM]           # v̂(k+1) = β̂ᵀz(k) + f̂(k), before seeing y
+    e = resid_trk - fst[core.F_YM] - shift        # e = y − β̂ᵀz − f̂(β̂) = ỹ − β̂ᵀz̃
+    par[P_VHAT] = y - e                           # v̂(k+1) = β̂ᵀz(k) + f̂(k), before seeing y
     cnt[C_VHAT_ARM] = cnt[C_ARMS] + 1
-    # shadow means, the mean part of eq. 2.14 for every regressor column
+    # shadow means (stored / scale c), the mean part of eq. 2.14 for every regressor column
     inv_sy2 = 1.0 / sy2
+    inv_c = 1.0 / par[P_SCALE]
+    for i in range(hw):
+        hi = h[i] * inv_sy2 * inv_c
+        for j in range(p):
+            MZ[i, j] += zt[j] * hi                # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
     for j in range(p):
-        ej = zt[j] * inv_sy2
-        for i in range(hw):
-            MZ[i, j] += ej * h[i]                 # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
-        MZ[s, j] = zhat[j] + ej * sf2
-    core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, out)
+        MZ[s, j] = (zhat[j] + zt[j] * inv_sy2 * sf2) * inv_c
+    core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid_trk, out)
     if out[5] != 0.0:                             # reduced update: the new basis was dropped
         for j in range(p):
             MZ[s, j] = 0.0
@@ -557,7 +699,6 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
         sr = order[n]
         for j in range(p):
             MZ[sr, j] = 0.0
-    filtered = out[6]
     R = s02 * sy2                                 # R = s0² σ_y²
     bout[B_RESID] = resid
     bout[B_INNOV] = e
@@ -565,54 +706,70 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     bout[B_NU] = e / math.sqrt(R) if n > 0 and R > 0.0 else np.nan
     bout[B_WEIGHT] = 1.0
     bout[B_LEARNED] = 0.0
-    bout[B_FILTERED] = filtered
     ztn = 0.0
     for j in range(p):
         ztn += zt[j] * zt[j]
     bout[B_ZTN] = math.sqrt(ztn)
-    if par[P_ENABLED] == 0.0 or n == 0 or not R > 0.0:
-        return True
+    if par[P_ENABLED] != 0.0 and n > 0 and R > 0.0:
+        _beta_step(bs, z, e, R, gate, bout)
+    # the filtered f at x(k) given β̂: f_filt(β_trk) − z_filtᵀ(β̂ − β_trk), z_filt = ẑ + σ_f² z̃/σ_y²
+    filtered = out[6]
+    for j in range(p):
+        filtered -= (zhat[j] + sf2 * zt[j] * inv_sy2) * (beta[j] - btrk[j])
+    bout[B_FILTERED] = filtered
+    cnt[C_SINCE_REBASE] += 1
+    if cnt[C_SINCE_REBASE] >= cnt[C_REBASE_EVERY]:
+        rebase(mu, ist, bs)                       # (6), amortised: μ ← μ − M_Z (β̂ − β_trk)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _beta_step(bs, z, e, R, gate, bout):
+    """Steps (2)–(5) and (7) for one trained sample (``e``: innovation given β̂, ``R = s0²σ_y²``)."""
+    beta = bs.beta
+    par = bs.par
+    cnt = bs.cnt
+    vec = bs.vec
+    C = bs.cov
+    p = beta.shape[0]
+    zt = vec[V_ZT]
+    zeta = vec[V_ZETA]
+    g = vec[V_G]
+    row = vec[V_TMP]
     cnt[C_TRAINED] += 1
     omega = par[P_OMEGA]
     vk = z[1]
     learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and (vk > omega or vk < -omega)
-    info = bs.info
-    psi = bs.psi
-    if learn:
-        # ---- (2) forgetting back to the prior N(β₀, P₀), on learning samples only ----------------
-        lam = par[P_LAMBDA]
-        info0 = bs.info0
-        beta0 = bs.beta0
-        for i in range(p):
-            acc = 0.0
-            for j in range(p):
-                acc += info0[i, j] * (beta0[j] - beta[j])
-                info[i, j] = lam * info[i, j] + (1.0 - lam) * info0[i, j]   # Λ ← λ_β Λ + (1−λ_β) Λ₀
-                psi[i, j] = lam * psi[i, j] + (1.0 - lam) * info0[i, j]     # Ψ likewise
-            tmp[i] = (1.0 - lam) * acc            # (1−λ_β) Λ₀ (β₀ − β̂)
-    if not _lu_factor(info, bs.lu, bs.piv):
-        return True
-    for j in range(p):
-        before[j] = beta[j]
-    if learn:
-        _lu_solve(bs.lu, bs.piv, tmp, g)
-        for j in range(p):
-            beta[j] += g[j]                       # β̂ ← Λ⁻¹(λ_β Λ_old β̂ + (1−λ_β) Λ₀ β₀)
-            e -= zt[j] * g[j]                     # the innovation that goes with it
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
-    _lu_solve(bs.lu, bs.piv, zeta, g)             # g = Λ⁻¹ ζ̃
     ztg = 0.0
-    for j in range(p):
-        ztg += zt[j] * g[j]                       # z̃ᵀ Λ⁻¹ ζ̃ (= z̃ᵀ P z̃ without instrument)
+    for i in range(p):
+        gi = 0.0
+        ri = 0.0
+        for j in range(p):
+            gi += C[i, j] * zeta[j]               # g = Λ⁻¹ ζ̃
+            ri += zt[j] * C[j, i]                 # rowᵀ = z̃ᵀ Λ⁻¹
+        g[i] = gi
+        row[i] = ri
+        ztg += zt[i] * gi                         # z̃ᵀ Λ⁻¹ ζ̃ (= z̃ᵀ P z̃ without instrument)
     if ztg < 0.0:
         ztg = 0.0
     Sfull = R + ztg                               # S = R + z̃ᵀ P z̃
     nu = e / math.sqrt(Sfull)
     bout[B_VAR] = Sfull
     bout[B_NU] = nu
+    # disturbance transient: |ν| ≥ reject — the tracker is catching up with a change it could not
+    # foresee, its innovations are not white for a while; learn nothing until it has been quiet
+    # (|ν| < reject) for ``hold`` samples
+    if abs(nu) >= par[P_REJECT]:
+        cnt[C_QUIET] = 0
+    else:
+        cnt[C_QUIET] += 1
+    if learn and cnt[C_QUIET] <= par[P_HOLD]:
+        learn = False
+        cnt[C_REJECTED] += 1
     if not learn:
         cnt[C_GATED] += 1
-        return True
+        return
     # ---- (4) Huber weight, (5) update ------------------------------------------------------------
     c = par[P_HUBER]
     w = 1.0
@@ -620,15 +777,20 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
         w = c / abs(nu)
         cnt[C_DOWNWEIGHTED] += 1
     Rw = R / w
-    coef = e / (Rw + ztg)
-    for j in range(p):
-        beta[j] += g[j] * coef                    # β̂ ← β̂ + Λ⁻¹ζ̃ e / (R_w + z̃ᵀΛ⁻¹ζ̃)
-    inv_rw = 1.0 / Rw
-    meat = R * inv_rw * inv_rw
+    den = 1.0 / (Rw + ztg)
+    coef = e * den
+    meat = R / (Rw * Rw)
+    psi = bs.psi
     for i in range(p):
+        beta[i] += g[i] * coef                    # β̂ ← β̂ + Λ⁻¹ζ̃ e / (R_w + z̃ᵀΛ⁻¹ζ̃)
+        gi = g[i] * den
         for j in range(p):
-            info[i, j] += zeta[i] * zt[j] * inv_rw   # Λ ← Λ + ζ̃ z̃ᵀ / R_w
-            psi[i, j] += zeta[i] * zeta[j] * meat    # Ψ ← Ψ + ζ̃ ζ̃ᵀ R / R_w²
+            C[i, j] -= gi * row[j]                # Λ⁻¹ ← Λ⁻¹ − Λ⁻¹ζ̃ z̃ᵀΛ⁻¹ / (R_w + z̃ᵀΛ⁻¹ζ̃)   (Λ += ζ̃z̃ᵀ/R_w)
+            psi[i, j] += zeta[i] * zeta[j] * meat  # Ψ ← Ψ + ζ̃ ζ̃ᵀ R / R_w²
+    cnt[C_SINCE_FORGET] += 1
+    if cnt[C_SINCE_FORGET] >= FORGET_EVERY:
+        _forget(bs, cnt[C_SINCE_FORGET])          # (2) for the last m learning samples
+        cnt[C_SINCE_FORGET] = 0
     # ---- (7) physical constraints -------------------------------------------------------------
     viol = False
     cons = bs.cons
@@ -638,26 +800,11 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
             a += cons[r, j] * beta[j]
         if a > 0.0:
             viol = True
-    if viol and _lu_factor(info, bs.lu, bs.piv):
-        cnt[C_PROJECTED] += _project(bs, zeta, g, tmp, xx)
-    # ---- (6) re-express the tracker's mean with the new β̂: μ ← μ − M_Z δ -------------------------
-    for j in range(p):
-        tmp[j] = beta[j] - before[j]              # δ
-    hwn = ist[core.I_HW]
-    for i in range(hwn):
-        acc = 0.0
-        for j in range(p):
-            acc += MZ[i, j] * tmp[j]
-        mu[i] -= acc
-    # filtered f at x(k) with the new β̂: f_filt − z_filtᵀ δ, z_filt = ẑ + σ_f² z̃/σ_y²
-    zf = 0.0
-    for j in range(p):
-        zf += (zhat[j] + sf2 * zt[j] * inv_sy2) * tmp[j]
-    bout[B_FILTERED] = filtered - zf
+    if viol:
+        cnt[C_PROJECTED] += _project(bs, zeta, g, row, vec[V_X])
     bout[B_WEIGHT] = w
     bout[B_LEARNED] = 1.0
     cnt[C_UPDATES] += 1
-    return True
 
 
 @njit(cache=True, nogil=True)
@@ -770,8 +917,6 @@ def physical_se(bs, theta, se, cov_work):
         G[5, 0] = (-off / b) * db0
         G[5, i_one] = -1.0 / b
     # Var θ_k = g_kᵀ P g_k,  P = Λ⁻¹ Ψ Λ⁻ᵀ
-    if not _lu_factor(bs.info, bs.lu, bs.piv):
-        return True
     x = cov_work[N_PHYS]
     gk = cov_work[N_PHYS + 1]                     # cov_work: (N_PHYS + 2, p)
     t1 = bs.vec[V_TMP]
@@ -792,6 +937,30 @@ def physical_se(bs, theta, se, cov_work):
 # ---------------------------------------------------------------------------------------------
 # Python API
 # ---------------------------------------------------------------------------------------------
+def physical_of(beta, names, Ts: float, P, *, gain: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Physical parameters (:data:`PHYSICAL`) of ``beta`` and their standard errors for the β
+    covariance ``P`` (delta method, :func:`physical_se`), e.g. the model file's values and
+    standard errors for the health reference. NaN for columns the model does not have."""
+    form, i_sp, i_sn, i_one = _layout(names)
+    beta = np.asarray(beta, dtype=np.float64)
+    _check_physical(form, beta)
+    P = np.asarray(P, dtype=np.float64)
+    p = beta.size
+    if P.shape != (p, p) or not np.all(np.isfinite(P)):
+        raise ValueError(f"P must be a finite ({p}, {p}) covariance")
+    info = np.linalg.pinv(0.5 * (P + P.T), hermitian=True)
+    cnt = np.zeros(N_CNT, dtype=np.int64)
+    cnt[C_FORM] = FORMS.index(form)
+    cnt[C_ISP], cnt[C_ISN], cnt[C_IONE] = i_sp, i_sn, i_one
+    par = np.zeros(N_PAR)
+    par[P_GAIN] = 1.0 if gain is None else float(gain)
+    par[P_TS] = Ts
+    probe = BetaState(beta=beta.copy(), beta_trk=beta.copy(), cov=0.5 * (P + P.T), info=info, psi=info.copy(), info0=info, beta0=beta.copy(),
+                      MZ=np.zeros((1, p)), zhat=np.zeros(p), cons=np.zeros((0, p + 1)), par=par, cnt=cnt,
+                      lu=np.zeros((p, p)), piv=np.zeros(p, dtype=np.int64), vec=np.zeros((6, p)))
+    theta, se = np.zeros(N_PHYS), np.zeros(N_PHYS)
+    physical_se(probe, theta, se, np.zeros((N_PHYS + 2, p)))
+    return theta, se
 class JointStep(NamedTuple):
     """What :meth:`OnlineBeta.learn_one` reports (signal units: m/s, (m/s)²).
 
@@ -837,6 +1006,9 @@ class OnlineBeta:
         T_β (s of learning samples), the forgetting time constant (default 10 s).
     huber : float
         Huber threshold c (standard deviations, default 3).
+    reject, hold : float
+        A disturbance transient: no learning while ``|ν| ≥ reject`` (default 5) and for ``hold``
+        seconds after (default 0.1 s).
     instrument : bool
         Use the model's one-step velocity prediction as the instrument of the measured
         velocity (default True: removes the bias of noise that the velocity loop feeds back).
@@ -855,7 +1027,8 @@ class OnlineBeta:
 
     def __init__(self, tracker, beta0, names, Ts: float, *, omega: float = 0.0, gain: float | None = None,
                  beta_cov=None, allowance: float = 0.3, memory: float = 10.0, huber: float = 3.0,
-                 instrument: bool = True, enabled: bool = True, warmup: int | None = None):
+                 reject: float = 5.0, hold: float = 0.1, instrument: bool = True, enabled: bool = True,
+                 warmup: int | None = None):
         from .krlst import KRLST
 
         if not isinstance(tracker, KRLST):
@@ -876,13 +1049,13 @@ class OnlineBeta:
         self.P0 = prior_covariance(beta0, self.names, Ts, gain=gain, beta_cov=beta_cov, rel=allowance)
         self.state = new_beta_state(beta0, self.names, Ts, tracker.budget, omega=omega, gain=gain, P0=self.P0,
                                     memory=memory, huber=huber, instrument=instrument, enabled=enabled,
-                                    warmup=warmup)
+                                    warmup=warmup, reject=reject, hold=hold)
         self._xbuf = np.zeros(1)
         self._out = np.zeros(core.N_OUT)
         self._bout = np.zeros(N_BOUT)
         self._z = np.zeros(len(self.names))
         self._cw = np.zeros((N_PHYS + 2, len(self.names)))
-        self.prior_se = self._physical_of(self.P0)[1]
+        self.prior_se = physical_of(self.state.beta0, self.names, Ts, self.P0, gain=gain)[1]
 
     # ------------------------------------------------------------------ state views
     @property
@@ -893,21 +1066,15 @@ class OnlineBeta:
     @property
     def covariance(self) -> np.ndarray:
         """``P = Λ⁻¹ Ψ Λ⁻ᵀ`` (a copy)."""
-        Li = np.linalg.inv(self.state.info)
+        Li = self.state.cov
         return Li @ self.state.psi @ Li.T
 
     @property
     def counters(self) -> dict[str, int]:
         c = self.state.cnt
         return {"updates": int(c[C_UPDATES]), "gated": int(c[C_GATED]), "projected": int(c[C_PROJECTED]),
-                "downweighted": int(c[C_DOWNWEIGHTED]), "trained": int(c[C_TRAINED])}
-
-    def _physical_of(self, P) -> tuple[np.ndarray, np.ndarray]:
-        st = self.state
-        probe = st._replace(info=np.linalg.inv(P), psi=np.linalg.inv(P), lu=st.lu.copy(), vec=st.vec.copy())
-        theta, se = np.zeros(N_PHYS), np.zeros(N_PHYS)
-        physical_se(probe, theta, se, self._cw)
-        return theta, se
+                "downweighted": int(c[C_DOWNWEIGHTED]), "rejected": int(c[C_REJECTED]),
+                "trained": int(c[C_TRAINED])}
 
     def physical(self) -> dict[str, tuple[float, float]]:
         """``{name: (value, standard error)}`` per :data:`PHYSICAL` (delta method; NaN when the model
@@ -915,6 +1082,16 @@ class OnlineBeta:
         theta, se = np.zeros(N_PHYS), np.zeros(N_PHYS)
         physical_se(self.state, theta, se, self._cw)
         return {k: (float(a), float(b)) for k, a, b in zip(PHYSICAL, theta, se)}
+
+    @property
+    def shadow_means(self) -> np.ndarray:
+        """``M_Z`` in the tracker's slots, in signal units (a copy)."""
+        return self.state.MZ * self.state.par[P_SCALE]
+
+    def rebase(self) -> None:
+        """Re-express the tracker's mean with the current β̂ now (done every ``rebase_every`` samples)."""
+        arrs = self.tracker.core_arrays(self._xbuf)
+        rebase(arrs[7], arrs[9], self.state)
 
     # ------------------------------------------------------------------ steps
     def regressor(self, exo: float, v: float) -> np.ndarray:

@@ -63,7 +63,7 @@ def test_shadow_means_are_the_tracker_trained_on_each_regressor():
         zs[j - 1] = ob.regressor(vr[j - 1], vm[j - 1])
         ob.learn_one(zs[j - 1], vm[j])
         ob.predict_one(t[j])
-    MZ = ob.state.MZ
+    MZ = ob.shadow_means
     for c in range(len(NAMES)):
         ref = _tracker(budget=400)
         out = ref.track_many(t[: n], np.r_[np.nan, zs[: n - 1, c]], np.r_[False, np.ones(n - 1, bool)])
@@ -84,8 +84,10 @@ def test_tracker_mean_is_reexpressed_with_the_current_beta():
     ref = _tracker(budget=400)                     # the same tracker trained on y alone
     ref.track_many(t, np.r_[np.nan, vm[1:]], np.r_[False, np.ones(n - 1, bool)])
     mu_y = ref.mu
+    assert not np.array_equal(ob.state.beta_trk, ob.beta)   # the tracker's mean lags β̂ …
+    ob.rebase()                                    # … until it is re-based (every 64 samples)
     mu = ob.tracker.mu
-    MZ = ob.state.MZ[: n - 1]
+    MZ = ob.shadow_means[: n - 1]
     np.testing.assert_allclose(mu, mu_y - MZ @ ob.beta, rtol=0, atol=1e-9 * np.max(np.abs(mu_y)))
 
 
@@ -188,10 +190,10 @@ def test_standstill_teaches_nothing():
     rng = np.random.default_rng(0)
     vm = 1e-4 * rng.standard_normal(n)             # well inside the dead band Ω = 5e-4
     ob = _online(_beta(inertia=330.0), warmup=0)
-    info0 = ob.state.info.copy()
+    cov0 = ob.covariance
     ob.track(t, vr, vm)
     np.testing.assert_array_equal(ob.beta, _beta(inertia=330.0))
-    np.testing.assert_array_equal(ob.state.info, info0)
+    np.testing.assert_array_equal(ob.covariance, cov0)
     assert ob.counters["updates"] == 0 and ob.counters["gated"] > 0
 
 
@@ -205,9 +207,9 @@ def test_unexcited_direction_does_not_move_and_its_covariance_stays_bounded():
     b0 = _beta(inertia=330.0)
     P0 = np.diag(np.diag(prior_covariance(b0, NAMES, TS, gain=DRIVE["K"])))
     ob = _online(b0, warmup=100)
-    ob.state.info[:] = np.linalg.inv(P0)          # a diagonal prior: no correlation carries updates over
-    ob.state.psi[:] = ob.state.info
-    ob.state.info0[:] = ob.state.info
+    ob.state.cov[:] = P0                          # a diagonal prior: no correlation carries updates over
+    ob.state.info0[:] = np.linalg.inv(P0)
+    ob.state.psi[:] = ob.state.info0
     ob.track(t, vr, vm)
     assert ob.beta[3] == b0[3]
     P = ob.covariance
@@ -310,3 +312,27 @@ def test_force_input_form_with_offset_reports_all_parameters():
         assert phys[k][0] == pytest.approx(v, rel=1e-9)
         assert phys[k][1] > 0
     assert phys["coulomb"][0] == pytest.approx(20.5, rel=1e-9)
+
+
+def test_nothing_is_learned_during_a_disturbance_transient():
+    """An abrupt 300 N force the tracker cannot foresee: |ν| ≥ 5 stops learning until it has been
+    quiet for 0.1 s, so β moves less over the transient than without the rule."""
+    n = 2400
+    t = np.arange(n) * TS
+    vr = 0.04 + 0.02 * np.sin(2 * np.pi * 1.7 * t)
+    d = DRIVE
+    tc = np.where(t >= 4.0, 300.0, 0.0)
+    rng = np.random.default_rng(21)
+    _, vm, _, _, _, _ = closed_loop_zoh(vr, tc, rng.normal(0, 5e-6, n), TS, d["J"], d["B"], d["K"], d["dp"],
+                                        d["dn"], d["omega"])
+    k0 = int(4.0 / TS)
+    moves = {}
+    for reject in (5.0, 1e9):
+        ob = _online(_beta(), reject=reject)
+        ob.track(t[: k0], vr[: k0], vm[: k0])
+        before = ob.beta
+        ob.track(t[k0 - 1: k0 + 100], vr[k0 - 1: k0 + 100], vm[k0 - 1: k0 + 100])
+        moves[reject] = np.max(np.abs(ob.beta / before - 1))
+        if reject == 5.0:
+            assert ob.counters["rejected"] >= 30      # the 0.1 s hold alone is 33 samples
+    assert moves[5.0] < 0.5 * moves[1e9]
