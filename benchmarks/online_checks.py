@@ -310,8 +310,10 @@ def check_spindle(args):
         pre = int(np.max(r.level[:k0]))
         hit = np.flatnonzero(r.level[k0:] >= 1)
         t_warn = hit[0] * d.Ts if hit.size else math.inf
+        hit2 = np.flatnonzero(r.level[k0:] >= 2)
+        t_alarm = hit2[0] * d.Ts if hit2.size else math.inf
         row("spindle", f"[{label}] 3000→2400 rpm, no spindle data: warn after", f"{t_warn:.2f} s", "≤ 1 s",
-            t_warn <= 1.0 and pre == 0, f"level before the change: {pre}")
+            t_warn <= 1.0 and pre == 0, f"level before the change: {pre}; alarm after {t_alarm:.2f} s")
         after = slice(k0, None)
         row("spindle", f"[{label}] force_next corr after the change (old ψ kernel)",
             f"{corr(r.force_next[after], d.force[after]):.3f}", "info (item 1 of the issue)", True)

@@ -98,7 +98,7 @@ def test_recursion_equals_batch_weighted_least_squares_on_gp_innovations():
     t, vr, vm, _ = _drive(n, seed=5)
     b0 = _beta(inertia=320.0, damping=260.0)
     trk = _tracker(budget=600, forgetting=1.0)
-    ob = _online(b0, trk, memory=1e12, huber=1e9, instrument=False, warmup=0)
+    ob = _online(b0, trk, memory=1e12, huber=1e9, reject=1e10, instrument=False, warmup=0)
     Z = np.zeros((n - 1, len(NAMES)))
     Y = vm[1:]
     R = np.zeros(n - 1)
