@@ -98,7 +98,7 @@ def test_recursion_equals_batch_weighted_least_squares_on_gp_innovations():
     t, vr, vm, _ = _drive(n, seed=5)
     b0 = _beta(inertia=320.0, damping=260.0)
     trk = _tracker(budget=600, forgetting=1.0)
-    ob = _online(b0, trk, memory=1e12, huber=1e9, reject=1e10, instrument=False, warmup=0)
+    ob = _online(b0, trk, memory=1e12, huber=1e9, instrument=False, warmup=0)
     Z = np.zeros((n - 1, len(NAMES)))
     Y = vm[1:]
     R = np.zeros(n - 1)
@@ -315,8 +315,8 @@ def test_force_input_form_with_offset_reports_all_parameters():
 
 
 def test_nothing_is_learned_during_a_disturbance_transient():
-    """An abrupt 300 N force the tracker cannot foresee: |ν| ≥ 5 stops learning until it has been
-    quiet for 0.1 s, so β moves less over the transient than without the rule."""
+    """An abrupt 300 N force the tracker cannot foresee: with ``reject = 8`` samples with |ν| ≥ 8
+    teach nothing, so β moves less over the transient than without the rule (the default)."""
     n = 2400
     t = np.arange(n) * TS
     vr = 0.04 + 0.02 * np.sin(2 * np.pi * 1.7 * t)
@@ -327,12 +327,12 @@ def test_nothing_is_learned_during_a_disturbance_transient():
                                         d["dn"], d["omega"])
     k0 = int(4.0 / TS)
     moves = {}
-    for reject in (5.0, 1e9):
+    for reject in (8.0, None):
         ob = _online(_beta(), reject=reject)
         ob.track(t[: k0], vr[: k0], vm[: k0])
         before = ob.beta
         ob.track(t[k0 - 1: k0 + 100], vr[k0 - 1: k0 + 100], vm[k0 - 1: k0 + 100])
         moves[reject] = np.max(np.abs(ob.beta / before - 1))
-        if reject == 5.0:
-            assert ob.counters["rejected"] >= 30      # the 0.1 s hold alone is 33 samples
-    assert moves[5.0] < 0.5 * moves[1e9]
+        if reject == 8.0:
+            assert ob.counters["rejected"] >= 3
+    assert moves[8.0] < 0.5 * moves[None]
