@@ -564,6 +564,73 @@ def _project(bs, a, pa, t1, t2):
 
 
 @njit(cache=True, nogil=True)
+def _rows_dot(MZ, q, hw, out):
+    """``out = Σ_i q[i] MZ[i, :]`` over the slots ``[0, hw)``; register accumulators for ≤ 6 columns
+    (the regressors: e, v_m, −σ_p, −σ_n, 1), so the sweep is not a chain of stores."""
+    p = MZ.shape[1]
+    if p > 6:
+        for j in range(p):
+            out[j] = 0.0
+        for i in range(hw):
+            for j in range(p):
+                out[j] += q[i] * MZ[i, j]
+        return
+    a0 = a1 = a2 = a3 = a4 = a5 = 0.0
+    for i in range(hw):
+        qi = q[i]
+        a0 += qi * MZ[i, 0]
+        a1 += qi * MZ[i, 1]
+        if p > 2:
+            a2 += qi * MZ[i, 2]
+            if p > 3:
+                a3 += qi * MZ[i, 3]
+                if p > 4:
+                    a4 += qi * MZ[i, 4]
+                    if p > 5:
+                        a5 += qi * MZ[i, 5]
+    out[0] = a0
+    out[1] = a1
+    if p > 2:
+        out[2] = a2
+    if p > 3:
+        out[3] = a3
+    if p > 4:
+        out[4] = a4
+    if p > 5:
+        out[5] = a5
+
+
+@njit(cache=True, nogil=True)
+def _rows_axpy(MZ, h, c, zt, hw):
+    """``MZ[i, :] += c h[i] z̃`` for the slots ``[0, hw)`` (z̃ held in registers for ≤ 6 columns)."""
+    p = MZ.shape[1]
+    if p > 6:
+        for i in range(hw):
+            hi = c * h[i]
+            for j in range(p):
+                MZ[i, j] += zt[j] * hi
+        return
+    z0 = zt[0]
+    z1 = zt[1]
+    z2 = zt[2] if p > 2 else 0.0
+    z3 = zt[3] if p > 3 else 0.0
+    z4 = zt[4] if p > 4 else 0.0
+    z5 = zt[5] if p > 5 else 0.0
+    for i in range(hw):
+        hi = c * h[i]
+        MZ[i, 0] += z0 * hi
+        MZ[i, 1] += z1 * hi
+        if p > 2:
+            MZ[i, 2] += z2 * hi
+            if p > 3:
+                MZ[i, 3] += z3 * hi
+                if p > 4:
+                    MZ[i, 4] += z4 * hi
+                    if p > 5:
+                        MZ[i, 5] += z5 * hi
+
+
+@njit(cache=True, nogil=True)
 def joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out, bs):
     """Tracker steps 1–2 at ``x`` (``_krlst_core.arm``) and the same on the shadow means.
 
@@ -596,11 +663,7 @@ def joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x
                 MZ[i, j] *= c
         c = 1.0
     par[P_SCALE] = c
-    q = P[4]
-    for i in range(hw):
-        qi = q[i]
-        for j in range(p):
-            zhat[j] += qi * MZ[i, j]
+    _rows_dot(MZ, P[4], hw, zhat)                 # Σ q_i M_Z[i, :]   (q = P[4])
     corr = 0.0
     beta = bs.beta
     btrk = bs.beta_trk
@@ -687,10 +750,7 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     # shadow means (stored / scale c), the mean part of eq. 2.14 for every regressor column
     inv_sy2 = 1.0 / sy2
     inv_c = 1.0 / par[P_SCALE]
-    for i in range(hw):
-        hi = h[i] * inv_sy2 * inv_c
-        for j in range(p):
-            MZ[i, j] += zt[j] * hi                # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
+    _rows_axpy(MZ, h, inv_sy2 * inv_c, zt, hw)    # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
     for j in range(p):
         MZ[s, j] = (zhat[j] + zt[j] * inv_sy2 * sf2) * inv_c
     core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid_trk, out)

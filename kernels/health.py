@@ -27,7 +27,7 @@ Why these numbers (defaults; measured with ``benchmarks/online_checks.py``):
   deviation ``√(2a/(2−a)) ≈ 0.078`` (τ = 0.5 s at 333 Hz): ``θ_warn = 5`` is ~50
   standard deviations away, so what sets the threshold is the *nominal* non-white
   behaviour. Measured maxima of the EWMA on nominal streams: 1.1–1.5 (shaker,
-  milling), 2.7–2.8 over 1 h and 24 h of the soak stream (a 60 N shaker and a feed
+  milling), 2.7–2.8 over 1 h and 4 h of the soak stream (a 60 N shaker and a feed
   force switched on abruptly every 18 s). θ_warn = 5 leaves a factor ≥ 1.8; the
   clipping bounds one sample's contribution to 16/333 of a window, and the
   persistence of 0.25 s rejects bursts. White-noise check in the tests: 2·10⁶
