@@ -57,7 +57,7 @@ def run(args) -> int:
     # 2. identification
     cut_trial = read_trial(paths["milling-incdec"])
     cut = identify(cut_trial)
-    air = identify(read_trial(paths["milling-aircut"]), period=cut.period)  # spindle off: no period of its own
+    air = identify(read_trial(paths["milling-aircut"]), method="ls", tune=False)  # spindle off: LS is the reference
     model_path = out / f"{cut.machine}-{cut.axis}.model.toml"
     save_model(cut.to_model(feedmon_version=__version__), model_path)
     _print_identification(air, cut, console)

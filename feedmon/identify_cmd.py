@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -35,7 +36,7 @@ def register(sub) -> None:
     p.add_argument("--gamma", type=float, help="regularisation γ (default 50.3)")
     p.add_argument("--no-tune", action="store_true",
                    help="keep the given (or thesis) hyperparameters instead of tuning them by REML")
-    p.add_argument("--tune", action="store_true", help=argparse_suppress())
+    p.add_argument("--tune", action="store_true", help=argparse.SUPPRESS)  # the default now; old scripts still run
     p.add_argument("--method", choices=["auto", "ls", "pl-lssvm"], default="auto",
                    help="model to write: the valid candidate with the highest evidence (auto), or the best of one family")
     p.add_argument("--force", action="store_true",
@@ -47,12 +48,6 @@ def register(sub) -> None:
     p.add_argument("--report", metavar="DIR", help="write PNG figures and a markdown summary into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.set_defaults(func=run)
-
-
-def argparse_suppress():
-    import argparse
-
-    return argparse.SUPPRESS  # --tune: tuning is the default now; kept so that old scripts still run
 
 
 def run(args) -> int:

@@ -12,7 +12,20 @@ mapped back to the spec's β for the model file.
 
 * ``ls`` — least squares, ``A = I``;
 * ``pl_lssvm`` with a squared-exponential kernel in time (non-periodic disturbances: steps, drift);
-* ``pl_lssvm`` with the locally periodic kernel at each period in play (:func:`periods_in_play`).
+* ``pl_lssvm`` with the locally periodic kernel at each period in play (:func:`periods_in_play`), and
+  with its zero-mean form (:class:`kernels.covariance.ZeroMeanLocallyPeriodic`, tuned from the former's
+  optimum): the locally periodic kernel carries a slowly varying mean (most of its variance when σ2 is
+  large), right for a cutting force whose mean follows the feed, wrong for a zero-mean vibration,
+  where that mean competes with the velocity column; the evidence tells which one the data support.
+
+**Period.** In this order: ``period`` ("given"), the spindle speed ("spindle"), else found in the LS
+residual ("detected", :func:`kernels.period.detect_periods`: harmonic-sum periodogram, periods locked
+to the commanded motion left out, at least ``MIN_CYCLES`` periods in the record) — then the
+multiples 2ψ and 3ψ are tried on the likelihood (:func:`_harmonic_alternatives`: a line found at
+1/ψ may be a harmonic of a longer true period) — else none. A period found in the data counts as one
+more fitted hyperparameter. With a given (or spindle) period the detected one is tuned too; when it is
+valid and its evidence exceeds the best periodic candidate at the given period by ``SUGGEST_MARGIN``,
+the output says so and names it (``period_suggested``), but the given period is kept.
 
 Each kernel candidate is tuned by the REML (:func:`kernels.likelihood.tune`; ``tune=False`` keeps the
 given or thesis hyperparameters), then evaluated exactly: REML ``ℓ``, GLS covariance of β (eq. L3),

@@ -218,3 +218,29 @@ def test_readme_documents_the_same_ranges():
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
     assert ranges_table() in readme, "README's model-file table is out of date: paste monitor.model_file.ranges_table()"
+
+
+@pytest.mark.parametrize("edge", [
+    {"sigma1": 1e-06, "period": 1e-06, "sigma2": 0.001, "jitter": 0.0, "gamma": 0.0001, "budget": 4096},
+    {"sigma1": 1e6, "period": 1e6, "sigma2": 1000.0, "jitter": 0.1, "gamma": 1e8, "forgetting": 0.5},
+])
+def test_the_range_limits_run_without_harm(simulated, tmp_path, edge):
+    """Every value at the edge of its range runs through 'feedmon run --from' (no crash, no hang)."""
+    import re
+
+    from feedio.mcapio import iter_blocks
+    from feedmon.cli import main
+
+    trial = simulated("shaker-constant", duration=2.0)
+    path = tmp_path / "edge.toml"
+    assert main(["identify", str(trial), "--period", str(1 / 55), "--no-tune", "-o", str(path)]) == 0
+    text = path.read_text()
+    for key, value in edge.items():
+        text, count = re.subn(rf"(?m)^{key} = .*$", f"{key} = {float(value) if key != 'budget' else value}", text,
+                              count=1)
+        assert count == 1, key
+    path.write_text(text)
+    out = tmp_path / "est.mcap"
+    assert main(["run", "--from", str(trial), "-o", str(out), "--model", str(path)]) == 0
+    rows = sum(len(b.t) for _, b in iter_blocks(out, kinds=("disturbance",)))
+    assert rows == int(round(2.0 * 333))
