@@ -29,7 +29,8 @@ def register(sub) -> None:
     p.add_argument("--period", type=float, help="disturbance period ψ in s (e.g. 0.018182 for 55 Hz); "
                    "default: the spindle speed, else found in the data")
     p.add_argument("--spindle-rpm", type=float, help="spindle speed (rpm): ψ = 60/rpm (tool runout)")
-    p.add_argument("--teeth", type=int, help="tooth count of the tool (recorded; ψ is the spindle period)")
+    p.add_argument("--teeth", type=int, help="tooth count of the tool (informational: with runout ψ is the spindle "
+                   "period; the tooth-passing line is one of its harmonics)")
     p.add_argument("--sigma1", type=float, help="σ1 (s) of the locally periodic kernel (start of tuning; "
                    "kept with --no-tune; default 0.59)")
     p.add_argument("--sigma2", type=float, help="σ2 of the locally periodic kernel (default 0.42)")
@@ -128,7 +129,8 @@ def _print_table(ident) -> None:
         cands.add_row(*row)
     console.print(cands)
     table = Table(title="parameters (± standard error)")
-    cols = ["parameter", "LS", "PL-LSSVM" + (f" ({ident.pl.candidate.label[10:]})" if ident.pl else ""), "truth"]
+    cols = ["parameter", "LS", "PL-LSSVM" + (f" ({ident.pl.candidate.label[10:]})" if ident.pl else ""),
+            "truth / reference"]
     for col in cols:
         table.add_column(col, justify="right" if col != "parameter" else "left")
     for row in summary_table(ident):

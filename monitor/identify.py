@@ -377,7 +377,9 @@ class Identification:
             raise ValueError(f"the {c.label} model is not valid: {c.why_not}")
         cfg = dict(TRACKER_DEFAULTS)
         cfg.update(tracker or {})
-        psi = c.period if c.period is not None else self.period
+        # the tracker's period: the chosen model's, else one the user gave (a period found in the data
+        # whose candidates were not chosen is no reason to make the online kernel periodic)
+        psi = c.period if c.period is not None else (self.period if self.period_source in ("given", "spindle") else None)
         if psi is not None:
             kernel = LocallyPeriodic(cfg["sigma1"], cfg["sigma2"], psi).to_dict()
         else:  # no periodic disturbance in play: a smooth, slowly varying disturbance

@@ -553,7 +553,7 @@ def save_model(model: AxisModel, path) -> Path:
                 "loop_gain": None if model.loop_gain is None else float(model.loop_gain),
                 "method": model.method,
             },
-            _UNITS,
+            {k: v for k, v in _UNITS.items() if k != "coulomb"} | {"coulomb": "Coulomb friction columns in β"},
         ),
         *_table("physical", {k: v for k, v in model.physical.items() if k in _PHYS_KEYS}, _UNITS),
         *_table("physical_se", {k: v for k, v in model.physical_se.items() if k in _PHYS_KEYS}),

@@ -179,7 +179,9 @@ def write_report(ident, out_dir) -> list[Path]:
             ax[2].plot(t, ref_c, lw=2.0, color="0.6", label=ref_label + " (mean removed)")
         ax[2].plot(t, est, lw=0.7, color="C2", alpha=0.9, label=f"{dist.candidate.label} (mean removed)")
         corr = (ident.truth or {}).get("pl_lssvm_disturbance_correlation" if dist is ident.pl else "disturbance_correlation")
-        ax[2].set(title="(c) identified disturbance" + (f" — correlation with the reference {corr:.4f}" if corr else ""))
+        whose = "" if dist is model else " of the best PL-LSSVM candidate (not the written model)"
+        ax[2].set(title="(c) identified disturbance" + whose
+                  + (f" — correlation with the reference {corr:.4f}" if corr else ""))
         ax[2].legend(loc="upper right")
 
     results = [ident.ls] + ([ident.pl] if ident.pl is not None else [])
@@ -200,7 +202,8 @@ def write_report(ident, out_dir) -> list[Path]:
     for a in ax[:3]:
         a.set_xlabel("time (s)")
     psi_text = "none" if psi is None else f"{psi:.5g} s ({ident.period_source})"
-    fig.suptitle(f"{ident.machine}/{ident.axis}: {Path(ident.trial_path).name} — {ident.form}, ψ = {psi_text}")
+    fig.suptitle(f"{ident.machine}/{ident.axis}: {Path(ident.trial_path).name} — {ident.form}, ψ = {psi_text}; "
+                 f"written: {model_label}")
     png = out / f"{stem}.png"
     fig.savefig(png, dpi=100)
     plt.close(fig)
