@@ -36,6 +36,7 @@ __all__ = [
     "SquaredExponential",
     "Periodic",
     "LocallyPeriodic",
+    "ZeroMeanLocallyPeriodic",
     "Product",
     "KIND_SE",
     "KIND_PERIODIC",
@@ -217,6 +218,8 @@ class Kernel:
                 return SquaredExponential(d["lengthscale"], dims=dims)
             if kind == "product":
                 return Product(*[Kernel.from_dict(x) for x in d["factors"]])
+            if kind == "locally_periodic_zero_mean":
+                return ZeroMeanLocallyPeriodic(d["sigma1"], d["sigma2"], d["period"])
         except KeyError as exc:
             raise ValueError(f"kernel of type {kind!r} is missing key {exc.args[0]!r}") from None
         raise ValueError(
@@ -315,6 +318,64 @@ class LocallyPeriodic(Kernel):
 
     def __repr__(self) -> str:
         return f"LocallyPeriodic(sigma1={self.sigma1!r}, sigma2={self.sigma2!r}, period={self.period!r})"
+
+
+class ZeroMeanLocallyPeriodic(Kernel):
+    """Locally periodic kernel whose periodic factor has its mean (constant Fourier term) removed.
+
+    ``k(d) = exp(−d²/(2σ1²)) · (p(d) − c0) / (1 − c0)``, ``p(d) = exp(−sin²(πd/ψ)/(2σ2²))``,
+    ``c0 = e^(−a) I0(a)``, ``a = 1/(4σ2²)`` (``p = e^(−a) Σ_j ε_j I_j(a) cos(2πjd/ψ)``, so ``c0`` is its
+    ``j = 0`` term); ``k(0) = 1``. Positive definite: the remaining Fourier weights are positive and
+    the product with the squared exponential keeps that. As σ2 → ∞ it tends to
+    ``exp(−d²/(2σ1²)) cos(2πd/ψ)``. The plain locally periodic kernel (method §5) carries a
+    slowly varying mean with weight ``c0`` (most of its variance for σ2 ≳ 1): right for a cutting
+    force whose mean follows the feed, but a zero-mean disturbance (a shaker) is then modelled with a
+    slow drift that competes with the velocity regressor. Offline only (a time kernel on a uniform
+    grid, ``lag``); it has no factor table for the compiled online path.
+    """
+
+    def __init__(self, sigma1: float, sigma2: float, period: float):
+        self.sigma1 = _check_positive("sigma1", sigma1)
+        self.sigma2 = _check_positive("sigma2", sigma2)
+        self.period = _check_positive("period", period)
+        from scipy.special import i0e
+
+        self.c0 = float(i0e(1.0 / (4.0 * self.sigma2 * self.sigma2)))
+        self.factors = (Factor(KIND_LOCALLY_PERIODIC, (self.sigma1, self.sigma2, self.period)),)
+
+    @property
+    def is_stationary_1d(self) -> bool:
+        return True
+
+    def lag(self, d) -> np.ndarray:
+        d = np.asarray(d, dtype=np.float64)
+        s = np.sin(np.pi * d / self.period)
+        p = np.exp(-(s * s) / (2.0 * self.sigma2 * self.sigma2))
+        return np.exp(-(d * d) / (2.0 * self.sigma1 * self.sigma1)) * (p - self.c0) / (1.0 - self.c0)
+
+    def __call__(self, X1, X2=None) -> np.ndarray:
+        A = _as_2d(X1)
+        B = A if X2 is None else _as_2d(X2)
+        if A.shape[1] != 1 or B.shape[1] != 1:
+            raise ValueError("the zero-mean locally periodic kernel acts on one scalar column (time)")
+        return self.lag(A[:, 0][:, None] - B[:, 0][None, :])
+
+    def spec(self):
+        raise ValueError("the zero-mean locally periodic kernel is for offline identification only "
+                         "(no compiled online form)")
+
+    def to_dict(self) -> dict:
+        return {"type": "locally_periodic_zero_mean", "sigma1": self.sigma1, "sigma2": self.sigma2,
+                "period": self.period}
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and self.factors == other.factors
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, self.factors))
+
+    def __repr__(self) -> str:
+        return f"ZeroMeanLocallyPeriodic(sigma1={self.sigma1!r}, sigma2={self.sigma2!r}, period={self.period!r})"
 
 
 class Product(Kernel):
