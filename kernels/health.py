@@ -76,8 +76,11 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "health_sample",
-           "health_tick", "LEVELS", "REASONS", "PARAMS"]
+from ._krlst_simd import view
+
+__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
+           "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
+           "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS"]
 
 LEVELS = ("ok", "warn", "alarm")
 #: the drift-tested physical parameters (indices into :data:`kernels.beta_tracker.PHYSICAL`)
@@ -139,24 +142,53 @@ class HealthConfig:
 
 
 class HealthState(NamedTuple):
-    """Plain-array state: ``par`` settings, ``acc`` the EWMA and run lengths, ``level`` one level
-    per :data:`REASONS`, ``ref`` rows ``[θ⁰, s⁰, ŝ^prior, scale]`` per :data:`PARAMS`,
-    ``stat`` rows ``[z, r, determined]`` of the last tick."""
+    """Named views of two base buffers (:func:`new_health_buffers`): ``par`` settings, ``ref``
+    rows ``[θ⁰, s⁰, ŝ^prior, scale]`` per :data:`PARAMS` (settings), ``acc`` the EWMA, run
+    lengths and window sums (state), ``stat`` rows ``[z, r, determined]`` of the last tick
+    (output), ``level`` one level per :data:`REASONS` (state, the ``int64`` buffer)."""
 
     par: np.ndarray
-    acc: np.ndarray
-    level: np.ndarray
     ref: np.ndarray
+    acc: np.ndarray
     stat: np.ndarray
+    level: np.ndarray
 
 
-def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: HealthConfig | None = None) -> HealthState:
-    """State for an axis sampled every ``Ts`` s; the reference arrays are per :data:`PARAMS`
-    (NaN for a parameter the model does not have: never tested)."""
+#: the fields that are state (snapshots): the others are settings or the last tick's output
+STATE_FIELDS = ("acc", "level")
+_F_REF = N_QPAR
+_F_ACC = _F_REF + 4 * len(PARAMS)
+_F_STAT = _F_ACC + N_ACC
+_F_END = _F_STAT + 3 * len(PARAMS)
+
+
+def health_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> HealthState:
+    """The :class:`HealthState` of the two base buffers, as NumPy views."""
+    k = len(PARAMS)
+    return HealthState(fbuf[:N_QPAR], fbuf[_F_REF:_F_ACC].reshape(4, k), fbuf[_F_ACC:_F_STAT],
+                       fbuf[_F_STAT:_F_END].reshape(3, k), ibuf[:N_REASON])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def health_state_of(fbuf, ibuf):
+    """The :class:`HealthState` of the two base buffers inside compiled code (reference-free views,
+    valid while the buffers are)."""
+    k = len(PARAMS)
+    return HealthState(view(fbuf, 0, (N_QPAR,)), view(fbuf, _F_REF, (4, k)), view(fbuf, _F_ACC, (N_ACC,)),
+                       view(fbuf, _F_STAT, (3, k)), view(ibuf, 0, (N_REASON,)))
+
+
+def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
+                       config: HealthConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Base buffers ``(float64, int64)`` of the state of an axis sampled every ``Ts`` s; the reference
+    arrays are per :data:`PARAMS` (NaN for a parameter the model does not have: never tested)."""
     cfg = (config or HealthConfig()).validate()
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive number of seconds, got {Ts!r}")
-    par = np.zeros(N_QPAR)
+    fbuf = np.zeros(_F_END)
+    ibuf = np.zeros(N_REASON, dtype=np.int64)
+    hs = health_state_views(fbuf, ibuf)
+    par = hs.par
     par[Q_A] = 1.0 - math.exp(-Ts / cfg.tau)
     par[Q_CLIP] = cfg.clip * cfg.clip
     par[Q_THW], par[Q_THA], par[Q_THC] = cfg.warn, cfg.alarm, cfg.clear
@@ -166,16 +198,32 @@ def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: He
     par[Q_RW], par[Q_RA] = cfg.rel_warn, cfg.rel_alarm
     par[Q_KAPPA] = cfg.kappa
     par[Q_WARMUP] = round(cfg.warmup / Ts)
-    ref = np.full((4, len(PARAMS)), np.nan)
     for row, values in enumerate((theta_file, se_file, se_prior, scale)):
         a = np.asarray(values, dtype=np.float64)
         if a.shape != (len(PARAMS),):
             raise ValueError(f"health reference arrays must have {len(PARAMS)} entries ({', '.join(PARAMS)}), got {a.shape}")
-        ref[row] = a
-    acc = np.zeros(N_ACC)
-    acc[A_EWMA] = 1.0
-    return HealthState(par=par, acc=acc, level=np.zeros(N_REASON, dtype=np.int64), ref=ref,
-                       stat=np.full((3, len(PARAMS)), np.nan))
+        hs.ref[row] = a
+    hs.acc[A_EWMA] = 1.0
+    hs.stat[:] = np.nan
+    return fbuf, ibuf
+
+
+def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: HealthConfig | None = None) -> HealthState:
+    """A fresh :class:`HealthState` (views of :func:`new_health_buffers`)."""
+    return health_state_views(*new_health_buffers(Ts, theta_file, se_file, se_prior, scale, config))
+
+
+def validate_health_state(hs: HealthState) -> None:
+    """Raise ``ValueError`` naming the entry unless the state part of ``hs`` (read from a file) is possible:
+    levels in 0…2, the EWMA in [0, clip²], run lengths, counts and window sums finite and ≥ 0."""
+    if not np.all(np.isfinite(hs.acc)):
+        raise ValueError("health 'acc' holds non-finite values")
+    if np.any((hs.level < 0) | (hs.level > 2)):
+        raise ValueError("health 'level' must hold levels 0 (ok), 1 (warn) or 2 (alarm)")
+    if not 0.0 <= hs.acc[A_EWMA] <= hs.par[Q_CLIP] or np.any(hs.acc < 0.0):
+        raise ValueError("health 'acc': the EWMA of ν² must lie in [0, clip²] and the counts be ≥ 0")
+    if hs.acc[A_WMAX] > hs.par[Q_CLIP] or hs.acc[A_WSUM] > hs.par[Q_CLIP] * hs.acc[A_WN]:
+        raise ValueError("health 'acc': window statistics beyond the clip level")
 
 
 @njit(cache=True, nogil=True)
@@ -323,7 +371,8 @@ class HealthMonitor:
             fscale = max(fr + [1.0])
             scale = [abs(t0[0]), abs(t0[1]), fscale, fscale, fscale]
         self.config = (config or HealthConfig()).validate()
-        self.state = new_health_state(Ts, t0, s0, sp, self._vec(scale), self.config)
+        self._buf = new_health_buffers(Ts, t0, s0, sp, self._vec(scale), self.config)
+        self.state = health_state_views(*self._buf)
 
     @staticmethod
     def _vec(values) -> np.ndarray:
@@ -374,21 +423,26 @@ class HealthMonitor:
                        ewma_max=float(ewma_max), z=z, rel=rel, determined=det)
 
     def snapshot(self) -> dict[str, np.ndarray]:
-        """The state as plain arrays (copies)."""
-        return {f"health.{k}": np.array(v, copy=True) for k, v in self.state._asdict().items()}
+        """The state (:data:`STATE_FIELDS`) as plain arrays (copies)."""
+        return {f"health.{k}": np.array(getattr(self.state, k), copy=True) for k in STATE_FIELDS}
 
     def restore(self, snap: dict) -> None:
-        """Continue from :meth:`snapshot` (same shapes required)."""
-        parts = {}
-        for k, cur in self.state._asdict().items():
+        """Continue from :meth:`snapshot` (same shapes required; checked by :func:`validate_health_state`,
+        nothing changed when it fails)."""
+        fbuf, ibuf = self._buf[0].copy(), self._buf[1].copy()
+        hs = health_state_views(fbuf, ibuf)
+        for k in STATE_FIELDS:
             key = f"health.{k}"
             if key not in snap:
                 raise ValueError(f"health snapshot is missing {key!r}")
-            arr = np.array(snap[key], dtype=cur.dtype, copy=True)
-            if arr.shape != cur.shape:
-                raise ValueError(f"health snapshot {key!r} has shape {arr.shape}, expected {cur.shape}")
-            parts[k] = arr
-        self.state = HealthState(**parts)
+            arr = np.asarray(snap[key])
+            dst = getattr(hs, k)
+            if arr.shape != dst.shape or arr.dtype != dst.dtype:
+                raise ValueError(f"health snapshot {key!r} is {arr.dtype} {arr.shape}, expected {dst.dtype} {dst.shape}")
+            dst[...] = arr
+        validate_health_state(hs)
+        self._buf = (fbuf, ibuf)
+        self.state = hs
 
 
 @njit(cache=True, nogil=True)
