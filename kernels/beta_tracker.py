@@ -1346,6 +1346,11 @@ class OnlineBeta:
         """``M_Z`` in the tracker's slots, in signal units (a copy)."""
         return self.state.MZ * self.state.sst[S_SCALE]
 
+    @property
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers of :attr:`state`, for compiled loops (:func:`kernels.online.track_block`)."""
+        return self._buf
+
     def _core(self, x_example) -> tuple[np.ndarray, np.ndarray]:
         return self.tracker.core_buffers(x_example)
 

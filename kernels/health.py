@@ -80,12 +80,12 @@ from ._krlst_simd import view
 
 __all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
            "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
-           "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS"]
+           "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
 
 LEVELS = ("ok", "warn", "alarm")
 #: the drift-tested physical parameters (indices into :data:`kernels.beta_tracker.PHYSICAL`)
 PARAMS = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "offset")
-_PHYS_INDEX = (0, 1, 2, 3, 5)
+PHYS_INDEX = (0, 1, 2, 3, 5)
 #: reasons, in the order of ``HealthState.level``
 REASONS = ("innovation",) + PARAMS
 N_REASON = len(REASONS)
@@ -389,6 +389,11 @@ class HealthMonitor:
                              f"got shape {a.shape}")
         return a
 
+    @property
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers of :attr:`state`, for compiled loops (:func:`kernels.online.track_block`)."""
+        return self._buf
+
     def learn_one(self, nu: float) -> str:
         """Feed one normalised innovation; returns the innovation level (``ok | warn | alarm``)."""
         return LEVELS[int(health_sample(self.state, float(nu)))]
@@ -407,18 +412,10 @@ class HealthMonitor:
         ewma_max = acc[A_WMAX] if acc[A_WN] > 0 else math.nan
         top = int(health_tick(hs, self._vec(theta), self._vec(se)))
         levels = {name: LEVELS[int(lv)] for name, lv in zip(REASONS, hs.level)}
-        reasons = []
-        if hs.level[0]:
-            reasons.append(f"innovation: the model does not explain the data (mean ν² {nu2:.1f} over the last "
-                           f"window, EWMA peak {ewma_max:.1f}; expected 1)")
+        reasons = describe(hs.level, hs.stat[S_Z], hs.stat[S_REL], nu2, ewma_max)
         z = {p: float(hs.stat[S_Z, j]) for j, p in enumerate(PARAMS)}
         rel = {p: float(hs.stat[S_REL, j]) for j, p in enumerate(PARAMS)}
         det = {p: bool(hs.stat[S_DET, j]) for j, p in enumerate(PARAMS)}
-        for j, p in enumerate(PARAMS):
-            if hs.level[1 + j]:
-                sign = "+" if z[p] > 0 else "−"
-                reasons.append(f"{p} drift {sign}{100 * rel[p]:.1f} % of the model file value "
-                               f"({abs(z[p]):.1f} standard errors)")
         return Verdict(state=LEVELS[top], reasons=reasons, levels=levels, nu2_mean=float(nu2),
                        ewma_max=float(ewma_max), z=z, rel=rel, determined=det)
 
@@ -445,6 +442,21 @@ class HealthMonitor:
         self.state = hs
 
 
+def describe(level, z, rel, nu2_mean: float, ewma_max: float) -> list[str]:
+    """The human-readable reasons of a verdict: ``level`` per :data:`REASONS`, ``z`` and ``rel`` per
+    :data:`PARAMS` (the tick's statistics), the innovation window's mean ν² and EWMA peak."""
+    reasons = []
+    if level[0]:
+        reasons.append(f"innovation: the model does not explain the data (mean ν² {nu2_mean:.1f} over the last "
+                       f"window, EWMA peak {ewma_max:.1f}; expected 1)")
+    for j, p in enumerate(PARAMS):
+        if level[1 + j]:
+            sign = "+" if z[j] > 0 else "−"
+            reasons.append(f"{p} drift {sign}{100 * rel[j]:.1f} % of the model file value "
+                           f"({abs(z[j]):.1f} standard errors)")
+    return reasons
+
+
 @njit(cache=True, nogil=True)
 def _sample_many(hs, nu, out):
     for i in range(nu.shape[0]):
@@ -453,4 +465,4 @@ def _sample_many(hs, nu, out):
 
 def physical_vector(theta6) -> np.ndarray:
     """The :data:`PARAMS` entries of a :data:`kernels.beta_tracker.PHYSICAL` vector."""
-    return np.asarray(theta6, dtype=np.float64)[list(_PHYS_INDEX)]
+    return np.asarray(theta6, dtype=np.float64)[list(PHYS_INDEX)]

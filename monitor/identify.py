@@ -29,14 +29,15 @@ from kernels.likelihood import log_marginal_likelihood
 from kernels.likelihood import tune as tune_hyperparameters
 from kernels.pl_lssvm import pl_lssvm
 
+from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
 
 __all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "Identification", "identify", "disturbance_period", "dead_band"]
 
 #: PL-LSSVM hyperparameters when neither given nor tuned (thesis Table 4.1, case study 1)
 THESIS_DEFAULTS = {"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}
-#: online KRLS-T defaults (thesis Table 4.5 in this project's σ2 convention, golden vectors)
-TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.996, "budget": 100, "jitter": 1e-6}
+#: online KRLS-T defaults (one definition: monitor.online_settings)
+TRACKER_DEFAULTS = OS.TRACKER_DEFAULTS
 #: samples needed beyond ±Ω on each side before the Coulomb columns are identifiable
 MIN_REVERSAL_SAMPLES = 20
 
@@ -129,6 +130,7 @@ class Identification:
     truth_f: np.ndarray | None = None  # true disturbance (m/s) aligned with y
     measured_force: np.ndarray | None = None  # e.g. dynamometer (N) aligned with y
     notes: list[str] = field(default_factory=list)
+    spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
 
     def to_json(self) -> dict:
         doc = {
@@ -155,9 +157,14 @@ class Identification:
     def to_model(self, *, method: str = "pl-lssvm", tracker: dict | None = None, feedmon_version: str = "") -> AxisModel:
         """The axis model file for ``feedmon run`` (β of ``method``, tracker defaults with ψ = period)."""
         chosen = self.pl if method == "pl-lssvm" else self.ls
-        cfg = dict(TRACKER_DEFAULTS)
-        cfg.update(tracker or {})
-        kernel = LocallyPeriodic(cfg["sigma1"], cfg["sigma2"], self.period).to_dict()
+        cfg = OS.tracker_table(tuned=self.hyperparameters if self.hyperparameters.get("tuned") else None,
+                               period=self.period, spindle=self.spindle)
+        for key, value in (tracker or {}).items():  # explicit settings: kernel hyperparameters go into the kernel
+            if key in cfg["kernel"] and key != "type":
+                cfg["kernel"] = {**cfg["kernel"], key: value}
+            else:
+                cfg[key] = value
+        kernel = cfg["kernel"]
         return AxisModel(
             machine=self.machine,
             axis=self.axis,
@@ -301,10 +308,23 @@ def identify(
         names=reg.names, loop_gain=gain, hyperparameters=hp, ls=ls_res, pl=pl_res, y=y,
         t=trial.t[1:], f=pl.f, f_force=f_force, notes=notes,
     )
+    ident.spindle = _spindle(trial)
     _attach_truth(ident, trial)
     if not scalable and form == "velocity-loop":
         notes.append("loop gain K unknown: only J/K and B/K are identifiable (give --loop-gain to get J and B)")
     return ident
+
+
+def _spindle(trial) -> dict | None:
+    """``{"teeth", "spindle_rpm"}`` (median speed, rpm) when the samples carry the spindle (then the
+    model gets the spindle-phase tracker kernel), else None."""
+    rpm = trial.spindle_rpm
+    if rpm is None and trial.spindle_angle is not None:
+        rpm = np.diff(trial.spindle_angle) / np.diff(trial.t) * 60.0 / (2.0 * math.pi)
+    rpm = None if rpm is None else rpm[np.isfinite(rpm)]
+    if rpm is None or rpm.size == 0 or not 0.0 < float(np.median(np.abs(rpm))) <= OS.SPINDLE_RPM_MAX:
+        return None
+    return {"teeth": trial.meta.teeth or 1, "spindle_rpm": float(np.median(np.abs(rpm)))}
 
 
 def _aligned(truth, seq: np.ndarray, name: str) -> np.ndarray | None:

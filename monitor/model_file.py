@@ -11,7 +11,11 @@ axis. Layout (version 1)::
     [physical]        inertia (kg), damping (N·s/m), coulomb_pos/neg (N), offset (N),
                       or inertia_over_gain (s), damping_over_gain when K is unknown
     [tracker]         kernel, sigma1 (s), sigma2, period (s), gamma, forgetting,
-                      budget, jitter — the online KRLS-T (method §6)
+                      budget, jitter — the online KRLS-T (method §6); kernel = "spindle"
+                      with per, teeth, spindle_rpm instead of period: the spindle-phase
+                      kernel (:mod:`monitor.online_settings`)
+    [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
+    [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  sigma1, sigma2, period, gamma used by PL-LSSVM, tuned, log_likelihood
     [provenance]      source, sha256, method, created, feedmon_version
 
@@ -29,6 +33,8 @@ from pathlib import Path
 
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names
+
+from . import online_settings as OS
 
 __all__ = [
     "FORMAT_VERSION",
@@ -51,14 +57,15 @@ class ModelFileError(ValueError):
 class TrackerConfig:
     """KRLS-T hyperparameters for the online tracker (method §6), defaults after thesis Table 4.5."""
 
-    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55})
-    gamma: float = 5.85
-    forgetting: float = 0.996
-    budget: int = 100
-    jitter: float = 1e-6
+    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": OS.TRACKER_DEFAULTS["sigma1"],
+                                                  "sigma2": OS.TRACKER_DEFAULTS["sigma2"], "period": 1 / 55})
+    gamma: float = OS.TRACKER_DEFAULTS["gamma"]
+    forgetting: float = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: int = OS.TRACKER_DEFAULTS["budget"]
+    jitter: float = OS.TRACKER_DEFAULTS["jitter"]
 
     def build_kernel(self) -> Kernel:
-        return Kernel.from_dict(self.kernel)
+        return OS.build_tracker_kernel(self.kernel)
 
 
 @dataclass
@@ -78,6 +85,7 @@ class AxisModel:
     physical: dict = field(default_factory=dict)
     identification: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    online: OS.OnlineSettings = field(default_factory=OS.OnlineSettings)  # [adaptation], [health]
 
     @property
     def beta_names(self) -> tuple[str, ...]:
@@ -195,19 +203,23 @@ def load_model(path) -> AxisModel:
         raise r.fail("model.beta_names", f"{names} do not match the {form} form (expected {list(beta_names(form, coulomb))})")
 
     tracker_table = r.table("tracker")
-    kernel_desc = {k: v for k, v in tracker_table.items() if k in ("sigma1", "sigma2", "period", "lengthscale")}
-    kernel_desc["type"] = r.get("tracker", "kernel", str)
+    kind = r.get("tracker", "kernel", str)
+    keys = ("sigma1", "sigma2", "per", "teeth", "spindle_rpm") if kind == OS.SPINDLE else \
+        ("sigma1", "sigma2", "period", "lengthscale")
+    kernel_desc = {k: v for k, v in tracker_table.items() if k in keys}
+    kernel_desc["type"] = kind
     for k, v in kernel_desc.items():
-        if k != "type" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
+        if kind != OS.SPINDLE and k != "type" and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                                  or not math.isfinite(v) or v <= 0):
             raise r.fail(f"tracker.{k}", f"must be a positive finite number, got {v!r}")
     try:
-        Kernel.from_dict(kernel_desc)
+        OS.check_kernel_desc(kernel_desc)
     except ValueError as exc:
         raise r.fail("tracker.kernel", str(exc)) from None
-    forgetting = r.positive("tracker", "forgetting", required=False, default=0.996)
+    forgetting = r.positive("tracker", "forgetting", required=False, default=OS.TRACKER_DEFAULTS["forgetting"])
     if forgetting > 1:
         raise r.fail("tracker.forgetting", f"must be in (0, 1], got {forgetting!r}")
-    budget = r.get("tracker", "budget", int, required=False, default=100)
+    budget = r.get("tracker", "budget", int, required=False, default=OS.TRACKER_DEFAULTS["budget"])
     if budget < 1:
         raise r.fail("tracker.budget", f"must be ≥ 1, got {budget!r}")
     tracker = TrackerConfig(
@@ -215,8 +227,12 @@ def load_model(path) -> AxisModel:
         gamma=r.positive("tracker", "gamma"),
         forgetting=forgetting,
         budget=budget,
-        jitter=r.positive("tracker", "jitter", required=False, default=1e-6, allow_zero=True),
+        jitter=r.positive("tracker", "jitter", required=False, default=OS.TRACKER_DEFAULTS["jitter"], allow_zero=True),
     )
+    try:
+        online = OS.parse_model_tables(doc, path)
+    except ValueError as exc:
+        raise ModelFileError(str(exc)) from None
     return AxisModel(
         machine=r.get("axis", "machine", str),
         axis=r.get("axis", "axis", str),
@@ -231,6 +247,7 @@ def load_model(path) -> AxisModel:
         physical=r.finite_table("physical"),
         identification=r.finite_table("identification"),
         provenance=dict(r.table("provenance", required=False)),
+        online=online,
     )
 
 
@@ -281,6 +298,8 @@ _UNITS = {
     "damping_over_gain": "1 (B/K)",
     "sigma1": "s",
     "period": "s (ψ)",
+    "spindle_rpm": "rpm, nominal: used without spindle data",
+    "per": "revolution (2π: runout) | tooth (2π/teeth)",
 }
 
 
@@ -312,6 +331,7 @@ def save_model(model: AxisModel, path) -> Path:
         *_table("physical", {k: v for k, v in model.physical.items()}, _UNITS),
         *_table("tracker", tracker, _UNITS),
         *_table("identification", model.identification, _UNITS),
+        *[line for name, items, notes in OS.model_tables(model.online) for line in _table(name, items, notes)],
         *_table("provenance", model.provenance),
     ]
     text = "\n".join(lines)

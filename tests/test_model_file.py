@@ -51,7 +51,7 @@ def test_force_input_model_scales_to_newtons(tmp_path):
 def test_file_is_human_readable_toml_with_units(tmp_path):
     text = save_model(_model(), tmp_path / "m.toml").read_text()
     assert "format_version = 1" in text
-    assert "[tracker]" in text and "forgetting = 0.996" in text
+    assert "[tracker]" in text and "forgetting = 0.998" in text  # the measured default (monitor.online_settings)
     assert "# s" in text  # units next to values
 
 
@@ -69,7 +69,7 @@ def _write(tmp_path, text):
         (lambda t: t.replace("gamma = 5.85", 'gamma = "high"'), "tracker.gamma", "must be a number"),
         (lambda t: t.replace("gamma = 5.85", "gamma = nan"), "tracker.gamma", "must be finite"),
         (lambda t: t.replace("gamma = 5.85\n", ""), "tracker.gamma", "missing"),
-        (lambda t: t.replace("forgetting = 0.996", "forgetting = 1.5"), "tracker.forgetting", "(0, 1]"),
+        (lambda t: t.replace("forgetting = 0.998", "forgetting = 1.5"), "tracker.forgetting", "(0, 1]"),
         (lambda t: t.replace("budget = 100", "budget = 0"), "tracker.budget", "≥ 1"),
         (lambda t: t.replace("beta = [0.8338, 0.1632,", "beta = [0.8338,"), "model.beta", "needs 4"),
         (lambda t: t.replace("Ts = ", "Ts = -"), "model.Ts", "> 0"),
