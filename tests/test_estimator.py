@@ -24,7 +24,7 @@ OMEGA = 5e-4
 def _model(form="velocity-loop", beta=BETA, **kw) -> AxisModel:
     return AxisModel(machine="m", axis="x", form=form, Ts=TS, beta=list(map(float, beta)), omega=OMEGA,
                      coulomb=True, loop_gain=83300.0 if form == "velocity-loop" else None,
-                     tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict(), budget=40), **kw)
+                     tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict(), budget=40, forgetting=0.996), **kw)
 
 
 def _stream(n=1500, seed=0):

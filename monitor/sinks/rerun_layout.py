@@ -150,6 +150,11 @@ def describe_model(model, teeth: int | None = None) -> dict[str, Any]:
     model when it has one)."""
     kernel = model.tracker.kernel or {}
     period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "periodic") else None
+    if kernel.get("type") == "spindle":  # the spindle-phase kernel: its period in time at the nominal speed
+        per_rev = 60.0 / float(kernel["spindle_rpm"])
+        period = per_rev / int(kernel.get("teeth", 1)) if kernel.get("per") == "tooth" else per_rev
+        if teeth is None:
+            teeth = kernel.get("teeth")
     if teeth is None:
         teeth = getattr(model, "teeth", None)
     return {"period": float(period) if period else None, "Ts": float(model.Ts), "force": bool(model.force_scalable),
