@@ -280,8 +280,10 @@ class SoakResult:
     objects: list[int] = field(default_factory=list)
     health: dict[str, int] = field(default_factory=lambda: {"ok": 0, "warn": 0, "alarm": 0})
     health_reasons: set[str] = field(default_factory=set)
+    health_events: list[str] = field(default_factory=list)  # the first non-ok reports (stream time, reasons)
     nu2_max: float = 0.0  # largest window mean of ν² in a report
     z_max: dict[str, float] = field(default_factory=dict)  # largest |drift| of each parameter vs the model file (%)
+    zs_max: dict[str, float] = field(default_factory=dict)  # largest |drift| in standard errors (the model's β is exact)
 
     @property
     def rate(self) -> float:
@@ -373,6 +375,8 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
         _, est = pipe.estimate(block)
         for h in pipe.last_health:
             res.health[h.state] += 1
+            if h.state != "ok" and len(res.health_events) < 20:
+                res.health_events.append(f"{_fmt_t(h.t)} {h.state}: {'; '.join(h.reasons)}")
             res.health_reasons.update(r.split(" (")[0] for r in h.reasons if not r.startswith("not "))
             if h.nu2 is not None:
                 res.nu2_max = max(res.nu2_max, h.nu2)
@@ -381,6 +385,11 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
                 v = getattr(h, name)
                 if v is not None:
                     res.z_max[name] = max(res.z_max.get(name, 0.0), 100.0 * abs(v / ref - 1.0))
+            for name, ref in (("inertia", D["inertia"]), ("damping", D["damping"]),
+                              ("coulomb_pos", D["coulomb_pos"]), ("coulomb_neg", D["coulomb_neg"])):
+                v, se = getattr(h, name), getattr(h, f"{name}_se")
+                if v is not None and se:
+                    res.zs_max[name] = max(res.zs_max.get(name, 0.0), abs(v - ref) / se)
         if est is not None:
             if opts.wire:
                 S.encode(est)
@@ -497,6 +506,7 @@ def _judge(res: SoakResult, opts, sent: int, duplicates_sent: int, rss0: float) 
                            f"corr ≥ {opts.min_corr:g}")
     hc = res.health
     drift = ", ".join(f"{k} {v:.2f} %" for k, v in res.z_max.items())
+    drift += "; in standard errors: " + ", ".join(f"{k} {v:.1f}" for k, v in res.zs_max.items())
     ch["health"] = (hc["warn"] == 0 and hc["alarm"] == 0 and hc["ok"] > 0,
                     f"{hc['ok']:,} ok / {hc['warn']} warn / {hc['alarm']} alarm health reports (must be no warn, no "
                     f"alarm); largest mean ν² of a report {res.nu2_max:.2f}; largest online parameter error vs the "
@@ -522,6 +532,8 @@ def _report(res: SoakResult, opts, say) -> None:
         say(f"GC-tracked objects at the checkpoints: first {res.objects[0]:,}, last {res.objects[-1]:,}")
     for name, (ok, text) in res.checks.items():
         say(f"  [{'PASS' if ok else 'FAIL'}] {name:<10} {text}")
+    for line in res.health_events:
+        say(f"  health report {line}")
     say("soak: PASS" if res.ok else "soak: FAIL")
     if opts.json:
         Path(opts.json).write_text(json.dumps({
