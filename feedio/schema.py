@@ -68,6 +68,8 @@ __all__ = [
     "DisturbanceScalars",
     "Health",
     "HEALTH_STATES",
+    "REASONS_MAX",
+    "REASON_CHARS_MAX",
     "decode_health",
     "Provenance",
     "TrialTruth",

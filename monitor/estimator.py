@@ -63,10 +63,10 @@ from numbers import Integral
 import numpy as np
 
 from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
-from feedio.schema import EstimateBlock, Health, SampleBlock
+from feedio.schema import REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
 from kernels import health as hl
-from kernels.beta_tracker import OnlineBeta, physical_of
+from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
 from .model_file import AxisModel
@@ -145,6 +145,7 @@ class AxisEstimator:
         self._health_out: list[Health] = []
         hp = self.health.state.par  # fewest samples between two changes of the validity level
         self._change_min = int(max(1.0, min(hp[hl.Q_NPERS], hp[hl.Q_NHOLD])))
+        self._tick_min = int(online.config_of(*self._cfg).tick_min)  # fewest samples between two periodic reports
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
     def _new_tracker(self) -> KRLST:
@@ -169,7 +170,8 @@ class AxisEstimator:
         names = tuple(m.beta_names)
         kw = dict(omega=float(m.omega), gain=m.loop_gain if m.form == "velocity-loop" else None,
                   allowance=a.allowance, memory=a.memory, huber=a.huber, reject=a.reject, hold=a.hold,
-                  instrument=a.instrument, enabled=self.mode != "off", rebase_every=64 if self.mode == "apply" else 0)
+                  instrument=a.instrument, enabled=self.mode != "off",
+                  rebase_every=REBASE_EVERY if self.mode == "apply" else 0)
         try:
             return OnlineBeta(tracker, self.beta, names, float(m.Ts), beta_cov=_beta_cov(m), **kw)
         except ValueError as exc:
@@ -249,7 +251,7 @@ class AxisEstimator:
             if block.spindle_rpm is not None:
                 sp[1] = _as_column(block.spindle_rpm)
         rows, irows, counts = online.new_rows(n)
-        ticks = online.new_ticks(n, int(self._cfg.ints[7]), self._change_min)
+        ticks = online.new_ticks(n, self._tick_min, self._change_min)
         first = online.track_block(*self.tracker.core_buffers(np.zeros(self._xdim)), *self.online.buffers,
                                    *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows, irows,
                                    counts, ticks, self._scratch)
@@ -291,6 +293,7 @@ class AxisEstimator:
             vals[name] = x if ok else None
             vals[f"{name}_se"] = se if ok else None
         nu2 = float(row[k.K_NU2])
+        reasons = [r[:REASON_CHARS_MAX] for r in reasons[:REASONS_MAX]]  # the schema's bounds
         return Health(machine=machine, axis=axis, seq=int(row[k.K_SEQ]), t=float(row[k.K_T]),
                       state=("ok", "warn", "alarm")[int(row[k.K_STATE])], reasons=reasons,
                       nu2=nu2 if math.isfinite(nu2) else None, adaptation=self.mode, **vals)
