@@ -63,6 +63,7 @@ class PhysicalLimits(msgspec.Struct, frozen=True):
     v_max: float = 50.0  # |velocity| (m/s): v_ref, v_meas
     u_max: float = 1e7  # |force command| (N)
     t_max: float = T_MAX  # |controller time| (s)
+    spindle_rpm_max: float = 200_000.0  # |spindle speed| (rpm): faster is unusable (the tracker falls back)
 
 
 PHYSICAL = PhysicalLimits()

@@ -68,6 +68,7 @@ __all__ = [
     "samples_key",
     "truth_key",
     "disturbance_key",
+    "health_key",
     "status_key",
     "parse_key",
     "free_tcp_port",
@@ -338,6 +339,11 @@ def truth_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*")
 def disturbance_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
     """``<prefix>/<machine>/<axis>/disturbance`` (the monitor's EstimateBlocks)."""
     return _axis_key(prefix, machine, axis, "disturbance")
+
+
+def health_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
+    """``<prefix>/<machine>/<axis>/health`` (the monitor's health reports, :class:`feedio.schema.Health`)."""
+    return _axis_key(prefix, machine, axis, "health")
 
 
 def status_key(prefix: str = DEFAULT_PREFIX) -> str:

@@ -94,6 +94,13 @@ prediction); rows of ``P`` (pending and armed vectors, state): ``P_*``; rows of 
 (scratch): ``W_*``. Output buffers: :func:`update`/:func:`learn` write ``O_*`` (``N_OUT``),
 :func:`arm`/:func:`predict` write ``A_*`` (``N_ARM``), a row of :func:`track` is ``T_*``
 (``N_TRACK``).
+
+Compiled code that runs beside the tracker on the same slots (the shadow means of
+:mod:`kernels.beta_tracker`) reads, after :func:`arm`, ``P[P_Q]`` (``q``) and ``P[P_H]`` (``h``;
+:func:`update` does not change it) and the armed ``fst[F_YM…F_SY2]``; the new basis goes to the
+free slot ``order[n]``; after :func:`update` a reduced step (``O_REDUCED``) leaves it free, a
+pruning step (``O_REMOVED ≥ 0``) moves the new basis into the pruned one's slot, which is then
+``order[n − 1]``, and frees ``order[n]``. These are part of the layout: keep them when changing it.
 """
 
 from __future__ import annotations

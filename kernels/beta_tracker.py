@@ -109,10 +109,19 @@ gain (``β1`` in force-input form, ``β1/K`` in velocity-loop form) and ``p`` th
 (:func:`physical_se`). Without the loop gain ``K`` (velocity-loop) ``K = 1`` is used: the
 values are then ``J/K, B/K, d/K`` (the caller labels them so).
 
-Wiring (stumpy-style): :func:`joint_arm` and :func:`joint_update` replace
-``_krlst_core.arm`` / ``update`` in a compiled loop (the tracker-side contract is listed
-in :func:`joint_arm`); :class:`OnlineBeta` is the thin Python API (river-style
-``learn_one`` / ``predict_one``), with snapshot/restore as plain arrays.
+Modes (``monitor`` settings ``[adaptation] mode``): the recursion above with the re-basing (6)
+is *apply* — the published disturbance goes with β̂. With the re-basing off (*track*:
+``rebase_every = 0``) the tracker's mean keeps going with the model file's β (β_trk = β₀ for
+ever), its predictions are published unchanged, and β̂, P and the innovations of the joint
+model are still exact by (1): β is estimated and reported without touching the disturbance.
+
+Wiring (stumpy-style): the state is one :class:`BetaState` of named views of two base buffers
+(``float64``, ``int64``; :func:`new_beta_buffers`, :func:`beta_state_views`, and inside compiled
+code :func:`beta_state_of`), as the KRLS-T core's :class:`~kernels._krlst_core.State`.
+:func:`joint_arm` and :func:`joint_update` replace ``_krlst_core.arm`` / ``update`` in a compiled
+loop (:func:`kernels.online.track_block`; the tracker-side contract is listed in
+:func:`joint_arm`); :class:`OnlineBeta` is the thin Python API (river-style ``learn_one`` /
+``predict_one``), with snapshot/restore as plain arrays (:data:`STATE_FIELDS`).
 """
 
 from __future__ import annotations
@@ -124,11 +133,15 @@ import numpy as np
 from numba import njit
 
 from . import _krlst_core as core
+from ._krlst_simd import view
 from .feed_drive import FORMS
 
 __all__ = [
     "BetaState",
-    "new_beta_state",
+    "new_beta_buffers",
+    "beta_state_views",
+    "beta_state_of",
+    "validate_beta_state",
     "joint_arm",
     "joint_update",
     "track_joint",
@@ -139,65 +152,150 @@ __all__ = [
     "JointStep",
     "PHYSICAL",
     "BOUT",
+    "STATE_FIELDS",
+    "SETTINGS_FIELDS",
 ]
 
 #: physical parameters reported by :func:`physical_se`, in this order (SI: kg, N·s/m, N, N, N, N)
 PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offset")
 N_PHYS = len(PHYSICAL)
 
-#: slots of ``par`` (float settings and small state)
-(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_VHAT, P_WARMUP, P_SCALE, P_REJECT,
- P_HOLD) = range(12)
-N_PAR = 12
-#: slots of ``cnt`` (counters, column layout, instrument bookkeeping)
-(C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_FORM, C_ISP, C_ISN, C_IONE, C_ARMS,
- C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE, C_REBASE_EVERY, C_SINCE_FORGET, C_QUIET, C_REJECTED) = range(16)
-N_CNT = 16
+#: slots of ``par`` (settings, fixed for a model)
+(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD) = range(10)
+N_PAR = 10
+#: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
+(L_FORM, L_ISP, L_ISN, L_IONE, L_REBASE) = range(5)
+N_LAY = 5
+#: slots of ``cnt`` (counters and instrument bookkeeping: state)
+(C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE,
+ C_SINCE_FORGET, C_QUIET, C_REJECTED) = range(11)
+N_CNT = 11
+#: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction
+(S_SCALE, S_VHAT) = range(2)
+N_SST = 2
 #: learning samples between two applications of the forgetting (2) (with λ_β^m): keeps the
 #: per-sample work at rank-one updates of Λ⁻¹; the forgetting per sample is 1 − λ_β ≈ 3·10⁻⁴
 FORGET_EVERY = 16
 #: scale floor of the lazily scaled shadow means (renormalised below it)
 SCALE_FLOOR = 1e-150
+#: default re-basing interval of the *apply* mode (learning samples)
+REBASE_EVERY = 64
 
 #: named outputs of :func:`joint_update` (``bout``)
 BOUT = ("residual", "innovation", "nu", "variance", "weight", "learned", "filtered", "zt_norm")
 (B_RESID, B_INNOV, B_NU, B_VAR, B_WEIGHT, B_LEARNED, B_FILTERED, B_ZTN) = range(len(BOUT))
 N_BOUT = len(BOUT)
 #: rows of the scratch ``vec``
-V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X = range(6)  # V_BEFORE: spare
+V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X = range(6)  # V_BEFORE: the forgetting's step
+N_VEC = 6
+_HEADER = 4                 # int buffer: p, cap, number of constraints, (spare)
 
 
 class BetaState(NamedTuple):
-    """State of the online β estimator (plain arrays; Numba passes it as one argument).
+    """State of the online β estimator: named views of two base buffers (:func:`new_beta_buffers`).
 
-    ``beta`` β̂ (p,); ``beta_trk`` the β the tracker's mean currently goes with (re-based to β̂
-    every ``cnt[C_REBASE_EVERY]`` learning samples; predictions are corrected for the difference
-    exactly); ``cov`` Λ⁻¹ with Λ = Σ ζ̃z̃ᵀ/R + prior (p, p; symmetric without instruments),
-    kept by rank-one (Sherman–Morrison) updates; ``info`` scratch for Λ; ``psi``
-    Ψ = Σ ζ̃ζ̃ᵀ R/R_w² + prior (the middle of the covariance ``P = Λ⁻¹ΨΛ⁻ᵀ``);
-    ``info0`` Λ₀ = P₀⁻¹; ``beta0`` the model file's β; ``MZ`` the shadow GP means of the
-    regressors in the tracker's slots (M+1, p), stored divided by the scale ``par[P_SCALE]``
-    (the forgetting √λ is applied to that scalar); ``zhat`` ẑ = M_Zᵀq armed with the tracker;
-    ``cons`` rows ``[a, b]`` of the constraints ``aᵀβ ≤ b``; ``par`` settings and the stored
-    velocity prediction (:data:`P_LAMBDA` …); ``cnt`` counters and the column layout
-    (:data:`C_UPDATES` …); ``lu``, ``piv``, ``vec`` scratch.
+    Settings (fixed for a model; :data:`SETTINGS_FIELDS`): ``lay`` the column layout and the
+    re-basing interval (:data:`L_FORM` …), ``par`` float settings (:data:`P_LAMBDA` …),
+    ``beta0`` the model file's β, ``info0`` Λ₀ = P₀⁻¹, ``cons`` rows ``[a, b]`` of the
+    constraints ``aᵀβ ≤ b``.
+
+    State (:data:`STATE_FIELDS`): ``beta`` β̂ (p,); ``beta_trk`` the β the tracker's mean
+    currently goes with (re-based to β̂ every ``lay[L_REBASE]`` learning samples in *apply*
+    mode, never in *track* mode; predictions are corrected for the difference exactly);
+    ``cov`` Λ⁻¹ with Λ = Σ ζ̃z̃ᵀ/R + prior (p, p; symmetric without instruments), kept by
+    rank-one (Sherman–Morrison) updates; ``psi`` Ψ = Σ ζ̃ζ̃ᵀ R/R_w² + prior (the middle of the
+    covariance ``P = Λ⁻¹ΨΛ⁻ᵀ``); ``MZ`` the shadow GP means of the regressors in the
+    tracker's slots (M+1, p), stored divided by the scale ``sst[S_SCALE]`` (the forgetting
+    √λ is applied to that scalar); ``zhat`` ẑ = M_Zᵀq armed with the tracker; ``sst`` the
+    scale and the stored velocity prediction v̂; ``cnt`` counters (:data:`C_UPDATES` …).
+
+    Scratch: ``info`` (Λ), ``lu``, ``piv``, ``vec``.
     """
 
-    beta: np.ndarray
-    beta_trk: np.ndarray
-    cov: np.ndarray
-    info: np.ndarray
-    psi: np.ndarray
-    info0: np.ndarray
-    beta0: np.ndarray
-    MZ: np.ndarray
-    zhat: np.ndarray
-    cons: np.ndarray
-    par: np.ndarray
-    cnt: np.ndarray
-    lu: np.ndarray
-    piv: np.ndarray
-    vec: np.ndarray
+    layout: np.ndarray   # int64 (4,): p, cap, number of constraints
+    lay: np.ndarray      # int64 (N_LAY,)
+    cnt: np.ndarray      # int64 (N_CNT,)
+    piv: np.ndarray      # int64 (p,)
+    par: np.ndarray      # float64 (N_PAR,)
+    beta0: np.ndarray    # (p,)
+    info0: np.ndarray    # (p, p)
+    cons: np.ndarray     # (ncons, p + 1)
+    beta: np.ndarray     # (p,)
+    beta_trk: np.ndarray  # (p,)
+    cov: np.ndarray      # (p, p)
+    psi: np.ndarray      # (p, p)
+    MZ: np.ndarray       # (cap, p)
+    zhat: np.ndarray     # (p,)
+    sst: np.ndarray      # (N_SST,)
+    info: np.ndarray     # (p, p) scratch
+    lu: np.ndarray       # (p, p) scratch
+    vec: np.ndarray      # (N_VEC, p) scratch
+
+
+#: the fields that are the estimator's state (snapshots); the others are settings or scratch
+STATE_FIELDS = ("cnt", "beta", "beta_trk", "cov", "psi", "MZ", "zhat", "sst")
+#: the fields fixed by the model and the settings (a restored state must hold the same)
+SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons")
+
+
+def _offsets(p, cap, ncons):
+    """Start of each field in the base buffers; the last entry of each group is its length."""
+    i_lay = _HEADER
+    i_cnt = i_lay + N_LAY
+    i_piv = i_cnt + N_CNT
+    i_end = i_piv + p
+    pp = p * p
+    f_par = 0
+    f_beta0 = f_par + N_PAR
+    f_info0 = f_beta0 + p
+    f_cons = f_info0 + pp
+    f_beta = f_cons + ncons * (p + 1)
+    f_btrk = f_beta + p
+    f_cov = f_btrk + p
+    f_psi = f_cov + pp
+    f_mz = f_psi + pp
+    f_zhat = f_mz + cap * p
+    f_sst = f_zhat + p
+    f_info = f_sst + N_SST
+    f_lu = f_info + pp
+    f_vec = f_lu + pp
+    f_end = f_vec + N_VEC * p
+    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
+            f_sst, f_info, f_lu, f_vec, f_end)
+
+
+_offsets_nb = njit(cache=True, nogil=True)(_offsets)
+
+
+def beta_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> BetaState:
+    """The :class:`BetaState` of the two base buffers, as NumPy views."""
+    p, cap, ncons = (int(v) for v in ibuf[:3])
+    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat, f_sst,
+     f_info, f_lu, f_vec, f_end) = _offsets(p, cap, ncons)
+    return BetaState(ibuf[:_HEADER], ibuf[i_lay:i_cnt], ibuf[i_cnt:i_piv], ibuf[i_piv:i_end],
+                     fbuf[f_par:f_beta0], fbuf[f_beta0:f_info0], fbuf[f_info0:f_cons].reshape(p, p),
+                     fbuf[f_cons:f_beta].reshape(ncons, p + 1), fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
+                     fbuf[f_cov:f_psi].reshape(p, p), fbuf[f_psi:f_mz].reshape(p, p),
+                     fbuf[f_mz:f_zhat].reshape(cap, p), fbuf[f_zhat:f_sst], fbuf[f_sst:f_info],
+                     fbuf[f_info:f_lu].reshape(p, p), fbuf[f_lu:f_vec].reshape(p, p),
+                     fbuf[f_vec:f_end].reshape(N_VEC, p))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def beta_state_of(fbuf, ibuf):
+    """The :class:`BetaState` of the two base buffers inside compiled code: reference-free views
+    (valid while the buffers are; never return them to Python — use :func:`beta_state_views`)."""
+    p = ibuf[0]
+    cap = ibuf[1]
+    ncons = ibuf[2]
+    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat, f_sst,
+     f_info, f_lu, f_vec, _) = _offsets_nb(p, cap, ncons)
+    return BetaState(view(ibuf, 0, (_HEADER,)), view(ibuf, i_lay, (N_LAY,)), view(ibuf, i_cnt, (N_CNT,)),
+                     view(ibuf, i_piv, (p,)), view(fbuf, f_par, (N_PAR,)), view(fbuf, f_beta0, (p,)),
+                     view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_beta, (p,)),
+                     view(fbuf, f_btrk, (p,)), view(fbuf, f_cov, (p, p)), view(fbuf, f_psi, (p, p)),
+                     view(fbuf, f_mz, (cap, p)), view(fbuf, f_zhat, (p,)), view(fbuf, f_sst, (N_SST,)),
+                     view(fbuf, f_info, (p, p)), view(fbuf, f_lu, (p, p)), view(fbuf, f_vec, (N_VEC, p)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -326,14 +424,18 @@ def _constraints(form, beta0, i_sp, i_sn) -> np.ndarray:
     return np.array(rows)
 
 
-def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, gain: float | None = None,
-                   P0=None, memory: float = 10.0, huber: float = 3.0, instrument: bool = True,
-                   enabled: bool = True, warmup: int | None = None, rebase_every: int = 64,
-                   reject: float | None = None, hold: float = 0.0) -> BetaState:
-    """A fresh :class:`BetaState` for a tracker of budget ``budget`` (M): β̂ = β₀, P = P₀."""
+
+def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, gain: float | None = None,
+                     P0=None, memory: float = 10.0, huber: float = 3.0, instrument: bool = True,
+                     enabled: bool = True, warmup: int | None = None, rebase_every: int = REBASE_EVERY,
+                     reject: float | None = None, hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The two base buffers ``(float64, int64)`` of a fresh :class:`BetaState` for a tracker of budget
+    ``budget`` (M): β̂ = β₀, P = P₀. ``rebase_every = 0``: never re-base (the *track* mode)."""
     form, i_sp, i_sn, i_one = _layout(names)
     beta0 = np.asarray(beta0, dtype=np.float64).copy()
     p = beta0.size
+    if p != len(tuple(names)):
+        raise ValueError(f"beta has {p} entries but beta_names has {len(tuple(names))}")
     if P0 is None:
         P0 = prior_covariance(beta0, names, Ts, gain=gain)
     P0 = np.asarray(P0, dtype=np.float64)
@@ -354,9 +456,18 @@ def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, 
                          f"got {reject!r}")
     if not (math.isfinite(hold) and 0.0 <= hold <= 60.0):
         raise ValueError(f"hold must be in [0, 60] s, got {hold!r}")
-    if not (isinstance(rebase_every, int) and rebase_every >= 1):
-        raise ValueError(f"rebase_every must be an integer ≥ 1, got {rebase_every!r}")
-    par = np.zeros(N_PAR)
+    if isinstance(rebase_every, bool) or not isinstance(rebase_every, int) or rebase_every < 0:
+        raise ValueError(f"rebase_every must be an integer ≥ 0 (0: never), got {rebase_every!r}")
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 1:
+        raise ValueError(f"budget must be an integer ≥ 1, got {budget!r}")
+    cons = _constraints(form, beta0, i_sp, i_sn)
+    cap = budget + 1
+    offs = _offsets(p, cap, cons.shape[0])
+    fbuf = np.zeros(offs[-1])
+    ibuf = np.zeros(offs[3], dtype=np.int64)
+    ibuf[:3] = p, cap, cons.shape[0]
+    bs = beta_state_views(fbuf, ibuf)
+    par = bs.par
     par[P_LAMBDA] = math.exp(-Ts / memory)
     par[P_HUBER] = huber
     par[P_OMEGA] = omega
@@ -364,21 +475,61 @@ def new_beta_state(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, 
     par[P_GAIN] = 1.0 if gain is None else float(gain)
     par[P_TS] = Ts
     par[P_IV] = 1.0 if instrument else 0.0
-    par[P_VHAT] = np.nan
     par[P_WARMUP] = budget if warmup is None else int(warmup)
-    par[P_SCALE] = 1.0
-    par[P_REJECT] = math.inf if reject is None else reject
+    par[P_REJECT] = 1e300 if reject is None else reject
     par[P_HOLD] = round(hold / Ts)
-    cnt = np.zeros(N_CNT, dtype=np.int64)
-    cnt[C_FORM] = FORMS.index(form)
-    cnt[C_ISP], cnt[C_ISN], cnt[C_IONE] = i_sp, i_sn, i_one
-    cnt[C_VHAT_ARM] = -1
-    cnt[C_REBASE_EVERY] = rebase_every
-    return BetaState(beta=beta0, beta_trk=beta0.copy(), cov=np.asarray(P0, dtype=np.float64).copy(),
-                     info=info0.copy(), psi=info0.copy(), info0=info0, beta0=beta0.copy(),
-                     MZ=np.zeros((budget + 1, p)), zhat=np.zeros(p),
-                     cons=_constraints(form, beta0, i_sp, i_sn), par=par, cnt=cnt,
-                     lu=np.zeros((p, p)), piv=np.zeros(p, dtype=np.int64), vec=np.zeros((6, p)))
+    bs.lay[L_FORM] = FORMS.index(form)
+    bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE] = i_sp, i_sn, i_one
+    bs.lay[L_REBASE] = rebase_every
+    bs.beta0[:] = beta0
+    bs.info0[:] = info0
+    bs.cons[:] = cons
+    bs.beta[:] = beta0
+    bs.beta_trk[:] = beta0
+    bs.cov[:] = P0
+    bs.psi[:] = info0
+    bs.sst[S_SCALE] = 1.0
+    bs.cnt[C_VHAT_ARM] = -1                     # no velocity prediction stored yet
+    return fbuf, ibuf
+
+
+def validate_beta_state(bs: BetaState, fresh: BetaState, occupied: np.ndarray) -> None:
+    """Raise ``ValueError`` (naming the field) unless ``bs`` — e.g. read from a state file — holds a
+    state the compiled code can use: the settings equal ``fresh``'s (a fresh state of the same
+    model and settings), every number finite, β̂ a physical drive (the constraints hold), ``P``
+    positive on its diagonal and at most 100× the prior's, the shadow means of the free slots of
+    the tracker (``occupied[s]`` = 0) zero and the others of a plausible size, the scale in
+    (0, 1], the counters possible."""
+    for name in SETTINGS_FIELDS + ("layout",):
+        if not np.array_equal(getattr(bs, name), getattr(fresh, name)):
+            raise ValueError(f"beta {name!r} differs from this model's settings")
+    for name in STATE_FIELDS:
+        if not np.all(np.isfinite(getattr(bs, name))):
+            raise ValueError(f"beta {name!r} holds non-finite values")
+    p = bs.beta.size
+    viol = bs.cons[:, :p] @ bs.beta - bs.cons[:, p]
+    if np.any(viol > 1e-9 * (1.0 + np.abs(bs.cons[:, p]))):
+        raise ValueError("beta 'beta' is not a physical drive (a constraint of the pole, gain or Coulomb is violated)")
+    P = bs.cov @ bs.psi @ bs.cov.T
+    P0 = np.linalg.inv(bs.info0)
+    d, d0 = np.diag(P), np.diag(P0)
+    if not (np.all(d > 0.0) and np.all(d <= 100.0 * d0)):
+        raise ValueError("beta 'cov'/'psi': the covariance of β is not positive or far beyond its prior")
+    occ = np.asarray(occupied, dtype=bool)[: bs.MZ.shape[0]]
+    if occ.shape[0] != bs.MZ.shape[0]:
+        raise ValueError("beta 'MZ' does not match the tracker's slots")
+    if np.any(bs.MZ[~occ] != 0.0):
+        raise ValueError("beta 'MZ' has entries in free slots of the tracker")
+    if not 0.0 < bs.sst[S_SCALE] <= 1.0:
+        raise ValueError(f"beta 'sst' scale is {float(bs.sst[S_SCALE])!r}, expected in (0, 1]")
+    if np.max(np.abs(bs.MZ), initial=0.0) * bs.sst[S_SCALE] > 1e9 or np.max(np.abs(bs.zhat), initial=0.0) > 1e9:
+        raise ValueError("beta 'MZ'/'zhat': implausibly large shadow means")
+    c = bs.cnt
+    if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_TRAINED, C_SINCE_REBASE, C_SINCE_FORGET,
+                 C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1:
+        raise ValueError("beta 'cnt' holds impossible counters")
+    if c[C_SINCE_FORGET] >= FORGET_EVERY or (bs.lay[L_REBASE] > 0 and c[C_SINCE_REBASE] >= bs.lay[L_REBASE]):
+        raise ValueError("beta 'cnt': a batched step is overdue (impossible)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -630,58 +781,63 @@ def _rows_axpy(MZ, h, c, zt, hw):
                         MZ[i, 5] += z5 * hi
 
 
+
 @njit(cache=True, nogil=True)
-def joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out, bs):
+def joint_arm(st, bs, x, out):
     """Tracker steps 1–2 at ``x`` (``_krlst_core.arm``) and the same on the shadow means.
 
     ``M_Z ← √λ M_Z`` (the forgetting of μ, eq. 2.19, applied to the scale of the stored
     means) and ``ẑ = M_Zᵀ q`` (the GP's prediction of z at x, eq. 2.17 applied to the
-    regressors), armed in ``bs.zhat``. ``out[0]`` is the prediction of f at x given β̂:
-    the tracker's ``ŷ`` (for ``β_trk``) minus ``ẑᵀ(β̂ − β_trk)``.
+    regressors), armed in ``bs.zhat``. ``out[A_MEAN]`` becomes the prediction of f at x given
+    β̂: the tracker's ``ŷ`` (for ``β_trk``, still in ``st.fst[F_YM]``) minus ``ẑᵀ(β̂ − β_trk)``.
 
-    Tracker-side contract (what this relies on in the core): after ``arm``, ``P[4]`` holds
-    ``q = Q k_t`` over the slots ``[0, hw)`` and ``P[5]`` holds ``h = Σ q``; ``fst`` holds
-    ``λ, ŷ, σ_f², σ_y², s0²`` of the armed prediction; after ``update`` a pruned slot sits at
-    ``order[n]``; ``μ`` and ``M_Z`` share the slots.
+    Tracker-side contract (what this relies on in :mod:`kernels._krlst_core`): after ``arm``,
+    ``P[P_Q]`` holds ``q = Q k_t`` and ``P[P_H]`` holds ``h = Σ q`` over the slots ``[0, hw)``
+    (zero on free slots), ``fst[F_YM], fst[F_SF2], fst[F_SY2]`` the armed ``ŷ, σ_f², σ_y²``
+    and ``fst[F_S02]`` the signal power; the new basis goes to the free slot ``order[n]``;
+    after ``update`` a reduced step (``O_REDUCED``) leaves that slot free, and a pruning step
+    (``O_REMOVED ≥ 0``) moves the new basis into the pruned one's slot ``order[n − 1]`` and
+    frees ``order[n]``; μ is stored unscaled in the slots and ``P[P_H]`` is not touched by
+    ``update``.
     """
-    n = ist[core.I_N]
-    core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, out)
+    st = core.unowned(st)
+    n = st.ist[core.I_N]
+    core.arm(st, x, out)
     bs.cnt[C_ARMS] += 1
     MZ = bs.MZ
     zhat = bs.zhat
-    par = bs.par
     p = zhat.shape[0]
     for j in range(p):
         zhat[j] = 0.0
     if n == 0:
         return
-    hw = ist[core.I_HW]
-    c = par[P_SCALE] * math.sqrt(fst[core.F_LAM])  # M_Z ← √λ M_Z (on the scale)
+    hw = st.ist[core.I_HW]
+    c = bs.sst[S_SCALE] * math.sqrt(st.fst[core.F_LAM])  # M_Z ← √λ M_Z (on the scale)
     if c < SCALE_FLOOR:
         for i in range(hw):
             for j in range(p):
                 MZ[i, j] *= c
         c = 1.0
-    par[P_SCALE] = c
-    _rows_dot(MZ, P[4], hw, zhat)                 # Σ q_i M_Z[i, :]   (q = P[4])
+    bs.sst[S_SCALE] = c
+    _rows_dot(MZ, st.P[core.P_Q], hw, zhat)     # Σ q_i M_Z[i, :]
     corr = 0.0
     beta = bs.beta
     btrk = bs.beta_trk
     for j in range(p):
         zhat[j] *= c                              # ẑ = M_Zᵀ q
         corr += zhat[j] * (beta[j] - btrk[j])
-    out[0] -= corr                                # f̂(x | β̂) = ŷ(β_trk) − ẑᵀ(β̂ − β_trk)
+    out[core.A_MEAN] -= corr                      # f̂(x | β̂) = ŷ(β_trk) − ẑᵀ(β̂ − β_trk)
 
 
 @njit(cache=True, nogil=True)
-def rebase(mu, ist, bs):
+def rebase(st, bs):
     """Re-express the tracker's mean with β̂: ``μ ← μ − M_Z (β̂ − β_trk)``, ``β_trk ← β̂`` (eq. 6)."""
     beta = bs.beta
     btrk = bs.beta_trk
     MZ = bs.MZ
     p = beta.shape[0]
     d = bs.vec[V_X]
-    c = bs.par[P_SCALE]
+    c = bs.sst[S_SCALE]
     moved = False
     for j in range(p):
         d[j] = c * (beta[j] - btrk[j])
@@ -691,7 +847,8 @@ def rebase(mu, ist, bs):
     bs.cnt[C_SINCE_REBASE] = 0
     if not moved:
         return
-    for i in range(ist[core.I_HW]):
+    mu = st.mu
+    for i in range(st.ist[core.I_HW]):
         acc = 0.0
         for j in range(p):
             acc += MZ[i, j] * d[j]
@@ -699,17 +856,20 @@ def rebase(mu, ist, bs):
 
 
 @njit(cache=True, nogil=True)
-def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bout):
-    """Tracker steps 3–5 with the residual of the current β̂, the shadow update, then β (2)–(7).
+def joint_update(st, bs, z, y, gate, out, bout):
+    """Tracker steps 3–5 with the residual of ``β_trk``, the shadow update, then β (2)–(7).
 
     ``z``: the regressor ``z(k)`` of the armed sample; ``y = v_m(k+1)``; ``gate``: the
     caller allows learning β from this sample (chain intact, not stale); the warm-up
     (no learning during the first ``warmup`` trained samples, default the budget M) and
     the motion gate ``|v_m(k)| > Ω`` are applied here. ``out`` receives the
-    tracker's step (``_krlst_core`` layout), ``bout`` the named outputs :data:`BOUT`
-    (``filtered`` already re-expressed with the new β̂). Returns False (nothing done)
-    when no prediction is armed.
+    tracker's step (``_krlst_core`` ``O_*`` layout: its filtered value goes with ``β_trk``),
+    ``bout`` the named outputs :data:`BOUT` (``filtered`` re-expressed with the new β̂).
+    Returns False (nothing done) when no prediction is armed.
     """
+    st = core.unowned(st)
+    ist = st.ist
+    fst = st.fst
     if ist[core.I_ARMED] == 0:
         return False
     beta = bs.beta
@@ -723,11 +883,11 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     zeta = vec[V_ZETA]
     n = ist[core.I_N]
     hw = ist[core.I_HW]
-    s = order[n]                                  # the slot the new basis goes to
+    s = st.order[n]                               # the slot the new basis goes to
     sy2 = fst[core.F_SY2]
     sf2 = fst[core.F_SF2]
     s02 = fst[core.F_S02]
-    h = P[5]
+    h = st.P[core.P_H]
     btrk = bs.beta_trk
     base = 0.0
     base_trk = 0.0
@@ -740,27 +900,28 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
         shift += zt[j] * (beta[j] - btrk[j])
     # instrument for the measured velocity: the model's prediction v̂(k) made one step earlier
     # (independent of the noise of v_m(k) and v_m(k+1)); valid only right after the arm that followed it
-    if par[P_IV] != 0.0 and cnt[C_VHAT_ARM] == cnt[C_ARMS] and math.isfinite(par[P_VHAT]):
-        zeta[1] = par[P_VHAT] - zhat[1]           # ζ̃ = ζ − ẑ with ζ = z, v_m(k) → v̂(k)
+    if par[P_IV] != 0.0 and cnt[C_VHAT_ARM] == cnt[C_ARMS]:
+        zeta[1] = bs.sst[S_VHAT] - zhat[1]        # ζ̃ = ζ − ẑ with ζ = z, v_m(k) → v̂(k)
     resid_trk = y - base_trk                      # what the tracker trains on (its mean goes with β_trk)
     resid = y - base                              # r = y − β̂ᵀz (eq. 2.13)
     e = resid_trk - fst[core.F_YM] - shift        # e = y − β̂ᵀz − f̂(β̂) = ỹ − β̂ᵀz̃
-    par[P_VHAT] = y - e                           # v̂(k+1) = β̂ᵀz(k) + f̂(k), before seeing y
+    bs.sst[S_VHAT] = y - e                        # v̂(k+1) = β̂ᵀz(k) + f̂(k), before seeing y
     cnt[C_VHAT_ARM] = cnt[C_ARMS] + 1
     # shadow means (stored / scale c), the mean part of eq. 2.14 for every regressor column
     inv_sy2 = 1.0 / sy2
-    inv_c = 1.0 / par[P_SCALE]
+    inv_c = 1.0 / bs.sst[S_SCALE]
     _rows_axpy(MZ, h, inv_sy2 * inv_c, zt, hw)    # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
     for j in range(p):
         MZ[s, j] = (zhat[j] + zt[j] * inv_sy2 * sf2) * inv_c
-    core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid_trk, out)
-    if out[5] != 0.0:                             # reduced update: the new basis was dropped
+    core.update(st, resid_trk, out)
+    if out[core.O_REDUCED] != 0.0:                # reduced update: the new basis was dropped
         for j in range(p):
             MZ[s, j] = 0.0
-    elif out[4] >= 0.0:                           # basis pruned: its slot now sits at order[n]
-        sr = order[n]
+    elif out[core.O_REMOVED] >= 0.0:              # pruned: the new basis took the pruned one's slot
+        t = st.order[ist[core.I_N] - 1]
         for j in range(p):
-            MZ[sr, j] = 0.0
+            MZ[t, j] = MZ[s, j]
+            MZ[s, j] = 0.0
     R = s02 * sy2                                 # R = s0² σ_y²
     bout[B_RESID] = resid
     bout[B_INNOV] = e
@@ -775,13 +936,15 @@ def joint_update(X, Q, S, K, mu, order, ist, fst, P, W, z, y, gate, out, bs, bou
     if par[P_ENABLED] != 0.0 and n > 0 and R > 0.0:
         _beta_step(bs, z, e, R, gate, bout)
     # the filtered f at x(k) given β̂: f_filt(β_trk) − z_filtᵀ(β̂ − β_trk), z_filt = ẑ + σ_f² z̃/σ_y²
-    filtered = out[6]
+    filtered = out[core.O_FILT]
     for j in range(p):
         filtered -= (zhat[j] + sf2 * zt[j] * inv_sy2) * (beta[j] - btrk[j])
     bout[B_FILTERED] = filtered
-    cnt[C_SINCE_REBASE] += 1
-    if cnt[C_SINCE_REBASE] >= cnt[C_REBASE_EVERY]:
-        rebase(mu, ist, bs)                       # (6), amortised: μ ← μ − M_Z (β̂ − β_trk)
+    every = bs.lay[L_REBASE]
+    if every > 0:
+        cnt[C_SINCE_REBASE] += 1
+        if cnt[C_SINCE_REBASE] >= every:
+            rebase(st, bs)                        # (6), amortised: μ ← μ − M_Z (β̂ − β_trk)
     return True
 
 
@@ -880,28 +1043,30 @@ def regressor(form_force, i_sp, i_sn, i_one, omega, e, v, z):
         z[i_one] = 1.0
 
 
+
 @njit(cache=True, nogil=True)
-def track_joint(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, bs, t, e, v, gate,
-                resume, out, bout, xbuf, zbuf, rows):
+def track_joint(fbuf, ibuf, bfbuf, bibuf, X, e, v, gate, resume, out, bout, zbuf, rows):
     """Offline loop over one uninterrupted stream (benchmarks, tests): at sample ``j ≥ 1`` update
-    with ``(z(j−1), v(j))`` (β learns where ``gate[j]``), then arm at ``t[j]``.
+    with ``(z(j−1), v(j))`` (β learns where ``gate[j]``), then arm at ``X[j]`` (the tracker input,
+    ``(n, d)``).
 
     ``resume``: sample 0 is the last sample of the previous call, already armed (its row
     is left NaN). ``rows[j]`` (≥ 7 columns): ``[f_next, f_next_var, learned, nu, residual,
     filtered, weight]`` — the one-step prediction of ``f(j)`` (signal units) made at sample
     ``j``, then the outputs of the update that sample ``j`` completed.
     """
-    p = zbuf.shape[0]
-    form_force = bs.cnt[C_FORM] == 1
-    i_sp, i_sn, i_one = bs.cnt[C_ISP], bs.cnt[C_ISN], bs.cnt[C_IONE]
+    st = core.unowned(core.state_of(fbuf, ibuf))
+    bs = beta_state_of(bfbuf, bibuf)
+    form_force = bs.lay[L_FORM] == 1
+    i_sp, i_sn, i_one = bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE]
     omega = bs.par[P_OMEGA]
-    for j in range(t.shape[0]):
+    for j in range(X.shape[0]):
         r = rows[j]
         for c in range(r.shape[0]):
             r[c] = np.nan
         if j > 0:
             regressor(form_force, i_sp, i_sn, i_one, omega, e[j - 1], v[j - 1], zbuf)
-            if joint_update(X, Q, S, K, mu, order, ist, fst, P, W, zbuf, v[j], gate[j], out, bs, bout):
+            if joint_update(st, bs, zbuf, v[j], gate[j], out, bout):
                 r[2] = bout[B_LEARNED]
                 r[3] = bout[B_NU]
                 r[4] = bout[B_RESID]
@@ -909,12 +1074,34 @@ def track_joint(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
                 r[6] = bout[B_WEIGHT]
         if j == 0 and resume:
             continue
-        xbuf[0] = t[j]
-        was_empty = ist[core.I_N] == 0
-        joint_arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, out, bs)
-        r[0] = out[0]
-        r[1] = np.nan if was_empty else out[1] * fst[core.F_S02]
-    return p
+        was_empty = st.ist[core.I_N] == 0
+        joint_arm(st, bs, X[j], out)
+        r[0] = out[core.A_MEAN]
+        r[1] = np.nan if was_empty else out[core.A_SF2] * st.fst[core.F_S02]
+
+
+@njit(cache=True, nogil=True)
+def joint_arm_buffers(fbuf, ibuf, bfbuf, bibuf, x, out):
+    """:func:`joint_arm` on the base buffers of the tracker and of the β state."""
+    joint_arm(core.state_of(fbuf, ibuf), beta_state_of(bfbuf, bibuf), x, out)
+
+
+@njit(cache=True, nogil=True)
+def joint_update_buffers(fbuf, ibuf, bfbuf, bibuf, z, y, gate, out, bout):
+    """:func:`joint_update` on the base buffers of the tracker and of the β state."""
+    return joint_update(core.state_of(fbuf, ibuf), beta_state_of(bfbuf, bibuf), z, y, gate, out, bout)
+
+
+@njit(cache=True, nogil=True)
+def rebase_buffers(fbuf, ibuf, bfbuf, bibuf):
+    """:func:`rebase` on the base buffers."""
+    rebase(core.state_of(fbuf, ibuf), beta_state_of(bfbuf, bibuf))
+
+
+@njit(cache=True, nogil=True)
+def physical_se_buffers(bfbuf, bibuf, theta, se, cov_work):
+    """:func:`physical_se` on the base buffers of the β state."""
+    return physical_se(beta_state_of(bfbuf, bibuf), theta, se, cov_work)
 
 
 @njit(cache=True, nogil=True)
@@ -926,8 +1113,8 @@ def physical_se(bs, theta, se, cov_work):
     """
     beta = bs.beta
     p = beta.shape[0]
-    form_force = bs.cnt[C_FORM] == 1
-    i_sp, i_sn, i_one = bs.cnt[C_ISP], bs.cnt[C_ISN], bs.cnt[C_IONE]
+    form_force = bs.lay[L_FORM] == 1
+    i_sp, i_sn, i_one = bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE]
     K = bs.par[P_GAIN]
     Ts = bs.par[P_TS]
     for k in range(N_PHYS):
@@ -998,37 +1185,39 @@ def physical_se(bs, theta, se, cov_work):
 # ---------------------------------------------------------------------------------------------
 # Python API
 # ---------------------------------------------------------------------------------------------
+
+
+# ---------------------------------------------------------------------------------------------
+# Python API
+# ---------------------------------------------------------------------------------------------
 def physical_of(beta, names, Ts: float, P, *, gain: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Physical parameters (:data:`PHYSICAL`) of ``beta`` and their standard errors for the β
     covariance ``P`` (delta method, :func:`physical_se`), e.g. the model file's values and
     standard errors for the health reference. NaN for columns the model does not have."""
-    form, i_sp, i_sn, i_one = _layout(names)
+    form = _layout(names)[0]
     beta = np.asarray(beta, dtype=np.float64)
     _check_physical(form, beta)
     P = np.asarray(P, dtype=np.float64)
     p = beta.size
     if P.shape != (p, p) or not np.all(np.isfinite(P)):
         raise ValueError(f"P must be a finite ({p}, {p}) covariance")
-    info = np.linalg.pinv(0.5 * (P + P.T), hermitian=True)
-    cnt = np.zeros(N_CNT, dtype=np.int64)
-    cnt[C_FORM] = FORMS.index(form)
-    cnt[C_ISP], cnt[C_ISN], cnt[C_IONE] = i_sp, i_sn, i_one
-    par = np.zeros(N_PAR)
-    par[P_GAIN] = 1.0 if gain is None else float(gain)
-    par[P_TS] = Ts
-    probe = BetaState(beta=beta.copy(), beta_trk=beta.copy(), cov=0.5 * (P + P.T), info=info, psi=info.copy(), info0=info, beta0=beta.copy(),
-                      MZ=np.zeros((1, p)), zhat=np.zeros(p), cons=np.zeros((0, p + 1)), par=par, cnt=cnt,
-                      lu=np.zeros((p, p)), piv=np.zeros(p, dtype=np.int64), vec=np.zeros((6, p)))
+    fbuf, ibuf = new_beta_buffers(beta, names, Ts, 1, gain=gain, P0=np.eye(p))
+    probe = beta_state_views(fbuf, ibuf)
+    Ps = 0.5 * (P + P.T)
+    probe.cov[:] = Ps                             # P = Λ⁻¹ Ψ Λ⁻ᵀ with Λ⁻¹ = P, Ψ = P⁺
+    probe.psi[:] = np.linalg.pinv(Ps, hermitian=True)
     theta, se = np.zeros(N_PHYS), np.zeros(N_PHYS)
-    physical_se(probe, theta, se, np.zeros((N_PHYS + 2, p)))
+    physical_se_buffers(fbuf, ibuf, theta, se, np.zeros((N_PHYS + 2, p)))
     return theta, se
+
+
 class JointStep(NamedTuple):
     """What :meth:`OnlineBeta.learn_one` reports (signal units: m/s, (m/s)²).
 
-    ``residual`` ``r = y − β̂ᵀz`` the tracker trained on; ``innovation`` ``e = r − f̂``;
-    ``nu`` ``e/√S`` (the health input); ``variance`` ``S``; ``weight`` the Huber weight;
-    ``learned`` β was updated; ``filtered`` the disturbance at the trained x given the new
-    β̂; ``removed``/``reduced`` as :class:`kernels.krlst.Step`.
+    ``residual`` ``r = y − β̂ᵀz``; ``innovation`` ``e = r − f̂``; ``nu`` ``e/√S`` (the health
+    input); ``variance`` ``S``; ``weight`` the Huber weight; ``learned`` β was updated;
+    ``filtered`` the disturbance at the trained x given the new β̂; ``removed``/``reduced`` as
+    :class:`kernels.krlst.Step`.
     """
 
     residual: float
@@ -1080,6 +1269,9 @@ class OnlineBeta:
         False: β stays at β₀ (the joint bookkeeping still runs; ``nu`` is the tracker's).
     warmup : int, optional
         Trained samples before β learns (default: the tracker's budget).
+    rebase_every : int
+        Re-base the tracker's mean to β̂ every so many trained samples (*apply*, default 64);
+        0: never (*track*: the published disturbance keeps the model file's β).
 
     Examples
     --------
@@ -1092,7 +1284,7 @@ class OnlineBeta:
     def __init__(self, tracker, beta0, names, Ts: float, *, omega: float = 0.0, gain: float | None = None,
                  beta_cov=None, allowance: float = 0.3, memory: float = 10.0, huber: float = 3.0,
                  reject: float | None = None, hold: float = 0.0, instrument: bool = True, enabled: bool = True,
-                 warmup: int | None = None):
+                 warmup: int | None = None, rebase_every: int = REBASE_EVERY):
         from .krlst import KRLST
 
         if not isinstance(tracker, KRLST):
@@ -1111,15 +1303,17 @@ class OnlineBeta:
         self.gain = gain
         self.tracker = tracker
         self.P0 = prior_covariance(beta0, self.names, Ts, gain=gain, beta_cov=beta_cov, rel=allowance)
-        self.state = new_beta_state(beta0, self.names, Ts, tracker.budget, omega=omega, gain=gain, P0=self.P0,
-                                    memory=memory, huber=huber, instrument=instrument, enabled=enabled,
-                                    warmup=warmup, reject=reject, hold=hold)
-        self._xbuf = np.zeros(1)
+        self._kw = dict(omega=omega, gain=gain, P0=self.P0, memory=memory, huber=huber, instrument=instrument,
+                        enabled=enabled, warmup=warmup, reject=reject, hold=hold, rebase_every=rebase_every)
+        self._beta0 = np.asarray(beta0, dtype=np.float64).copy()
+        self._buf = new_beta_buffers(self._beta0, self.names, Ts, tracker.budget, **self._kw)
+        self.state = beta_state_views(*self._buf)
+        self._x = None
         self._out = np.zeros(core.N_OUT)
         self._bout = np.zeros(N_BOUT)
         self._z = np.zeros(len(self.names))
         self._cw = np.zeros((N_PHYS + 2, len(self.names)))
-        self.prior_se = physical_of(self.state.beta0, self.names, Ts, self.P0, gain=gain)[1]
+        self.prior_se = physical_of(self._beta0, self.names, Ts, self.P0, gain=gain)[1]
 
     # ------------------------------------------------------------------ state views
     @property
@@ -1144,93 +1338,128 @@ class OnlineBeta:
         """``{name: (value, standard error)}`` per :data:`PHYSICAL` (delta method; NaN when the model
         has no such column). Without the loop gain (velocity-loop) the values are over K."""
         theta, se = np.zeros(N_PHYS), np.zeros(N_PHYS)
-        physical_se(self.state, theta, se, self._cw)
+        physical_se_buffers(*self._buf, theta, se, self._cw)
         return {k: (float(a), float(b)) for k, a, b in zip(PHYSICAL, theta, se)}
 
     @property
     def shadow_means(self) -> np.ndarray:
         """``M_Z`` in the tracker's slots, in signal units (a copy)."""
-        return self.state.MZ * self.state.par[P_SCALE]
+        return self.state.MZ * self.state.sst[S_SCALE]
+
+    @property
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers of :attr:`state`, for compiled loops (:func:`kernels.online.track_block`)."""
+        return self._buf
+
+    def _core(self, x_example) -> tuple[np.ndarray, np.ndarray]:
+        return self.tracker.core_buffers(x_example)
 
     def rebase(self) -> None:
         """Re-express the tracker's mean with the current β̂ now (done every ``rebase_every`` samples)."""
-        arrs = self.tracker.core_arrays(self._xbuf)
-        rebase(arrs[7], arrs[9], self.state)
+        if self._x is None:
+            return
+        rebase_buffers(*self._core(self._x), *self._buf)
 
     # ------------------------------------------------------------------ steps
     def regressor(self, exo: float, v: float) -> np.ndarray:
         """``z(k)`` for the command ``exo`` (v_ref or u) and measured velocity ``v`` (a copy)."""
-        c = self.state.cnt
-        regressor(c[C_FORM] == 1, c[C_ISP], c[C_ISN], c[C_IONE], self.state.par[P_OMEGA], float(exo), float(v), self._z)
+        lay = self.state.lay
+        regressor(lay[L_FORM] == 1, lay[L_ISP], lay[L_ISN], lay[L_IONE], self.state.par[P_OMEGA], float(exo),
+                  float(v), self._z)
         return self._z.copy()
+
+    def _as_x(self, x) -> np.ndarray:
+        xa = np.ascontiguousarray(np.atleast_1d(np.asarray(x, dtype=np.float64)))
+        if xa.ndim != 1 or not np.all(np.isfinite(xa)):
+            raise ValueError(f"x must be finite (a float or a 1-D array), got {x!r}")
+        return xa
 
     def predict_one(self, x) -> tuple[float, float]:
         """Arm the tracker at ``x`` (forget, predict): the one-step prediction of the disturbance at
         ``x`` given β̂ and its variance (signal units; NaN variance before the first sample)."""
-        self._xbuf[0] = float(x)
-        if not math.isfinite(self._xbuf[0]):
-            raise ValueError(f"x must be finite, got {x!r}")
+        xa = self._as_x(x)
         was_empty = self.tracker.size == 0
-        joint_arm(*self.tracker.core_arrays(self._xbuf), self._xbuf, self._out, self.state)
-        var = math.nan if was_empty else float(self._out[1]) * self.tracker.s02
-        return float(self._out[0]), var
+        joint_arm_buffers(*self._core(xa), *self._buf, xa, self._out)
+        self._x = xa
+        var = math.nan if was_empty else float(self._out[core.A_SF2]) * self.tracker.s02
+        return float(self._out[core.A_MEAN]), var
 
     def learn_one(self, z, y: float, *, gate: bool = True) -> JointStep:
         """Learn from the regressor ``z`` of the armed sample and ``y = v_m(k+1)``."""
         za = np.ascontiguousarray(z, dtype=np.float64)
         if za.shape != (len(self.names),) or not np.all(np.isfinite(za)) or not math.isfinite(y):
             raise ValueError(f"z must be {len(self.names)} finite values and y finite; got z={z!r}, y={y!r}")
-        if not self.tracker.armed:
+        if not self.tracker.armed or self._x is None:
             raise RuntimeError("learn_one needs an armed prediction: call predict_one(x) first")
-        arrs = self.tracker.core_arrays(self._xbuf)
-        joint_update(*arrs[3:13], za, float(y), bool(gate), self._out, self.state, self._bout)
+        joint_update_buffers(*self._core(self._x), *self._buf, za, float(y), bool(gate), self._out, self._bout)
         b = self._bout
         return JointStep(float(b[B_RESID]), float(b[B_INNOV]), float(b[B_NU]), float(b[B_VAR]), float(b[B_WEIGHT]),
-                         bool(b[B_LEARNED]), float(b[B_FILTERED]), int(self._out[4]), bool(self._out[5]))
+                         bool(b[B_LEARNED]), float(b[B_FILTERED]), int(self._out[core.O_REMOVED]),
+                         bool(self._out[core.O_REDUCED]))
 
     def track(self, t, exo, v, gate=None) -> dict[str, np.ndarray]:
         """One uninterrupted stream in one compiled loop (the monitor's order: at sample ``j ≥ 1`` learn
-        from ``(z(j−1), v(j))``, then arm at ``t[j]``). Continues a stream when the tracker is armed
-        (then ``t[0]`` must be the armed sample). Returns ``f_next`` (prediction of f(j) made at j),
-        ``f_next_var``, ``learned``, ``nu``, ``residual``, ``filtered``, ``weight`` per sample."""
-        t = np.ascontiguousarray(t, dtype=np.float64)
+        from ``(z(j−1), v(j))``, then arm at ``t[j]``; ``t`` the tracker inputs, ``(n,)`` times or
+        ``(n, d)``). Continues a stream when the tracker is armed (then ``t[0]`` must be the armed
+        sample). Returns ``f_next`` (prediction of f(j) made at j), ``f_next_var``, ``learned``,
+        ``nu``, ``residual``, ``filtered``, ``weight`` per sample."""
+        X = np.asarray(t, dtype=np.float64)
+        X = np.ascontiguousarray(X.reshape(-1, 1) if X.ndim == 1 else X)
         exo = np.ascontiguousarray(exo, dtype=np.float64)
         v = np.ascontiguousarray(v, dtype=np.float64)
-        n = t.size
-        if exo.shape != (n,) or v.shape != (n,):
-            raise ValueError(f"t, exo, v must have the same length; got {t.shape}, {exo.shape}, {v.shape}")
-        for name, a in (("t", t), ("exo", exo), ("v", v)):
+        n = X.shape[0]
+        if X.ndim != 2 or exo.shape != (n,) or v.shape != (n,):
+            raise ValueError(f"t, exo, v must have the same length; got {X.shape}, {exo.shape}, {v.shape}")
+        for name, a in (("t", X), ("exo", exo), ("v", v)):
             if not np.all(np.isfinite(a)):
-                raise ValueError(f"{name} must be finite; element {int(np.argmax(~np.isfinite(a)))} is not")
+                bad = int(np.argmax(~np.isfinite(a.reshape(n, -1)).any(axis=1)))
+                raise ValueError(f"{name} must be finite; element {bad} is not")
         g = np.ones(n, dtype=np.bool_) if gate is None else np.ascontiguousarray(gate, dtype=np.bool_)
         rows = np.zeros((n, 7))
+        if n == 0:
+            return {k: rows[:, i] for i, k in enumerate(("f_next", "f_next_var", "learned", "nu", "residual",
+                                                         "filtered", "weight"))}
         resume = self.tracker.armed
-        track_joint(*self.tracker.core_arrays(self._xbuf), self.state, t, exo, v, g, resume, self._out,
-                    self._bout, self._xbuf, self._z, rows)
+        track_joint(*self._core(X[0]), *self._buf, X, exo, v, g, resume, self._out, self._bout, self._z, rows)
+        self._x = X[-1].copy()
         return {"f_next": rows[:, 0], "f_next_var": rows[:, 1], "learned": rows[:, 2] == 1.0, "nu": rows[:, 3],
                 "residual": rows[:, 4], "filtered": rows[:, 5], "weight": rows[:, 6]}
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:
-        """The β state as plain arrays (copies); persist it together with ``tracker.snapshot()``
-        taken at the same moment (the shadow means live in the tracker's slots)."""
-        return {f"beta.{k}": np.array(v, copy=True) for k, v in self.state._asdict().items()}
+        """The β state (:data:`STATE_FIELDS`) as plain arrays (copies); persist it together with
+        ``tracker.snapshot()`` taken at the same moment (the shadow means live in the tracker's slots)."""
+        return {f"beta.{k}": np.array(getattr(self.state, k), copy=True) for k in STATE_FIELDS}
 
     def restore(self, snap: dict, tracker) -> None:
-        """Continue from :meth:`snapshot` with the tracker restored from the same moment."""
-        parts = {}
-        for k, cur in self.state._asdict().items():
+        """Continue from :meth:`snapshot` with the tracker restored from the same moment; raises
+        ``ValueError`` naming the entry (shape, dtype, :func:`validate_beta_state`) and leaves this
+        object as it was."""
+        if tracker.budget != self.tracker.budget:
+            raise ValueError(f"the tracker's budget {tracker.budget} does not match this estimator's "
+                             f"{self.tracker.budget}")
+        buf = new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget, **self._kw)
+        bs = beta_state_views(*buf)
+        for k in STATE_FIELDS:
             key = f"beta.{k}"
             if key not in snap:
                 raise ValueError(f"beta snapshot is missing {key!r}")
-            arr = np.array(snap[key], dtype=cur.dtype, copy=True)
-            if arr.shape != cur.shape:
-                raise ValueError(f"beta snapshot {key!r} has shape {arr.shape}, expected {cur.shape} "
-                                 "(another model or budget)")
-            if arr.dtype.kind == "f" and k not in ("par",) and not np.all(np.isfinite(arr)):
-                raise ValueError(f"beta snapshot {key!r} holds non-finite values")
-            parts[k] = arr
-        if tracker.budget + 1 != parts["MZ"].shape[0]:
-            raise ValueError("the tracker's budget does not match the beta snapshot")
-        self.state = BetaState(**parts)
+            arr = np.asarray(snap[key])
+            dst = getattr(bs, k)
+            if arr.shape != dst.shape or arr.dtype != dst.dtype:
+                raise ValueError(f"beta snapshot {key!r} is {arr.dtype} {arr.shape}, expected {dst.dtype} "
+                                 f"{dst.shape} (another model or budget)")
+            dst[...] = arr
+        occ = np.zeros(tracker.budget + 1)
+        if tracker.size or tracker.armed:
+            st = tracker.core_state(np.zeros(tracker.dictionary.shape[1]))
+            occ = st.occ[: tracker.budget + 1]
+        validate_beta_state(bs, beta_state_views(*new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget,
+                                                                    **self._kw)), occ)
+        self._buf = buf
+        self.state = bs
         self.tracker = tracker
+        self._x = None
+        if tracker.armed:
+            st = tracker.core_state(np.zeros(tracker.dictionary.shape[1]))
+            self._x = st.X[st.order[st.ist[core.I_N]]].copy()

@@ -52,6 +52,7 @@ __all__ = [
 KIND_SE = 0
 KIND_PERIODIC = 1
 KIND_LOCALLY_PERIODIC = 2
+KIND_LOCALLY_PERIODIC_ZERO_MEAN = 3
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,30 @@ def _locally_periodic_formula(d, sigma1, sigma2, period):
     return np.exp(-(d * d) / (2.0 * sigma1 * sigma1) - (s * s) / (2.0 * sigma2 * sigma2))
 
 
+def _i0e(a):
+    """``e^(−a) I0(a)`` for ``a ≥ 0`` (modified Bessel function, exponentially scaled) by its power
+    series ``Σ_k e^(−a) (a/2)^(2k)/(k!)²``, summed until the terms no longer change the sum (a ≤ 100
+    in use: at most a few hundred terms, all positive, so the sum is accurate to rounding)."""
+    term = math.exp(-a)
+    total = term
+    q = 0.25 * a * a
+    k = 0
+    while True:
+        k += 1
+        term *= q / (k * k)
+        if total + term == total:
+            return total
+        total += term
+
+
+def _locally_periodic_zero_mean_formula(d, sigma1, sigma2, period):
+    """Zero-mean locally periodic factor at lag ``d``: ``exp(−d²/(2σ1²)) · (p(d) − c0)/(1 − c0)`` with the
+    periodic factor ``p`` and its mean over a period ``c0 = e^(−a) I0(a)``, ``a = 1/(4σ2²)``."""
+    s = np.sin(np.pi * d / period)
+    c0 = _i0e(1.0 / (4.0 * sigma2 * sigma2))
+    return np.exp(-(d * d) / (2.0 * sigma1 * sigma1)) * (np.exp(-(s * s) / (2.0 * sigma2 * sigma2)) - c0) / (1.0 - c0)
+
+
 def _lag_values(f: Factor, d: np.ndarray) -> np.ndarray:
     """k(d) of one stationary scalar factor (eq. of method §5)."""
     if f.kind == KIND_SE:
@@ -143,6 +168,8 @@ def _lag_values(f: Factor, d: np.ndarray) -> np.ndarray:
         return _periodic_formula(d, f.params[0], f.params[1])
     if f.kind == KIND_LOCALLY_PERIODIC:
         return _locally_periodic_formula(d, *f.params)
+    if f.kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+        return _locally_periodic_zero_mean_formula(d, *f.params)
     raise ValueError(f"unknown kernel kind {f.kind}")
 
 
@@ -219,11 +246,12 @@ class Kernel:
             if kind == "product":
                 return Product(*[Kernel.from_dict(x) for x in d["factors"]])
             if kind == "locally_periodic_zero_mean":
-                return ZeroMeanLocallyPeriodic(d["sigma1"], d["sigma2"], d["period"])
+                return ZeroMeanLocallyPeriodic(d["sigma1"], d["sigma2"], d["period"], dims=dims)
         except KeyError as exc:
             raise ValueError(f"kernel of type {kind!r} is missing key {exc.args[0]!r}") from None
         raise ValueError(
-            f"unknown kernel type {kind!r}; use locally_periodic, periodic, squared_exponential or product"
+            f"unknown kernel type {kind!r}; use locally_periodic, locally_periodic_zero_mean, periodic, "
+            "squared_exponential or product"
         )
 
     def _dims_dict(self, f: Factor) -> dict:
@@ -330,49 +358,23 @@ class ZeroMeanLocallyPeriodic(Kernel):
     ``exp(−d²/(2σ1²)) cos(2πd/ψ)``. The plain locally periodic kernel (method §5) carries a
     slowly varying mean with weight ``c0`` (most of its variance for σ2 ≳ 1): right for a cutting
     force whose mean follows the feed, but a zero-mean disturbance (a shaker) is then modelled with a
-    slow drift that competes with the velocity regressor. Offline only (a time kernel on a uniform
-    grid, ``lag``); it has no factor table for the compiled online path.
+    slow drift that competes with the velocity regressor — offline in PL-LSSVM and online, where a
+    tracker with that slow part takes up friction and damping that online β should see. One factor
+    of the table (kind ``KIND_LOCALLY_PERIODIC_ZERO_MEAN``), so the batch, Toeplitz and compiled paths
+    share its formula (:func:`_locally_periodic_zero_mean_formula`).
     """
 
-    def __init__(self, sigma1: float, sigma2: float, period: float):
+    def __init__(self, sigma1: float, sigma2: float, period: float, dims=None):
         self.sigma1 = _check_positive("sigma1", sigma1)
         self.sigma2 = _check_positive("sigma2", sigma2)
         self.period = _check_positive("period", period)
-        from scipy.special import i0e
-
-        self.c0 = float(i0e(1.0 / (4.0 * self.sigma2 * self.sigma2)))
-        self.factors = (Factor(KIND_LOCALLY_PERIODIC, (self.sigma1, self.sigma2, self.period)),)
-
-    @property
-    def is_stationary_1d(self) -> bool:
-        return True
-
-    def lag(self, d) -> np.ndarray:
-        d = np.asarray(d, dtype=np.float64)
-        s = np.sin(np.pi * d / self.period)
-        p = np.exp(-(s * s) / (2.0 * self.sigma2 * self.sigma2))
-        return np.exp(-(d * d) / (2.0 * self.sigma1 * self.sigma1)) * (p - self.c0) / (1.0 - self.c0)
-
-    def __call__(self, X1, X2=None) -> np.ndarray:
-        A = _as_2d(X1)
-        B = A if X2 is None else _as_2d(X2)
-        if A.shape[1] != 1 or B.shape[1] != 1:
-            raise ValueError("the zero-mean locally periodic kernel acts on one scalar column (time)")
-        return self.lag(A[:, 0][:, None] - B[:, 0][None, :])
-
-    def spec(self):
-        raise ValueError("the zero-mean locally periodic kernel is for offline identification only "
-                         "(no compiled online form)")
+        self.c0 = _i0e(1.0 / (4.0 * self.sigma2 * self.sigma2))
+        start, stop = _dims_to_range(dims)
+        self.factors = (Factor(KIND_LOCALLY_PERIODIC_ZERO_MEAN, (self.sigma1, self.sigma2, self.period), start, stop),)
 
     def to_dict(self) -> dict:
         return {"type": "locally_periodic_zero_mean", "sigma1": self.sigma1, "sigma2": self.sigma2,
-                "period": self.period}
-
-    def __eq__(self, other) -> bool:
-        return type(other) is type(self) and self.factors == other.factors
-
-    def __hash__(self) -> int:
-        return hash((type(self).__name__, self.factors))
+                "period": self.period, **self._dims_dict(self.factors[0])}
 
     def __repr__(self) -> str:
         return f"ZeroMeanLocallyPeriodic(sigma1={self.sigma1!r}, sigma2={self.sigma2!r}, period={self.period!r})"
@@ -411,6 +413,15 @@ class Product(Kernel):
 _se = njit(cache=True, nogil=True)(_se_formula)
 _periodic = njit(cache=True, nogil=True)(_periodic_formula)
 _locally_periodic = njit(cache=True, nogil=True)(_locally_periodic_formula)
+_i0e_nb = njit(cache=True, nogil=True)(_i0e)
+
+
+@njit(cache=True, nogil=True)
+def _locally_periodic_zero_mean(d, sigma1, sigma2, period):
+    """Compiled twin of :func:`_locally_periodic_zero_mean_formula` (the same expression)."""
+    s = math.sin(math.pi * d / period)
+    c0 = _i0e_nb(1.0 / (4.0 * sigma2 * sigma2))
+    return math.exp(-(d * d) / (2.0 * sigma1 * sigma1)) * (math.exp(-(s * s) / (2.0 * sigma2 * sigma2)) - c0) / (1.0 - c0)
 
 
 @njit(cache=True, nogil=True)
@@ -420,6 +431,8 @@ def _factor(kind, params, f, r):
         return _se(r, params[f, 0])
     if kind == KIND_PERIODIC:
         return _periodic(r, params[f, 0], params[f, 1])
+    if kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+        return _locally_periodic_zero_mean(r, params[f, 0], params[f, 1], params[f, 2])
     return _locally_periodic(r, params[f, 0], params[f, 1], params[f, 2])
 
 
@@ -575,7 +588,7 @@ def _period(kinds, params, f):
     """ψ of factor ``f`` (0 for a squared exponential)."""
     if kinds[f] == KIND_PERIODIC:
         return params[f, 1]
-    if kinds[f] == KIND_LOCALLY_PERIODIC:
+    if kinds[f] == KIND_LOCALLY_PERIODIC or kinds[f] == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
         return params[f, 2]
     return 0.0
 
@@ -640,9 +653,23 @@ def kernel_row_phased(kinds, params, cols, X, Ph, w, lo, hi, x, xph, out):
             c1 = 1.0 / (2.0 * params[f, 0] * params[f, 0])
             c2 = 1.0 / (2.0 * params[f, 1] * params[f, 1])
             x0 = x[start]
+            if kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:            # its periodic part multiplies below
+                for i in range(lo, hi):
+                    d = x0 - X[i, start]
+                    out[i] -= (d * d) * c1                         # −d²/(2σ1²)
+                continue
             for i in range(lo, hi):
                 d = x0 - X[i, start]
                 s = sa * Ph[i, 2 * f + 1] - ca * Ph[i, 2 * f]
                 out[i] -= (d * d) * c1 + (s * s) * c2              # −d²/(2σ1²) − sin²(π d/ψ)/(2σ2²)
     for i in range(lo, hi):
         out[i] = w[i] * _exp_nonpositive(out[i])
+    for f in range(kinds.shape[0]):                                # zero-mean factors: (p − c0)/(1 − c0)
+        if kinds[f] == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+            c2 = 1.0 / (2.0 * params[f, 1] * params[f, 1])
+            c0 = _i0e_nb(0.5 * c2)                                 # a = 1/(4σ2²)
+            sa = xph[2 * f]
+            ca = xph[2 * f + 1]
+            for i in range(lo, hi):
+                s = sa * Ph[i, 2 * f + 1] - ca * Ph[i, 2 * f]
+                out[i] *= (math.exp(-(s * s) * c2) - c0) / (1.0 - c0)

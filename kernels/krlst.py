@@ -44,6 +44,7 @@ import numpy as np
 from . import _krlst_core as core
 from .covariance import (
     KIND_LOCALLY_PERIODIC,
+    KIND_LOCALLY_PERIODIC_ZERO_MEAN,
     KIND_PERIODIC,
     KIND_SE,
     Kernel,
@@ -51,6 +52,7 @@ from .covariance import (
     Periodic,
     Product,
     SquaredExponential,
+    ZeroMeanLocallyPeriodic,
 )
 
 __all__ = ["KRLST", "Step"]
@@ -121,6 +123,8 @@ def _kernel_from_spec(kinds: np.ndarray, params: np.ndarray, cols: np.ndarray) -
             parts.append(Periodic(p[0], p[1], dims=dims))
         elif kind == KIND_LOCALLY_PERIODIC:
             parts.append(LocallyPeriodic(p[0], p[1], p[2], dims=dims))
+        elif kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+            parts.append(ZeroMeanLocallyPeriodic(p[0], p[1], p[2], dims=dims))
         else:
             raise ValueError(f"snapshot holds an unknown kernel kind {kind}")
     if not parts:

@@ -16,7 +16,8 @@ Threads of the live monitor
   logged once per burst), publishes the :class:`~feedio.schema.EstimateBlock` on
   ``<prefix>/<machine>/<axis>/disturbance`` (publisher declared once per axis, congestion control
   DROP, express), records the latency *receive → published*, then offers the input and the
-  estimate to the sinks. Only blocks the schema accepted reach a sink (times within
+  estimate to the sinks; the health reports the block produced (about one per second of data)
+  go to ``<prefix>/<machine>/<axis>/health`` and to the sinks (``offer_health``). Only blocks the schema accepted reach a sink (times within
   ``[0, T_MAX]``, names and ``seq`` bounded), so no sink sees a value it cannot store. Sinks are
   :class:`~monitor.sinks.QueuedSink` s: ``offer`` never blocks and counts its drops.
 * **Sink workers** (one per sink, inside the sinks).
@@ -148,6 +149,7 @@ class Monitor:
         self.status_refused = 0
         self._subs: list[Any] = []
         self._pubs: dict[tuple[str, str], Any] = {}
+        self._health_pubs: dict[tuple[str, str], Any] = {}
         self._queryable = None
         self._thread: threading.Thread | None = None
         self._started_mono = time.monotonic()
@@ -220,12 +222,16 @@ class Monitor:
         """Declare publishers, queryable and subscriber(s); start the estimator thread."""
         import zenoh
 
-        from feedio.transport import disturbance_key, samples_key, status_key, truth_key
+        from feedio.transport import disturbance_key, health_key, samples_key, status_key, truth_key
 
         for key in self.axes:
             self._pubs[key] = self.session.declare_publisher(
                 disturbance_key(self.prefix, *key), encoding=zenoh.Encoding.APPLICATION_JSON,
                 congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_HIGH, express=True,
+            )
+            self._health_pubs[key] = self.session.declare_publisher(
+                health_key(self.prefix, *key), encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
             )
         self._queryable = self.session.declare_queryable(status_key(self.prefix), self._on_query)
         self._thread = threading.Thread(target=self._run, name="estimator", daemon=True)
@@ -276,7 +282,25 @@ class Monitor:
             sink.offer(block)
             if est is not None:
                 sink.offer(est)
+        if p.last_health:
+            self._publish_health(ax, p.last_health)
         return est
+
+    def _publish_health(self, ax: AxisRuntime, reports: list[S.Health]) -> None:
+        """Health reports of an axis: on Zenoh (``<prefix>/<machine>/<axis>/health``) and to every sink
+        that takes them (MCAP channel, Rerun event log)."""
+        pub = self._health_pubs.get(ax.key)
+        for h in reports:
+            try:
+                pub.put(S.encode(h))
+            except Exception as exc:  # noqa: BLE001 - session closing, etc.
+                self.publish_errors += 1
+                self.pipeline.burst(f"publish_health:{ax.status.name}", "publishing the health of %s failed: %s",
+                                    ax.status.name, str(exc))
+            for sink in self.sinks:
+                offer = getattr(sink, "offer_health", None)
+                if offer is not None:
+                    offer(h.machine, h.axis, h)
 
     def _handle_truth(self, key: str, payload: bytes) -> None:
         ax = self.pipeline.axis_of_key(key)
@@ -385,13 +409,14 @@ class Monitor:
                     except Exception as exc:  # noqa: BLE001 - OSError, a bad name, anything: say it, go on
                         self._problem("cannot save the tracker state of %s: %s: %s", ax.status.name,
                                       type(exc).__name__, exc)
-            for obj in [*self._pubs.values(), self._queryable]:
+            for obj in [*self._pubs.values(), *self._health_pubs.values(), self._queryable]:
                 try:
                     if obj is not None:
                         obj.undeclare()
                 except Exception as exc:  # noqa: BLE001
                     log.warning("undeclaring a publisher/queryable failed: %s", exc)
             self._pubs.clear()
+            self._health_pubs.clear()
             self._queryable = None
         except BaseException as exc:  # noqa: BLE001 - even an interrupt must not leave "stopping" behind
             self._problem("shutdown interrupted: %s: %s", type(exc).__name__, exc)

@@ -90,6 +90,7 @@ from kernels.likelihood import tune as tune_hyperparameters
 from kernels.period import MIN_CYCLES, detect_periods, harmonically_related
 from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
 
+from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
 
 __all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
@@ -97,8 +98,8 @@ __all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENC
 
 #: PL-LSSVM hyperparameters when neither given nor tuned (thesis Table 4.1, case study 1)
 THESIS_DEFAULTS = {"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}
-#: online KRLS-T defaults (thesis Table 4.5 in this project's σ2 convention, golden vectors)
-TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.996, "budget": 100, "jitter": 1e-6}
+#: online KRLS-T defaults (one definition: monitor.online_settings)
+TRACKER_DEFAULTS = OS.TRACKER_DEFAULTS
 #: samples needed beyond ±Ω on each side before the Coulomb columns are identifiable
 MIN_REVERSAL_SAMPLES = 20
 #: samples at rest needed before the Coulomb asymmetry is told from the offset
@@ -344,6 +345,7 @@ class Identification:
     @property
     def hyperparameters(self) -> dict:
         return {} if self.pl is None else self.pl.candidate.hyperparameters
+    spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
 
     def to_json(self) -> dict:
         """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
@@ -366,6 +368,26 @@ class Identification:
             "truth": self.truth,
         }
 
+    def _tracker_kernel(self, chosen, psi) -> tuple[str, dict | None]:
+        """The online tracker's kernel family and σ1, σ2, γ (issue 11: REML-tuned values track best).
+
+        The tracker follows the evidence: the chosen candidate's kernel when it is a locally periodic one
+        at the tracker's period ψ (its zero-mean form too — a disturbance without a slowly varying mean,
+        so the tracker leaves slow forces to β, online as offline); when the chosen model is LS or of
+        another kernel, the best tuned locally periodic candidate at ψ by evidence. ``("locally_periodic",
+        None)`` (thesis values) when none was tuned."""
+        families = ("locally_periodic", "locally_periodic_zero_mean")
+        if psi is not None:
+            others = sorted((x for x in self.candidates if x is not chosen),
+                            key=lambda x: -(x.log_evidence if x.log_evidence is not None else -math.inf))
+            for cand in [chosen, *others]:
+                hp = cand.hyperparameters
+                if (cand.kernel in families and cand.period is not None
+                        and abs(cand.period - psi) <= 1e-9 * psi and hp.get("tuned")
+                        and all(hp.get(k) is not None for k in ("sigma1", "sigma2", "gamma"))):
+                    return cand.kernel, hp
+        return "locally_periodic", None
+
     def to_model(self, *, tracker: dict | None = None, feedmon_version: str = "", force: bool = False) -> AxisModel:
         """The axis model file for ``feedmon run``: β of the chosen candidate (of the best one by
         evidence when ``force`` and nothing is valid), the tracker defaults with ψ = the period."""
@@ -375,15 +397,23 @@ class Identification:
         c = res.candidate
         if not c.valid and not force:
             raise ValueError(f"the {c.label} model is not valid: {c.why_not}")
-        cfg = dict(TRACKER_DEFAULTS)
-        cfg.update(tracker or {})
         # the tracker's period: the chosen model's, else one the user gave (a period found in the data
         # whose candidates were not chosen is no reason to make the online kernel periodic)
         psi = c.period if c.period is not None else (self.period if self.period_source in ("given", "spindle") else None)
-        if psi is not None:
-            kernel = LocallyPeriodic(cfg["sigma1"], cfg["sigma2"], psi).to_dict()
-        else:  # no periodic disturbance in play: a smooth, slowly varying disturbance
-            kernel = SquaredExponential(cfg["sigma1"]).to_dict()
+        family, tuned = self._tracker_kernel(c, psi)
+        # issue 11: λ, M from measurements, σ1, σ2, γ from REML when tuned, the spindle-phase kernel when
+        # the samples carry the spindle (monitor.online_settings.tracker_table, one definition)
+        cfg = OS.tracker_table(tuned=tuned, period=psi or 1.0, spindle=self.spindle)
+        if psi is None and not self.spindle:  # no periodic disturbance in play: a smooth, slowly varying one
+            cfg["kernel"] = SquaredExponential(cfg["kernel"]["sigma1"]).to_dict()
+        elif not self.spindle and family != "locally_periodic":
+            cfg["kernel"] = {**cfg["kernel"], "type": family}
+        for key, value in (tracker or {}).items():  # explicit settings: kernel hyperparameters go into the kernel
+            if key in cfg["kernel"] and key != "type":
+                cfg["kernel"] = {**cfg["kernel"], key: value}
+            else:
+                cfg[key] = value
+        kernel = cfg["kernel"]
         ident = {"chosen": c.method, "kernel": c.kernel or "none", "period": c.period,
                  "period_source": self.period_source, "log_evidence": c.log_evidence}
         ident.update({k: v for k, v in c.hyperparameters.items() if isinstance(v, (int, float, bool))})
@@ -759,6 +789,7 @@ def identify(
         chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y, t=trial.t[1:], refusal=refusal,
         notes=notes,
     )
+    ident.spindle = _spindle(trial)
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident
@@ -796,6 +827,18 @@ def _harmonic_alternatives(prob: _Problem, cand: Candidate, psi: float, duration
 # ------------------------------------------------------------------------------------------------
 # truth
 # ------------------------------------------------------------------------------------------------
+def _spindle(trial) -> dict | None:
+    """``{"teeth", "spindle_rpm"}`` (median speed, rpm) when the samples carry the spindle (then the
+    model gets the spindle-phase tracker kernel), else None."""
+    rpm = trial.spindle_rpm
+    if rpm is None and trial.spindle_angle is not None:
+        rpm = np.diff(trial.spindle_angle) / np.diff(trial.t) * 60.0 / (2.0 * math.pi)
+    rpm = None if rpm is None else rpm[np.isfinite(rpm)]
+    if rpm is None or rpm.size == 0 or not 0.0 < float(np.median(np.abs(rpm))) <= OS.SPINDLE_RPM_MAX:
+        return None
+    return {"teeth": trial.meta.teeth or 1, "spindle_rpm": float(np.median(np.abs(rpm)))}
+
+
 def _aligned(truth, seq: np.ndarray, name: str) -> np.ndarray | None:
     """Truth column ``name`` at the samples ``seq`` (NaN where the truth has no value)."""
     col = getattr(truth, name, None)

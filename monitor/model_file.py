@@ -12,7 +12,11 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
                       offset (N) — or the ``…_over_gain`` ratios when K is unknown
     [physical_se]     their standard errors (same keys)
     [tracker]         kernel, sigma1 (s), sigma2, period (s) | lengthscale (s), gamma, forgetting,
-                      budget, jitter — the online KRLS-T (method §6)
+                      budget, jitter — the online KRLS-T (method §6); kernel = "spindle" with
+                      per, teeth, spindle_rpm instead of period: the spindle-phase kernel
+                      (:mod:`monitor.online_settings`)
+    [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
+    [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
                       hyperparameters of the chosen model
     [[identification.candidates]]   method, kernel, period, log_evidence, valid, why_not — every
@@ -49,6 +53,8 @@ import msgspec
 
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names, validity_problems
+
+from . import online_settings as OS
 
 __all__ = [
     "FORMAT_VERSION",
@@ -144,15 +150,18 @@ class _PhysicalSeT(msgspec.Struct, **_Opts):
 
 
 class _TrackerT(msgspec.Struct, **_Opts):
-    kernel: Literal["locally_periodic", "periodic", "squared_exponential"]
+    kernel: Literal["locally_periodic", "locally_periodic_zero_mean", "periodic", "squared_exponential", "spindle"]
     gamma: _num(1e-4, 1e8)
     sigma1: _num(1e-6, 1e6, "s") | None = None
     sigma2: _num(1e-3, 1e3) | None = None
     period: _num(1e-6, 1e6, "s") | None = None
     lengthscale: _num(1e-6, 1e6, "s") | None = None
-    forgetting: _num(0.5, 1.0) = 0.996
-    budget: _int(1, 4096, "dictionary elements") = 100
-    jitter: _num(0.0, 0.1) = 1e-6
+    per: Literal["revolution", "tooth"] | None = None  # spindle kernel
+    teeth: _int(1, 1000, "cutting edges (spindle kernel)") | None = None
+    spindle_rpm: _num(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
+    forgetting: _num(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: _int(1, 4096, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
+    jitter: _num(0.0, 0.1) = OS.TRACKER_DEFAULTS["jitter"]
 
 
 class _CandidateT(msgspec.Struct, **_Opts):
@@ -205,6 +214,8 @@ class ModelFileV2(msgspec.Struct, **_Opts):
     physical_se: _PhysicalSeT = msgspec.field(default_factory=_PhysicalSeT)
     identification: _IdentificationT = msgspec.field(default_factory=_IdentificationT)
     validity: _ValidityT | None = None
+    adaptation: OS.Adaptation = msgspec.field(default_factory=OS.Adaptation)
+    health: OS.Health = msgspec.field(default_factory=OS.Health)
     provenance: _ProvenanceT = msgspec.field(default_factory=_ProvenanceT)
 
 
@@ -272,14 +283,15 @@ __doc__ = (__doc__ or "") + ranges_table() + "\n"
 class TrackerConfig:
     """KRLS-T hyperparameters for the online tracker (method §6), defaults after thesis Table 4.5."""
 
-    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55})
-    gamma: float = 5.85
-    forgetting: float = 0.996
-    budget: int = 100
-    jitter: float = 1e-6
+    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": OS.TRACKER_DEFAULTS["sigma1"],
+                                                  "sigma2": OS.TRACKER_DEFAULTS["sigma2"], "period": 1 / 55})
+    gamma: float = OS.TRACKER_DEFAULTS["gamma"]
+    forgetting: float = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: int = OS.TRACKER_DEFAULTS["budget"]
+    jitter: float = OS.TRACKER_DEFAULTS["jitter"]
 
     def build_kernel(self) -> Kernel:
-        return Kernel.from_dict(self.kernel)
+        return OS.build_tracker_kernel(self.kernel)
 
 
 def _layouts(form: str, coulomb: bool) -> list[tuple[str, ...]]:
@@ -315,6 +327,7 @@ class AxisModel:
     physical_se: dict = field(default_factory=dict)
     candidates: list[dict] = field(default_factory=list)
     validity_warning: str | None = None
+    online: OS.OnlineSettings = field(default_factory=OS.OnlineSettings)  # [adaptation], [health]
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
@@ -423,15 +436,22 @@ def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
 def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
     m, t = f.model, f.tracker
     kernel = {"type": t.kernel}
-    need = {"locally_periodic": ("sigma1", "sigma2", "period"), "periodic": ("sigma2", "period"),
-            "squared_exponential": ("lengthscale",)}[t.kernel]
+    need = {"locally_periodic": ("sigma1", "sigma2", "period"), "locally_periodic_zero_mean": ("sigma1", "sigma2", "period"),
+            "periodic": ("sigma2", "period"),
+            "squared_exponential": ("lengthscale",), "spindle": ("sigma1", "sigma2", "spindle_rpm")}[t.kernel]
     for key in need:
         if getattr(t, key) is None:
             raise ModelFileError(f"{path}: key 'tracker.{key}': missing; the {t.kernel} kernel needs "
                                  f"{', '.join(need)} (allowed: {_RANGES['tracker.' + key]})")
         kernel[key] = getattr(t, key)
-    for key in ("sigma1", "sigma2", "period", "lengthscale"):
-        if key not in need and getattr(t, key) is not None:
+    if t.kernel == OS.SPINDLE:
+        kernel.update({k: getattr(t, k) for k in ("per", "teeth") if getattr(t, k) is not None})
+        try:
+            OS.check_kernel_desc(kernel)
+        except ValueError as exc:
+            raise ModelFileError(f"{path}: key 'tracker.kernel': {exc}") from None
+    for key in ("sigma1", "sigma2", "period", "lengthscale", "per", "teeth", "spindle_rpm"):
+        if key not in need and key not in kernel and getattr(t, key) is not None:
             raise ModelFileError(f"{path}: key 'tracker.{key}': not a parameter of the {t.kernel} kernel "
                                  f"(it takes {', '.join(need)})")
     physical = {k: v for k, v in msgspec.structs.asdict(f.physical).items() if v is not None}
@@ -450,6 +470,7 @@ def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
             physical_se=physical_se,
             candidates=[msgspec.structs.asdict(c) for c in f.identification.candidates],
             validity_warning=None if f.validity is None else f.validity.warning,
+            online=OS.OnlineSettings(adaptation=f.adaptation, health=f.health),
         )
     except ValueError as exc:
         key = "model.beta_names" if str(exc).startswith("beta_names") else "model.beta"
@@ -519,6 +540,8 @@ _UNITS = {
     "lengthscale": "s",
     "period": "s (ψ)",
     "budget": "KRLS-T dictionary size M",
+    "spindle_rpm": "rpm, nominal: used without spindle data",
+    "per": "revolution (2π: runout) | tooth (2π/teeth)",
 }
 
 _IDENT_KEYS = [k for k in _IdentificationT.__struct_fields__ if k != "candidates"]
@@ -565,6 +588,7 @@ def save_model(model: AxisModel, path) -> Path:
                   for line in _table("identification.candidates", cand)]
     if model.validity_warning:
         lines += _table("validity", {"warning": model.validity_warning})
+    lines += [line for name, items, notes in OS.model_tables(model.online) for line in _table(name, items, notes)]
     lines += _table("provenance", model.provenance)
     text = "\n".join(lines)
     tmp = path.with_name(path.name + ".tmp")

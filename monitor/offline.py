@@ -33,6 +33,7 @@ class OfflineResult:
     seconds: float
     axes: list[str]
     skipped_axes: list[str]
+    health_reports: int = 0
 
     @property
     def rate(self) -> float:
@@ -65,8 +66,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     truth blocks are copied through, each with the log time its input block had (the
     estimates of a block get the log time of its samples), and so do the per-sample
     ``disturbance/scalars`` (:class:`~feedio.scalars.ScalarsPairer`, stamped from those
-    log times). The trial's own metadata (with its truth and start time) is kept, with the
-    model file and hash added to the provenance details. Chunks follow controller time
+    log times) and the health reports (``/<machine>/<axis>/health``, stamped at their sample).
+    The trial's own metadata (with its truth and start time) is kept, with the model file and
+    hash added to the provenance details. Chunks follow controller time
     only, so the same input gives the same bytes.
     """
     from feedio.mcapio import TrialWriter, _Open
@@ -99,7 +101,7 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     names = [f"{m}/{a}" for (m, a) in metas]
     pairer = ScalarsPairer(expect_truth=has_truth)
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
-    samples = estimates = truth = 0
+    samples = estimates = truth = health = 0
     t0 = time.perf_counter()
     with TrialWriter(output, out_metas, start=start) as w, _WriterThread(w) as out:
         for name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
@@ -119,9 +121,12 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 out.put(partial(w.write_estimates, est, log_time=lt))
                 out.put(_scalars, w, pairer.add_estimates, est, lt)
                 estimates += len(est.t)
+            for h in pipe.last_health:  # stamped at its sample: the block's log time minus the time to its end
+                out.put(partial(w.write_health, h, log_time=max(0, lt - round((block.t[-1] - h.t) * 1e9))))
+                health += 1
         out.put(_scalars, w, pairer.drain)
     seconds = time.perf_counter() - t0
-    return OfflineResult(output, samples, estimates, truth, seconds, names, skipped)
+    return OfflineResult(output, samples, estimates, truth, seconds, names, skipped, health)
 
 
 def _scalars(w, pair, *args) -> None:

@@ -42,6 +42,8 @@ _LOGGED_REASONS = (
     ("seq_resets", "with sequence numbers restarted (new bridge session, or seq jumped inconsistently with time): "
                    "chain restarted"),
     ("rejected_seq_range", "refused: sequence numbers beyond int64"),
+    ("spindle_fallback", "without usable spindle data (spindle_angle / spindle_rpm): the spindle-phase kernel runs on "
+                         "the model's nominal speed, i.e. the time kernel with a fixed period"),
 )
 
 
@@ -60,6 +62,8 @@ class Pipeline:
         self._key_prefix = f"{prefix}/"
         self._axis_by_key = {f"{prefix}/{m}/{a}/{kind}": ax for (m, a), ax in axes.items()
                              for kind in ("samples", "truth")}
+        #: the health reports of the block :meth:`estimate` handled last (for Zenoh and the sinks)
+        self.last_health: list[S.Health] = []
 
     def axis_of_key(self, key: str) -> AxisRuntime | None:
         """The modelled axis a ``<prefix>/<machine>/<axis>/samples|truth`` key names (None: no model)."""
@@ -105,6 +109,7 @@ class Pipeline:
         the estimator could not use the block)."""
         ax = self.axes.get((block.machine, block.axis))
         n = len(block.t)
+        self.last_health = []
         if ax is None:
             name = f"{block.machine}/{block.axis}"
             self.counters["no_model_blocks"] += 1
@@ -140,4 +145,18 @@ class Pipeline:
         if est is not None:
             st.last_seq = est.seq + len(est.t) - 1
             st.last_t = est.t[-1]
+        self._health(ax)
         return ax, est
+
+    def _health(self, ax: AxisRuntime) -> None:
+        """Collect the axis' health reports into :attr:`last_health`, update its status and log every
+        change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
+        reports = ax.estimator.take_health()
+        self.last_health = reports
+        st = ax.status
+        for h in reports:
+            was = st.note_health(h)
+            if was is not None:
+                why = "; ".join(h.reasons) or "no reason given"
+                log.log(logging.INFO if h.state == "ok" else logging.WARNING,
+                        "axis %s: health %s → %s at t = %.3f s (seq %d): %s", st.name, was, h.state, h.t, h.seq, why)

@@ -42,10 +42,13 @@ def _same_kind(arr: np.ndarray, like: np.ndarray) -> bool:
 
 
 def check_snapshot(snap: dict[str, np.ndarray], before: dict[str, np.ndarray],
-                   after: dict[str, np.ndarray], *, counters: tuple[str, ...] = ()) -> None:
+                   after: dict[str, np.ndarray], *, counters: tuple[str, ...] = (),
+                   tracker_prefix: str = "tracker.") -> None:
     """Raise :class:`StateError` unless ``snap`` is a valid snapshot like ``before`` (nothing learned)
     or ``after`` (after a step). ``counters`` name the 0-d integer entries that count something
-    (checked to lie in ``0 … COUNT_MAX``, not compared with the template)."""
+    (checked to lie in ``0 … COUNT_MAX``, not compared with the template); the KRLS-T state is the
+    entries under ``tracker_prefix`` (other state entries, e.g. the online β, are checked by their
+    owners when restored)."""
     keys = set(snap)
     if keys == set(after):
         template = after
@@ -72,15 +75,9 @@ def check_snapshot(snap: dict[str, np.ndarray], before: dict[str, np.ndarray],
             raise StateError(f"{key!r} is {arr.tolist()!r} but this model's is {like.tolist()!r} "
                              "(a state of other hyperparameters)")
     if template is after:
-        prefix = _common_prefix(state_keys)
+        prefix = tracker_prefix
         _check_krlst_state({k[len(prefix):]: np.asarray(snap[k]) for k in snap if k.startswith(prefix)},
                            after[prefix + "fst"], budget=int(snap[prefix + "budget"]))
-
-
-def _common_prefix(keys) -> str:
-    """``"tracker."`` for ``{"tracker.X", "tracker.Q", …}``."""
-    first = next(iter(keys))
-    return first[: first.rfind(".") + 1]
 
 
 def _check_krlst_state(tracker: dict[str, np.ndarray], like_fst: np.ndarray, budget: int) -> None:

@@ -222,7 +222,19 @@ def test_estimate_is_always_a_physical_drive():
     """Data from a drive with negative damping (open-loop pole > 1, the closed loop is stable) pull
     the pole beyond 1: the projection keeps 0 < p_d ≤ p_max < 1, β1 > 0 and Coulomb ≥ 0."""
     n = 4000
-    t, vr, vm, _ = _drive(n, seed=9, B=-150.0, shaker=0.0)
+    t, vr, _, _ = _drive(n, seed=9, shaker=0.0)
+    # exact ZOH of J dv/dt = K (v_r − v) − B v − Coulomb with B < 0 (the simulator refuses such a
+    # plant): open-loop pole p = exp(−B Ts/J) > 1, the closed loop p − K b stays stable
+    d = DRIVE
+    B = -150.0
+    pd = math.exp(-B * TS / d["J"])
+    b = (1.0 - pd) / B
+    rng = np.random.default_rng(9)
+    v = np.zeros(n)
+    for k in range(n - 1):
+        fric = d["dp"] if v[k] > d["omega"] else (-d["dn"] if v[k] < -d["omega"] else 0.0)
+        v[k + 1] = pd * v[k] + b * (d["K"] * (vr[k] - v[k]) - fric)
+    vm = v + rng.normal(0, 5e-6, n)
     ob = _online(_beta(), memory=2.0)
     for s in range(0, n, 400):
         sl = slice(max(s - 1, 0), s + 400)

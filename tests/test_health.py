@@ -99,11 +99,13 @@ def test_parameter_drift_warn_alarm_and_hysteresis():
     # a parameter moving around the warn threshold: z between z_clear and z_warn keeps the warn
     hm2 = _monitor()
     states = []
-    for z in (5.2, 4.9, 5.1, 4.0, 3.8, 5.05, 3.6):
+    cfg = hm2.config
+    for z in (cfg.z_warn + 0.2, cfg.z_warn - 0.1, cfg.z_warn + 0.1, cfg.z_clear + 0.5, cfg.z_clear + 0.3,
+              cfg.z_warn + 0.05, cfg.z_clear + 0.1):
         th2 = dict(THETA, damping=300.0 + z * math.hypot(5.0, 3.0))
         states.append(hm2.verdict(th2, se).levels["damping"])
     assert states == ["warn"] * 7
-    th2 = dict(THETA, damping=300.0 + 3.0 * math.hypot(5.0, 3.0))
+    th2 = dict(THETA, damping=300.0 + (cfg.z_clear - 0.5) * math.hypot(5.0, 3.0))
     assert hm2.verdict(th2, se).levels["damping"] == "ok"  # below z_clear
 
 

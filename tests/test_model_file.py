@@ -72,7 +72,7 @@ def test_force_input_model_scales_to_newtons(tmp_path):
 def test_file_is_human_readable_toml_with_units_and_ranges_documented(tmp_path):
     text = save_model(_model(), tmp_path / "m.toml").read_text()
     assert "format_version = 2" in text
-    assert "[tracker]" in text and "forgetting = 0.996" in text and "[physical_se]" in text
+    assert "[tracker]" in text and "forgetting = 0.998" in text and "[physical_se]" in text
     assert "[[identification.candidates]]" in text
     assert "# s" in text  # units next to values
     table = ranges_table()
@@ -144,7 +144,7 @@ def _write(tmp_path, text):
         (lambda t: t.replace("gamma = 5.85", 'gamma = "high"'), "tracker.gamma", "Expected `float`"),
         (lambda t: t.replace("gamma = 5.85", "gamma = nan"), "tracker.gamma", "≥ 0.0001"),
         (lambda t: t.replace("gamma = 5.85\n", ""), "tracker.gamma", "missing"),
-        (lambda t: t.replace("forgetting = 0.996", "forgetting = 1.5"), "tracker.forgetting", "≤ 1"),
+        (lambda t: t.replace("forgetting = 0.998", "forgetting = 1.5"), "tracker.forgetting", "≤ 1"),
         (lambda t: t.replace("budget = 100", "budget = 0"), "tracker.budget", "≥ 1"),
         # issue 9 item 11: values that crashed, hung or ate memory
         (lambda t: t.replace("budget = 100", "budget = 1000000000"), "tracker.budget", "≤ 4096"),

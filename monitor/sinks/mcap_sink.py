@@ -41,8 +41,9 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
   file is opened ``discover_seconds`` (default 1 s) after the first block, with
   every axis seen by then, so a multi-axis run does not rotate at start-up.
 
-Items: :class:`SampleBlock`, :class:`EstimateBlock`, or ``(machine, axis, TruthBlock)``
-(see :meth:`McapSink.offer_truth`).
+Items: :class:`SampleBlock`, :class:`EstimateBlock`, ``(machine, axis, TruthBlock)``
+(see :meth:`McapSink.offer_truth`) or :class:`Health` (:meth:`McapSink.offer_health`, channel
+``/<machine>/<axis>/health``).
 """
 
 from __future__ import annotations
@@ -171,6 +172,11 @@ class McapSink(QueuedSink):
         """Queue a :class:`TruthBlock` of ``machine/axis`` (truth blocks carry no axis)."""
         return self.offer((machine, axis, block), received_ns)
 
+    def offer_health(self, machine: str, axis: str, report: S.Health, received_ns: int | None = None) -> bool:
+        """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; ``machine``/``axis`` are
+        the report's own)."""
+        return self.offer(report, received_ns)
+
     @property
     def rotating(self) -> bool:
         return self.rotate_bytes is not None or self.rotate_seconds is not None
@@ -267,12 +273,12 @@ class McapSink(QueuedSink):
 
     @staticmethod
     def _axis_of(item: Any) -> tuple[str, str]:
-        if isinstance(item, (S.SampleBlock, S.EstimateBlock)):
+        if isinstance(item, (S.SampleBlock, S.EstimateBlock, S.Health)):
             return item.machine, item.axis
         if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             return str(item[0]), str(item[1])
         raise TypeError(
-            f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+            f"McapSink accepts SampleBlock, EstimateBlock, Health or (machine, axis, TruthBlock), got {type(item).__name__}"
         )
 
     def _release(self) -> None:
@@ -299,6 +305,9 @@ class McapSink(QueuedSink):
             self._call(lambda: w.write_estimates(item, log_time=rx))
             if self._pairer is not None:
                 self._write_scalars(self._pairer.add_estimates(item, rx))
+        elif isinstance(item, S.Health):
+            w = self._ensure_axis(item.machine, item.axis, None)
+            self._call(lambda: w.write_health(item, log_time=rx))
         elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             machine, axis, block = item
             w = self._ensure_axis(machine, axis, block)
@@ -307,7 +316,7 @@ class McapSink(QueuedSink):
                 self._write_scalars(self._pairer.add_truth(machine, axis, block))
         else:
             raise TypeError(
-                f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+                f"McapSink accepts SampleBlock, EstimateBlock, Health or (machine, axis, TruthBlock), got {type(item).__name__}"
             )
 
     def _write_scalars(self, ready: list) -> None:
