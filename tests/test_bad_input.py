@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 import zenoh
 from monitor_proc import MonitorProc
+from truth_models import model_from_truth, truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
@@ -38,10 +39,8 @@ from feedio.transport import query_status
 from monitor.axes import load_axes, warm_up
 from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator
-from monitor.model_file import AxisModel, TrackerConfig, load_model, save_model
+from monitor.model_file import load_model
 from replay.player import replay
-from replay.scenarios import load_scenario
-from replay.simulator import simulate, write_trial
 
 PREFIX = "feedmon-bad"
 AXIS = "linear-drive/Z"
@@ -49,19 +48,6 @@ BLOCK = 10
 
 
 # ---- shared helpers (also used by test_faults.py) ---------------------------------------------
-def make_model(trial: Path, path: Path, period: float = 1 / 55) -> Path:
-    """Model file with the trial's TRUE β and the thesis tracker hyperparameters."""
-    m = read_trial(trial).meta
-    save_model(AxisModel(
-        machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
-        coulomb=m.truth.coulomb, loop_gain=m.loop_gain, method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": period},
-                              gamma=5.85, forgetting=0.996, budget=50),
-        provenance={"source": "simulated truth (test)"},
-    ), path)
-    return path
-
-
 def wait_status(session, pred, prefix: str = PREFIX, timeout: float = 30.0, pid: int | None = None) -> dict:
     """Poll the status queryable until ``pred(status)``; with ``pid``, only the reply of that monitor
     counts (another monitor on the same prefix, e.g. one of an earlier test still stopping, may answer too)."""
@@ -107,15 +93,12 @@ def rows(blocks) -> dict[str, np.ndarray]:
 # ---- fixtures ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("bad_input")
-    write_trial(simulate(load_scenario("shaker-constant", duration=6.0), seed=4), d / "shaker.mcap")
-    make_model(d / "shaker.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "bad_input", duration=6.0, seed=4)
 
 
 @pytest.fixture(scope="module")
 def trial(work):
-    return read_trial(work / "shaker.mcap")
+    return read_trial(work / "trial.mcap")
 
 
 class ListSink:
@@ -392,7 +375,7 @@ def milling(work):
     assert r.returncode == 0, r.stderr
     tr = read_trial(out)
     rpm = tr.meta.spindle_rpm or 3000.0
-    make_model(out, work / "x.model.toml", period=60.0 / rpm)
+    model_from_truth(out, work / "x.model.toml", period=60.0 / rpm)
     return out
 
 

@@ -13,7 +13,8 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from test_bad_input import AXIS, PREFIX, MonitorProc, blocks_of, make_model, rows, wait_status
+from test_bad_input import AXIS, PREFIX, MonitorProc, blocks_of, rows, wait_status
+from truth_models import truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
@@ -22,16 +23,11 @@ from monitor.axes import live_meta, load_axes, warm_up
 from monitor.daemon import Monitor
 from monitor.sinks.mcap_sink import McapSink
 from replay.player import replay
-from replay.scenarios import load_scenario
-from replay.simulator import simulate, write_trial
 
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("faults")
-    write_trial(simulate(load_scenario("shaker-constant", duration=4.0), seed=7), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "faults", duration=4.0, seed=7)
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,8 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from monitor_proc import MonitorProc
-from test_bad_input import PREFIX, make_model, wait_status
+from test_bad_input import PREFIX, wait_status
+from truth_models import model_from_truth
 
 from feedio import schema as S
 from feedio import transport as T
@@ -219,7 +220,7 @@ class _Capture:
 def rig(tmp_path_factory):
     d = tmp_path_factory.mktemp("fuzz")
     write_trial(simulate(load_scenario("shaker-constant", duration=1.0), seed=2), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
+    model_from_truth(d / "trial.mcap", d / "z.model.toml")
     axes = load_axes([d / "z.model.toml"])
     warm_up(axes)
     ax = axes[(MACHINE, AXIS_NAME)]

@@ -16,23 +16,19 @@ import numpy as np
 import pytest
 import zenoh
 from monitor_proc import MonitorProc
-from test_bad_input import AXIS, PREFIX, blocks_of, make_model, rows, wait_status
+from test_bad_input import AXIS, PREFIX, blocks_of, rows, wait_status
+from truth_models import truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
 from feedio.mcapio import iter_blocks, read_trial
 from monitor.status import format_status
 from replay.player import replay
-from replay.scenarios import load_scenario
-from replay.simulator import simulate, write_trial
 
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("hostile")
-    write_trial(simulate(load_scenario("shaker-constant", duration=4.0), seed=11), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "hostile", duration=4.0, seed=11)
 
 
 @pytest.fixture(scope="module")

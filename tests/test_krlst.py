@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gp_reference import batch_gp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -133,20 +134,6 @@ def test_golden_final_dictionary_is_plausible(g1):
 # -- 2. λ = 1, no pruning: exact GP regression -------------------------------------------------
 
 
-def _batch_gp(kernel, X, y, sn2, jitter):
-    """Predictive mean and normalised variance of each next point, dense Cholesky."""
-    n = len(y)
-    K = kernel(X) + jitter * np.eye(n)
-    means, variances = [], []
-    for t in range(1, n):
-        L = np.linalg.cholesky(K[:t, :t] + sn2 * np.eye(t))
-        alpha = np.linalg.solve(L.T, np.linalg.solve(L, y[:t]))
-        v = np.linalg.solve(L, K[:t, t])
-        means.append(K[:t, t] @ alpha)
-        variances.append(sn2 + K[t, t] - v @ v)
-    return np.array(means), np.array(variances)
-
-
 @pytest.mark.parametrize(
     "case",
     ["se-2d", "lp-time"],
@@ -165,7 +152,7 @@ def test_exact_gp_limit(case):
     tr = KRLST(kernel, gamma=gamma, forgetting=1.0, budget=n + 10, jitter=jitter)
     res = tr.learn_many(X, y)
     assert tr.size == n and not res["reduced"].any() and res["gamma2"][1:].min() > jitter
-    mean, var = _batch_gp(kernel, X, y, 1 / gamma, jitter)
+    mean, var = batch_gp(kernel, X, y, 1 / gamma, jitter)
     np.testing.assert_allclose(res["mean"][1:], mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(res["sigma_y2"][1:], var, rtol=0, atol=1e-8)
     # filtered estimate = posterior mean at the new point including it

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, MetadataIndex, Schema
-from test_bad_input import make_model
+from truth_models import model_from_truth
 
 from feedio import schema as S
 from feedio.mcapfile import MAX_CHANNELS, MAX_CHUNK_BYTES, MAX_JSON_DEPTH, MAX_METADATA_BYTES, Limits
@@ -155,7 +155,7 @@ def test_flipped_byte_inside_a_chunk_is_a_crc_error_with_recover_hint(good, tmp_
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(buf))
     _expect_clear_error(bad, "fails its CRC", "feedmon recover")
-    model = make_model(path, tmp_path / "z.model.toml")
+    model = model_from_truth(path, tmp_path / "z.model.toml")
     for argv in (["identify", str(bad), "-o", str(tmp_path / "m.toml"), "--period", "0.018"],
                  ["run", "--from", str(bad), "-o", str(tmp_path / "out.mcap"), "--model", str(model)],
                  ["replay", str(bad), "--max", "--wait", "0", "--quiet", "--listen",
@@ -202,7 +202,7 @@ def test_seq_2_64_through_identify_run_from_and_replay(tmp_path, good):
     meta = read_trial(good[0]).meta
     p.write_bytes(build([chunk([samples_payload(0, **ax), samples_payload(2**64, **ax)], compression="zstd")],
                         meta=_meta_json(form="velocity-loop", Ts=meta.Ts, **ax), **ax))
-    model = make_model(good[0], tmp_path / "m.model.toml")
+    model = model_from_truth(good[0], tmp_path / "m.model.toml")
     for argv in (["identify", str(p), "-o", str(tmp_path / "m.toml"), "--period", "0.018"],
                  ["run", "--from", str(p), "-o", str(tmp_path / "out.mcap"), "--model", str(model)],
                  ["replay", str(p), "--max", "--wait", "0", "--quiet", "--listen",

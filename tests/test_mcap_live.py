@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import zenoh
 from mcap.reader import make_reader
-from test_bad_input import MonitorProc, blocks_of, make_model, wait_status
+from test_bad_input import MonitorProc, blocks_of, wait_status
+from truth_models import model_from_truth
 
 from feedio import schema as S
 from feedio import transport as T
@@ -35,7 +36,7 @@ Y2020 = 1577836800 * 10**9
 def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("mcaplive")
     write_trial(simulate(load_scenario("shaker-constant", duration=4.0), seed=11, created=CREATED), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
+    model_from_truth(d / "trial.mcap", d / "z.model.toml")
     return d
 
 

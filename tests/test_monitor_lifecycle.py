@@ -13,7 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import zenoh
-from test_bad_input import AXIS, PREFIX, ListSink, blocks_of, make_model
+from test_bad_input import AXIS, PREFIX, ListSink, blocks_of
+from truth_models import model_from_truth
 
 from feedio import schema as S
 from feedio import transport as T
@@ -33,7 +34,7 @@ KEY = T.samples_key(PREFIX, "linear-drive", "Z")
 def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("lifecycle")
     write_trial(simulate(load_scenario("shaker-constant", duration=4.0), seed=5), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
+    model_from_truth(d / "trial.mcap", d / "z.model.toml")
     return d
 
 

@@ -18,38 +18,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from monitor_proc import MonitorProc
+from truth_models import make_trial, model_from_truth
 
 from feedio import transport as T
 from feedio.mcapio import iter_blocks, read_trial
 from feedio.transport import query_status
 from feedmon import cli
-from monitor.model_file import AxisModel, TrackerConfig, file_sha256, save_model
+from monitor.model_file import file_sha256
 from replay.player import replay
-from replay.scenarios import load_scenario
-from replay.simulator import simulate, write_trial
 
 RERUN = Path(sys.executable).with_name("rerun")
 PREFIX = "feedmon-e2e"
 
 
 # ---- helpers -----------------------------------------------------------------------------------
-def make_trial(path: Path, duration: float, seed: int) -> None:
-    write_trial(simulate(load_scenario("shaker-constant", duration=duration), seed=seed), path)
-
-
-def model_from_truth(trial: Path, path: Path) -> Path:
-    """Model file with the trial's TRUE β and the thesis tracker hyperparameters (Table 4.5)."""
-    m = read_trial(trial).meta
-    save_model(AxisModel(
-        machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
-        coulomb=m.truth.coulomb, loop_gain=m.loop_gain, method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55},
-                              gamma=5.85, forgetting=0.996, budget=100),
-        provenance={"source": "simulated truth (test)"},
-    ), path)
-    return path
-
-
 def estimates(path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """seq and float columns of every EstimateBlock in a file."""
     blocks = [b for _, b in iter_blocks(path, kinds=("disturbance",))]
@@ -90,7 +72,7 @@ def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("run_e2e")
     make_trial(d / "trial20.mcap", 20.0, seed=1)
     make_trial(d / "trial10.mcap", 10.0, seed=2)
-    model_from_truth(d / "trial20.mcap", d / "z.model.toml")
+    model_from_truth(d / "trial20.mcap", d / "z.model.toml", budget=100)
     return d
 
 

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import zenoh
-from test_run_e2e import make_trial, model_from_truth
+from truth_models import truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
@@ -24,10 +24,7 @@ from monitor.status import BurstLog, LatencyRing
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("run_offline")
-    make_trial(d / "trial.mcap", 6.0, seed=3)
-    model_from_truth(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "run_offline", duration=6.0, seed=3, budget=100)
 
 
 def _run(*argv) -> int:

@@ -19,7 +19,8 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 from monitor_proc import MonitorProc
-from test_bad_input import make_model, rows, wait_status
+from test_bad_input import rows, wait_status
+from truth_models import truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
@@ -28,8 +29,6 @@ from feedmon import cli
 from kernels import online
 from monitor.estimator import AxisEstimator
 from monitor.model_file import load_model
-from replay.scenarios import load_scenario
-from replay.simulator import simulate, write_trial
 
 PREFIX = "feedmon-seq"
 AXIS = "linear-drive/Z"
@@ -39,10 +38,7 @@ W = online.REORDER_WINDOW
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("sequence")
-    write_trial(simulate(load_scenario("shaker-constant", duration=6.0), seed=8), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "sequence", duration=6.0, seed=8)
 
 
 @pytest.fixture(scope="module")

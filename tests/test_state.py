@@ -24,7 +24,7 @@ import pytest
 import zenoh
 from monitor_proc import MonitorProc
 from test_bad_input import blocks_of, wait_status
-from test_run_e2e import make_trial, model_from_truth
+from truth_models import truth_workdir
 
 from feedio import schema as S
 from feedio import transport as T
@@ -40,10 +40,7 @@ AXIS = ("linear-drive", "Z")
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("state")
-    make_trial(d / "trial.mcap", 6.0, seed=3)
-    model_from_truth(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "state", duration=6.0, seed=3, budget=100)
 
 
 @pytest.fixture(scope="module")
