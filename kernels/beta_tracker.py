@@ -134,6 +134,7 @@ from numba import njit
 
 from . import _krlst_core as core
 from ._krlst_simd import view
+from ._snapshot import fill_views
 from .feed_drive import FORMS
 
 __all__ = [
@@ -1440,16 +1441,7 @@ class OnlineBeta:
                              f"{self.tracker.budget}")
         buf = new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget, **self._kw)
         bs = beta_state_views(*buf)
-        for k in STATE_FIELDS:
-            key = f"beta.{k}"
-            if key not in snap:
-                raise ValueError(f"beta snapshot is missing {key!r}")
-            arr = np.asarray(snap[key])
-            dst = getattr(bs, k)
-            if arr.shape != dst.shape or arr.dtype != dst.dtype:
-                raise ValueError(f"beta snapshot {key!r} is {arr.dtype} {arr.shape}, expected {dst.dtype} "
-                                 f"{dst.shape} (another model or budget)")
-            dst[...] = arr
+        fill_views(bs, snap, STATE_FIELDS, prefix="beta.", what="beta snapshot")
         occ = np.zeros(tracker.budget + 1)
         if tracker.size or tracker.armed:
             st = tracker.core_state(np.zeros(tracker.dictionary.shape[1]))

@@ -86,6 +86,7 @@ import numpy as np
 from numba import njit
 
 from ._krlst_simd import view
+from ._snapshot import fill_views
 
 __all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
            "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
@@ -437,15 +438,7 @@ class HealthMonitor:
         nothing changed when it fails)."""
         fbuf, ibuf = self._buf[0].copy(), self._buf[1].copy()
         hs = health_state_views(fbuf, ibuf)
-        for k in STATE_FIELDS:
-            key = f"health.{k}"
-            if key not in snap:
-                raise ValueError(f"health snapshot is missing {key!r}")
-            arr = np.asarray(snap[key])
-            dst = getattr(hs, k)
-            if arr.shape != dst.shape or arr.dtype != dst.dtype:
-                raise ValueError(f"health snapshot {key!r} is {arr.dtype} {arr.shape}, expected {dst.dtype} {dst.shape}")
-            dst[...] = arr
+        fill_views(hs, snap, STATE_FIELDS, prefix="health.", what="health snapshot")
         validate_health_state(hs)
         self._buf = (fbuf, ibuf)
         self.state = hs

@@ -42,6 +42,7 @@ from numbers import Integral, Real
 import numpy as np
 
 from . import _krlst_core as core
+from ._snapshot import fill_views
 from .covariance import (
     KIND_LOCALLY_PERIODIC,
     KIND_LOCALLY_PERIODIC_ZERO_MEAN,
@@ -632,16 +633,7 @@ class KRLST:
             arrays = snap
         else:
             raise ValueError(f"snapshot 'state_layout' {layout} is not supported (1 or {SNAPSHOT_LAYOUT})")
-        for name in core.STATE_FIELDS:
-            if name not in arrays:
-                raise ValueError(f"snapshot is missing {name!r}")
-            dst = getattr(st, name)
-            arr = np.asarray(arrays[name])
-            if arr.shape != dst.shape:
-                raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {dst.shape}")
-            if np.issubdtype(dst.dtype, np.integer) and not np.issubdtype(arr.dtype, np.integer):
-                raise ValueError(f"snapshot {name!r} must hold integers, got {arr.dtype}")
-            dst[...] = arr
+        fill_views(st, arrays, core.STATE_FIELDS)
         st.ist[core.I_REFRESH] = tracker.refresh_every
         st.ist[core.I_REFINE] = int(tracker.refine)
         core.validate_state(st)                      # before the compiled code indexes with it
