@@ -4,7 +4,8 @@
 * :mod:`feedio.mcapio` — MCAP trial and log files (one writer, one reader);
 * :mod:`feedio.mcapfile` — checked, bounded MCAP record parsing (limits, CRCs) under the reader and recover;
 * :mod:`feedio.scalars` — the per-sample ``disturbance/scalars`` messages (pairing rows and truth in time);
-* :mod:`feedio.transport` — Zenoh sessions and key expressions.
+* :mod:`feedio.transport` — Zenoh sessions and key expressions;
+* :mod:`feedio.digest` — file digests for provenance.
 
 Dependencies run one way: ``kernels`` (numerics) ← ``feedio`` ← ``monitor``, ``replay`` ← ``feedmon`` (CLI).
 """

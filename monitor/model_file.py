@@ -41,7 +41,6 @@ limit) — and refuse the absurd:
 
 from __future__ import annotations
 
-import hashlib
 import math
 import re
 import tomllib
@@ -51,6 +50,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from feedio.digest import file_sha256
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names, validity_problems
 
@@ -600,12 +600,3 @@ def save_model(model: AxisModel, path) -> Path:
         raise ValueError(str(exc).replace(str(tmp), str(path))) from None
     tmp.replace(path)
     return path
-
-
-def file_sha256(path) -> str:
-    """Hex SHA-256 of a file (provenance of trials and model files)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()

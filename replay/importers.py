@@ -8,13 +8,13 @@
 from __future__ import annotations
 
 import csv
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from feedio import schema as S
+from feedio.digest import file_sha256
 
 __all__ = [
     "ImportedTrial",
@@ -52,14 +52,6 @@ class ImportedTrial:
 
     def __len__(self) -> int:
         return int(self.t.size)
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 # ============================================================================================
@@ -121,7 +113,7 @@ def load_emps(path, *, rate: int = 333, cutoff: float = 100.0, order: int = 4) -
 
     Ts = step * dt
     u = interval_mean(force_pd)
-    sha = _sha256(path)
+    sha = file_sha256(path)
     ref = EMPS_REFERENCE
     meta = S.TrialMeta(
         Ts=Ts,
@@ -319,7 +311,7 @@ def read_csv_trial(
             source="csv",
             tool="feedmon import csv",
             version=_version(),
-            details={"file": path.name, "sha256": _sha256(path),
+            details={"file": path.name, "sha256": file_sha256(path),
                      "map": ",".join(f"{k}={v}" for k, v in mapping.items()),
                      "units": ",".join(f"{k}={v}" for k, v in units.items())},
         ),
