@@ -80,6 +80,7 @@ def test_publisher_restart_gap_reported(work, trial):
         # it disconnected; samples 300..399 are lost; a new session (a restarted process) continues at 400
         with T.open_session(connect=mon.endpoint) as s:
             pub = _publisher(s, trial)
+            probes = _probe_until_seen(s, pub, mon.proc.pid)  # the new session's route carries data
             for b in blocks_of(trial, 400, 700):
                 pub.put(S.encode(b))
             st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 699)
@@ -87,7 +88,9 @@ def test_publisher_restart_gap_reported(work, trial):
         rc = mon.stop()
     assert rc == 0, mon.stderr
     a = st["axes"][AXIS]
-    assert (a["gaps"], a["missing_samples"], a["samples_in"], a["estimates_out"]) == (1, 100, 600, 600)
+    got = (a["gaps"], a["missing_samples"], a["samples_in"], a["estimates_out"])
+    assert got == (1, 100, 600, 600), (a, st["input"], mon.stderr)
+    assert 1 <= a["drops"]["malformed"] <= probes and set(a["drops"]) == {"malformed"}  # the probes, nothing else
     assert st["monitor"]["state"] == "running"
     assert mon.count("after a sequence gap") == 1
 
