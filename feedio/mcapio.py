@@ -27,12 +27,17 @@ Layout of a trial file
   :meth:`TrialWriter.flush_if_due` (wall clock) so that at most about a second is lost
   on a crash. Wall-clock flushing is never automatic: it would make chunk boundaries,
   hence bytes, depend on the machine's speed.
+* The records are written by :class:`feedio.mcapwriter.McapWriter`, which writes the bytes of
+  the ``mcap`` package's writer and appends many pre-built records at once:
+  :meth:`TrialWriter.write_scalars_batch` writes a whole :class:`~feedio.scalars.ScalarsBatch`
+  (the per-sample channel) that way — the same bytes as one :meth:`TrialWriter.write_scalars`
+  call per message, chunk boundaries included.
 
 Reading goes through :mod:`feedio.mcapfile` (limits, CRCs); messages are read in file
 order, which for feedmon's writers is sequence order on every channel.
 
 A failed write never corrupts the writer: every value that could overflow the file
-format is checked before the mcap ``Writer`` sees it, and the writer writes into memory
+format is checked before the record writer sees it, and the writer writes into memory
 (:class:`_StagedFile`) that is committed to the file on flush — a disk that refuses the
 bytes leaves the file ending on a complete record and the bytes waiting for the next
 flush (up to :data:`MAX_PENDING_BYTES`, then the file is given up, see
@@ -55,6 +60,7 @@ import numpy as np
 from feedio import schema as S
 
 from .mcapfile import DEFAULT_LIMITS, Limits, McapFile, TrialFileError, json_depth
+from .mcapwriter import McapWriter
 
 __all__ = [
     "TrialFileError",
@@ -270,8 +276,6 @@ class TrialWriter:
         start=None,
         max_pending_bytes: int = MAX_PENDING_BYTES,
     ):
-        from mcap.writer import CompressionType, Writer
-
         metas = [meta] if isinstance(meta, S.TrialMeta) else list(meta)
         if not metas:
             raise ValueError("TrialWriter needs the TrialMeta of at least one axis")
@@ -286,7 +290,7 @@ class TrialWriter:
             self.metas[key] = m
         if not (chunk_seconds > 0):
             raise ValueError("chunk_seconds must be > 0")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}.get(compression)
+        comp = {"zstd": "zstd", "lz4": "lz4", "none": ""}.get(compression)
         if comp is None:
             raise ValueError(f"compression {compression!r}: use zstd, lz4 or none")
         self.start_ns = _now_ns() if start is None else parse_time(start)
@@ -305,14 +309,14 @@ class TrialWriter:
         self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
         self._stream = _StagedFile(self.path)
         try:
-            self._start(Writer, chunk_size, comp)
+            self._start(chunk_size, comp)
         except BaseException:
             self._stream.close()
             raise
 
-    def _start(self, Writer, chunk_size: int, comp) -> None:
+    def _start(self, chunk_size: int, comp: str) -> None:
         """Header, one metadata record and the samples channel per axis (into memory)."""
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
+        self._writer = McapWriter(self._stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
         self._writer.start(profile="", library=_library())
         for (machine, axis), m in self.metas.items():
             self._writer.add_metadata(
@@ -481,6 +485,57 @@ class TrialWriter:
                 raise ValueError(f"{self.path}: scalars seq {sc.seq} at t = {sc.t!r} s: the sequence number must lie "
                                  "in 0…SEQ_MAX and the time must be finite")
             self._add(cid, encode(sc), lt, sc.seq, sc.t, sc.t, "scalars")
+
+    def write_scalars_batch(self, batch) -> None:
+        """Append the messages of a :class:`~feedio.scalars.ScalarsBatch` on
+        ``/<machine>/<axis>/disturbance/scalars``: the same bytes as :meth:`write_scalars` with
+        ``batch.messages()`` (records built in one compiled pass, added in bulk; chunks closed
+        after the same messages). ``ValueError`` before anything is written when a message could
+        not be (sequence number beyond ``SEQ_MAX``, a time not finite, a log time outside
+        1970…2262)."""
+        n = len(batch)
+        if not n:
+            return
+        self._check_open()
+        cid = self._channel(batch.machine, batch.axis, SCALARS)
+        seq, t, lt = batch.seq, batch.t, batch.log_ns
+        bad = np.flatnonzero((seq < 0) | (seq > S.SEQ_MAX) | ~np.isfinite(t) | (lt < 0))
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"{self.path}: scalars seq {int(seq[i])} at t = {float(t[i])!r} s, log time {int(lt[i])}: "
+                             "the sequence number must lie in 0…SEQ_MAX, the time must be finite and the log time "
+                             "within 1970…2262")
+        records, sizes = batch.records(cid)
+        if int(sizes.max()) - 31 > MAX_MESSAGE_BYTES:
+            raise ValueError(f"{self.path}: a scalars message is larger than {MAX_MESSAGE_BYTES} bytes")
+        ends = np.cumsum(sizes)
+        i = 0
+        while i < n:
+            # the messages up to the one that closes the chunk: by size (the record writer) or by
+            # controller time (chunk_seconds after the first message of the chunk, as _add)
+            k = self._writer.records_fitting(sizes[i:])
+            t0 = self._chunk_t0 if self._chunk_t0 is not None and math.isfinite(self._chunk_t0) else float(t[i])
+            late = np.flatnonzero(~(t[i:i + k] - t0 < self._chunk_seconds))
+            by_time = late.size > 0
+            if by_time:
+                k = int(late[0]) + 1
+            a, b = (int(ends[i - 1]) if i else 0), int(ends[i + k - 1])
+            self._stream.messages = self.messages + k  # a chunk closed by size holds these
+            try:
+                self._inside(self._writer.add_records, cid, records[a:b], sizes[i:i + k], lt[i:i + k])
+            finally:
+                self._stream.messages = self.messages
+            self.messages += k
+            self._stream.messages = self.messages
+            self._pending += k
+            if self._chunk_t0 is None or not math.isfinite(self._chunk_t0):
+                self._chunk_t0 = t0
+            if by_time:
+                try:
+                    self.flush()
+                except OSError as exc:  # the bytes wait for the next flush; flush()/close() report it
+                    self.last_flush_error = exc
+            i += k
 
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.

@@ -127,11 +127,8 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
 def _scalars(w, pair, *args) -> None:
     """On the writer thread: feed the pairer (``pair(*args)``) and write the scalars that became
     complete (grouped per axis, order kept)."""
-    by_axis: dict[tuple[str, str], list] = {}
-    for machine, axis, ns, sc in pair(*args):
-        by_axis.setdefault((machine, axis), []).append((ns, sc))
-    for (machine, axis), items in by_axis.items():
-        w.write_scalars(machine, axis, items)
+    for batch in pair(*args):
+        w.write_scalars_batch(batch)
 
 
 def _prefetch(items: Iterator, depth: int = 64) -> Iterator:

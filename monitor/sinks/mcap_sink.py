@@ -311,13 +311,10 @@ class McapSink(QueuedSink):
             )
 
     def _write_scalars(self, ready: list) -> None:
-        by_axis: dict[tuple[str, str], list] = {}
-        for machine, axis, ns, sc in ready:
-            by_axis.setdefault((machine, axis), []).append((ns, sc))
-        for (machine, axis), items in by_axis.items():
-            w = self._ensure_axis(machine, axis, None)
-            self._call(w.write_scalars, machine, axis, items)
-            self.scalars_written += len(items)
+        for batch in ready:
+            w = self._ensure_axis(batch.machine, batch.axis, None)
+            self._call(w.write_scalars_batch, batch)
+            self.scalars_written += len(batch)
 
     def tick(self, now: float) -> None:
         if self._held and now - self._held_since >= self.discover_seconds:
