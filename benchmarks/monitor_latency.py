@@ -22,6 +22,7 @@ Targets (issue 5): p99 ≤ 2 ms, ≥ 20 000 samples/s sustained, ≥ 50 000 samp
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import subprocess
 import sys
@@ -92,7 +93,7 @@ class Stream:
 class Monitor:
     def __init__(self, work: Path, extra: list[str]):
         self.endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
-        cmd = [sys.executable, "-m", "feedmon.cli", "run", "--model", str(work / "z.model.toml"), "--fresh",
+        cmd = [sys.executable, *(["/tmp/perf/diag_patch.py"] if os.environ.get("DIAG") else ["-m", "feedmon.cli"]), "run", "--model", str(work / "z.model.toml"), "--fresh",
                "--state-dir", str(work / "state"), "--listen", self.endpoint, "--prefix", PREFIX, *extra]
         self.proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
         self.lines: list[str] = []
@@ -111,7 +112,12 @@ class Monitor:
 
     def stop(self) -> int:
         self.proc.send_signal(signal.SIGTERM)
-        return self.proc.wait(60)
+        rc = self.proc.wait(60)
+        time.sleep(0.2)
+        for line in self.lines:
+            if "DIAG" in line:
+                print(line, end="", file=sys.stderr)
+        return rc
 
 
 class Harness:
@@ -197,6 +203,7 @@ def bench_latency(work: Path, stream: Stream, seconds: float, sinks: str = "both
         rc = mon.stop()
     a = status["axes"][f"{stream.machine}/{stream.axis}"]
     return {"e2e": _pct(lat), "lost": n - lat.size, "n": n, "status": a["latency_us"], "drops": a["dropped_total"],
+            "stages": a["stages_us"],
             "sinks": {s["name"]: s["dropped"] for s in status["sinks"]}, "rc": rc}
 
 
@@ -284,6 +291,8 @@ def main(argv=None) -> int:
         s = lat["status"]
         t.add_row("latency receive → published (monitor status)",
                   f"p50 {s['p50']:,.0f} µs, p99 {s['p99']:,.0f} µs, max {s['max']:,.0f} µs", "")
+        t.add_row("  stages p50/p99 µs", ", ".join(f"{k} {v['p50']:,.0f}/{v['p99']:,.0f}"
+                                               for k, v in lat["stages"].items()), "")
         t.add_row("drops during the latency run", f"estimator {lat['drops']}, sinks {lat['sinks']}", "0")
     if rows is not None:
         best = max((r["rate"] for r in rows if r["ok"]), default=0.0)

@@ -363,10 +363,11 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
             if decoded is None:
                 raise AssertionError("the soak stream produced a malformed block")
             block = decoded
-        _, est = pipe.estimate(block)
+        rows = pipe.estimate(block).est
+        est = None if rows is None else rows.block()
         if est is not None:
             if opts.wire:
-                S.encode(est)
+                rows.json()  # what the monitor publishes
             if writer is not None:
                 writer.write_samples(block)
                 writer.write_estimates(est)

@@ -42,7 +42,8 @@ __all__ = ["McapWriter", "MAGIC", "MESSAGE_HEADER", "message_header"]
 MAGIC = b"\x89MCAP0\r\n"
 
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_MESSAGE_INDEX = 1, 2, 3, 4, 5, 6, 7
-_OP_CHUNK_INDEX, _OP_ATTACHMENT_INDEX, _OP_STATISTICS, _OP_METADATA, _OP_METADATA_INDEX = 8, 10, 11, 12, 13
+_OP_CHUNK_INDEX, _OP_ATTACHMENT, _OP_ATTACHMENT_INDEX, _OP_STATISTICS, _OP_METADATA, _OP_METADATA_INDEX = \
+    8, 9, 10, 11, 12, 13
 _OP_SUMMARY_OFFSET, _OP_DATA_END = 14, 15
 
 #: bytes before a message's data: opcode, record length, channel id, sequence, log time, publish time
@@ -102,14 +103,15 @@ class McapWriter:
     """Chunked MCAP writer, byte-compatible with ``mcap.writer.Writer`` (see the module docstring).
 
     ``stream`` needs ``write(bytes)`` and ``tell()``; ``compression`` is ``"zstd"``, ``"lz4"`` or
-    ``""`` (none). Use :meth:`start`, then any of :meth:`add_metadata`, :meth:`register_schema`,
-    :meth:`register_channel`, :meth:`add_message`, :meth:`add_records`, :meth:`flush`, and
+    ``""`` (none); ``compression_level`` the zstd level (3, mcap's, gives mcap's bytes). Use :meth:`start`, then any of :meth:`add_metadata`, :meth:`register_schema`,
+    :meth:`register_channel`, :meth:`add_message`, :meth:`add_records`, :meth:`add_attachment`,
+    :meth:`flush`, and
     :meth:`finish` once. Values must fit their fields (ids u16, sequence u32, times u64): the
     caller checks them; an int that does not fit raises ``struct.error`` (bulk: ``ValueError``).
     """
 
     def __init__(self, stream, *, chunk_size: int = 1024 * 1024, compression: str = "zstd",
-                 enable_data_crcs: bool = True) -> None:
+                 compression_level: int = 3, enable_data_crcs: bool = True) -> None:
         if compression not in ("zstd", "lz4", ""):
             raise ValueError(f"compression {compression!r}: use 'zstd', 'lz4' or ''")
         self._stream = stream
@@ -118,7 +120,7 @@ class McapWriter:
         if compression == "zstd":
             import zstandard
 
-            self._compress = zstandard.ZstdCompressor(level=3).compress  # = zstandard.compress(data)
+            self._compress = zstandard.ZstdCompressor(level=compression_level).compress  # level 3: as mcap
         elif compression == "lz4":
             import lz4.frame
 
@@ -130,10 +132,12 @@ class McapWriter:
         self._schemas: list[bytes] = []  # schema records, id = index + 1
         self._channels: list[bytes] = []  # channel records, id = index + 1
         self._metadata_indexes: list[bytes] = []
+        self._attachment_indexes: list[bytes] = []
         self._chunk_indexes: list[bytes] = []
         # statistics
         self._message_count = 0
         self._metadata_count = 0
+        self._attachment_count = 0
         self._chunk_count = 0
         self._start_time = 0
         self._end_time = 0
@@ -173,6 +177,18 @@ class McapWriter:
         self._metadata_count += 1
         rec = _record(_OP_METADATA, _string(name) + _string_map(data))
         self._metadata_indexes.append(_record(_OP_METADATA_INDEX, struct.pack("<QQ", offset, len(rec)) + _string(name)))
+        self._emit(rec)
+
+    def add_attachment(self, create_time: int, log_time: int, name: str, media_type: str, data: bytes) -> None:
+        """An attachment record (outside the chunks; the open chunk stays open), with its CRC and index."""
+        offset = self._stream.tell()
+        self._attachment_count += 1
+        body = struct.pack("<QQ", log_time, create_time) + _string(name) + _string(media_type) \
+            + struct.pack("<Q", len(data)) + bytes(data)
+        rec = struct.pack("<BQ", _OP_ATTACHMENT, len(body) + 4) + body + struct.pack("<I", zlib.crc32(body))
+        self._attachment_indexes.append(_record(
+            _OP_ATTACHMENT_INDEX, struct.pack("<QQQQQ", offset, len(rec), log_time, create_time, len(data))
+            + _string(name) + _string(media_type)))
         self._emit(rec)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -316,13 +332,15 @@ class McapWriter:
         self._emit(_record(_OP_DATA_END, struct.pack("<I", self._data_crc)))
         summary_start = self._stream.tell()
         groups: list[tuple[int, bytes]] = []
-        stats = struct.pack("<QHIIIIQQ", self._message_count, len(self._schemas), len(self._channels), 0,
+        stats = struct.pack("<QHIIIIQQ", self._message_count, len(self._schemas), len(self._channels),
+                            self._attachment_count,
                             self._metadata_count, self._chunk_count, self._start_time, self._end_time)
         counts = b"".join(struct.pack("<HQ", cid, n) for cid, n in self._channel_counts.items())
         stats += struct.pack("<I", len(counts)) + counts
         for op, recs in ((_OP_SCHEMA, self._schemas), (_OP_CHANNEL, self._channels),
                          (_OP_STATISTICS, [_record(_OP_STATISTICS, stats)]), (_OP_CHUNK_INDEX, self._chunk_indexes),
-                         (_OP_ATTACHMENT_INDEX, []), (_OP_METADATA_INDEX, self._metadata_indexes)):
+                         (_OP_ATTACHMENT_INDEX, self._attachment_indexes),
+                         (_OP_METADATA_INDEX, self._metadata_indexes)):
             groups.append((op, b"".join(recs)))
         body = []
         pos = summary_start

@@ -350,51 +350,64 @@ class ScalarsPairer:
         L = st.pending
         if L == 0:
             return []
-        seq = st.ints[_I_SEQ]
-        # a sample of truth, found for sample j, counts for the first waiting sample of that seq only
-        # (releasing it takes the truth value away, as a dict pop would)
-        pos = np.searchsorted(st.truth_seq, seq)
-        found = pos < st.truth_seq.size
-        found[found] = st.truth_seq[pos[found]] == seq[found]
-        if found.any():
-            first = np.zeros(L, dtype=bool)
-            first[np.unique(seq, return_index=True)[1]] = True
-            found &= first
-        if force:
-            r = L
-        else:
-            stop = st.done.copy()
-            if self._expects((machine, axis)):  # done, but waiting for its truth
-                stop &= ~(~found & (True if st.truth_end is None else seq >= st.truth_end))
-            stop = ~stop
-            stop &= (L - np.arange(L)) <= self.hold_samples  # beyond the hold: out in any case
-            if before_ns is not None:
-                stop &= st.ints[_I_LOG] >= before_ns
-            hits = np.flatnonzero(stop)
-            r = int(hits[0]) if hits.size else L
+        truth_end = -1 if st.truth_end is None else st.truth_end
+        before = 0 if before_ns is None else max(int(before_ns), -(2**63))
+        pos = np.empty(L, dtype=np.int64)
+        ns = np.empty(L, dtype=np.int64)
+        r = _release(st.ints[_I_SEQ], st.ints[_I_LOG], st.done, st.truth_seq, truth_end,
+                     self._expects((machine, axis)), self.hold_samples, before_ns is not None, before, force,
+                     st.last_ns, pos, ns)
         if r == 0:
             return []
+        if r < 0:
+            raise ValueError(f"scalars of {machine}/{axis}: log times beyond 2**63−1 ns")
         ints, floats = st.ints[:, :r], st.floats[:, :r]
         vals = np.empty((len(VALUES), r))
         vals[_V_VMEAS], vals[_V_FNEXT], vals[_V_FORCENEXT] = floats[_F_VMEAS], floats[_F_FNEXT], floats[_F_FORCENEXT]
         vals[_V_F], vals[_V_FSD], vals[_V_FORCE], vals[_V_FORCESD] = floats[_F_F:]
         vals[_V_TFORCE:] = np.nan
-        hit = np.flatnonzero(found[:r])
-        if hit.size:
+        hit = np.flatnonzero(pos[:r] >= 0)
+        if hit.size:  # the truth of these samples: paired, and gone from the table (a dict pop)
             tpos = pos[hit]
             vals[_V_TFORCE:, hit] = st.truth_vals[:, tpos]
             keep = np.ones(st.truth_seq.size, dtype=bool)
             keep[tpos] = False
             st.truth_seq, st.truth_vals = st.truth_seq[keep], st.truth_vals[:, keep]
-        # stamps: ns_j = max(log_j, ns_{j-1} + 1, 0), i.e. j + max(last + 1, max_{i ≤ j}(max(log_i, 0) − i))
-        k = np.arange(r, dtype=np.int64)
-        lift = np.maximum.accumulate(np.maximum(ints[_I_LOG], 0) - k)
-        base = np.maximum(lift, st.last_ns + 1)
-        if int(base[-1]) > _MAX_NS - r:
-            raise ValueError(f"scalars of {machine}/{axis}: log times beyond 2**63−1 ns")
-        ns = base + k
-        st.last_ns = int(ns[-1])
+        st.last_ns = int(ns[r - 1])
         st.released = int(ints[_I_SEQ, -1])
-        batch = ScalarsBatch(machine, axis, ns, ints[_I_SEQ].copy(), floats[_F_T].copy(), ints[_I_FLAGS].copy(), vals)
+        batch = ScalarsBatch(machine, axis, ns[:r], ints[_I_SEQ].copy(), floats[_F_T].copy(), ints[_I_FLAGS].copy(),
+                             vals)
         st.ints, st.floats, st.done = st.ints[:, r:], st.floats[:, r:], st.done[r:]
         return [batch]
+
+
+@njit(cache=True, nogil=True)
+def _release(seq, log, done, truth_seq, truth_end, expects, hold, has_before, before, force, last_ns, pos, ns):
+    """How many waiting samples go out now (a prefix), walking them in order as the per-sample rule
+    says: sample j waits (and so do all after it) unless ``force``, or more than ``hold`` samples wait
+    from j on, or it was stamped before ``before`` (when ``has_before``), or it has its next row
+    (``done``) and does not wait for truth — it waits when truth is expected, none is there for its
+    ``seq`` (a truth value goes to the first sample of that seq only) and the truth seen so far does
+    not reach past it (``truth_end`` < 0: none seen). Fills ``pos`` (the truth position of each
+    released sample, −1: none) and ``ns`` (stamps: max(log, previous + 1, 0), the previous starting at
+    ``last_ns``); returns the count, or −1 when a stamp would pass 2⁶³ − 1."""
+    L = seq.shape[0]
+    T = truth_seq.shape[0]
+    used = np.zeros(T, dtype=np.bool_)
+    prev = last_ns
+    for j in range(L):
+        s = seq[j]
+        p = np.searchsorted(truth_seq, s)
+        hit = p < T and truth_seq[p] == s and not used[p]
+        if not force and L - j <= hold and (not has_before or log[j] >= before):
+            if not done[j] or (expects and not hit and (truth_end < 0 or s >= truth_end)):
+                return j
+        pos[j] = p if hit else -1
+        if hit:
+            used[p] = True
+        if prev == 9223372036854775807:
+            return -1
+        stamp = max(log[j], prev + 1, 0)
+        ns[j] = stamp
+        prev = stamp
+    return L

@@ -56,6 +56,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="offline: estimate this trial file (.mcap) instead of listening on Zenoh")
     p.add_argument("-o", "--output", default=None, metavar="FILE",
                    help="offline: output MCAP (samples + truth + estimates); required with --from")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="offline: processes for a trial with several axes (default: one per core, at most one per "
+                        "axis; the output is the same for every N)")
     g = p.add_argument_group("outputs (live)")
     g.add_argument("--mcap", default=None, metavar="DIR_OR_FILE",
                    help="MCAP log of inputs and estimates: a .mcap file, or a directory "
@@ -128,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_offline(args, cfg)
     if args.output is not None:
         raise ValueError("-o/--output is for --from (offline); use --mcap for the live log")
+    if cfg.jobs is not None:
+        raise ValueError("--jobs is for --from (offline)")
     return _run_live(cfg)
 
 
@@ -141,7 +146,7 @@ def _run_offline(args, cfg: RunConfig) -> int:
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
     axes = load_axes(cfg.model)
-    res = run_offline(args.source, args.output, axes, limits=cfg.limits)
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     for ax in axes.values():
@@ -150,8 +155,9 @@ def _run_offline(args, cfg: RunConfig) -> int:
             if ax.status.counters.get("too_large") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
              f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
+    procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
-          f"({res.rate:,.0f} samples/s) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
+          f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
     return 0
 
 
@@ -169,7 +175,7 @@ def _run_live(cfg: RunConfig) -> int:
 
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
-    sys.setswitchinterval(0.0005)
+    sys.setswitchinterval(0.0001)
     axes = load_axes(cfg.model)
     warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     store = StateStore(cfg.state_dir)
@@ -184,10 +190,11 @@ def _run_live(cfg: RunConfig) -> int:
     problems: list[str] = []
     try:
         if cfg.mcap is not None:
-            from monitor.sinks.mcap_sink import McapSink
+            from monitor.sinks.mcap_sink import McapProcessSink
 
             path, rb, rs = _mcap_path(cfg.mcap, cfg)
-            sinks.append(McapSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
+            # own process: decoding, pairing, compression and disk never hold the estimator's GIL
+            sinks.append(McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
             rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") + ")" \
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")

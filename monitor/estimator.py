@@ -48,10 +48,10 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from numbers import Integral
 
+import msgspec
 import numpy as np
 
 from feedio.limits import LIMITS, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
@@ -61,7 +61,7 @@ from kernels import KRLST, online
 from .model_file import AxisModel
 from .state_check import StateError, check_snapshot
 
-__all__ = ["AxisEstimator", "LIMITS", "StateError"]
+__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
@@ -69,8 +69,84 @@ _TRAINED = "estimator.trained"
 
 
 def _as_column(values) -> np.ndarray:
-    """A measured column (``None`` = missing) as float64 with NaN."""
-    return np.array([math.nan if x is None else x for x in values], dtype=np.float64)
+    """A measured column (``None`` = missing) as float64 with NaN (one C call: NumPy turns
+    ``None`` into NaN for a float64 array)."""
+    return np.array(values, dtype=np.float64)
+
+
+def _finite(a: np.ndarray) -> np.ndarray:
+    """``a`` with NaN where it is not finite (a copy only when needed)."""
+    ok = np.isfinite(a)
+    return a if ok.all() else np.where(ok, a, np.nan)
+
+
+def _sd(var: np.ndarray) -> np.ndarray:
+    """Standard deviation of a variance column, NaN where it is not finite or negative."""
+    with np.errstate(invalid="ignore"):
+        return _finite(np.sqrt(var))
+
+
+_json = msgspec.json.Encoder()
+#: JSON keys of the columns of an EstimateBlock after machine, axis and seq, in field order
+_COLUMN_KEYS = [f',"{name}":'.encode() for name in EstimateBlock.__struct_fields__[3:]]
+
+
+class EstimateRows:
+    """The estimate rows of one block as the compiled loop wrote them (columns, no per-sample
+    Python objects): ``seq`` of the first row, ``t`` (s), ``v_meas`` (m/s), ``rows``
+    (:data:`kernels.online.ROWS`, float64), ``irows`` (:data:`kernels.online.IROWS`, int64) and
+    ``force`` (``force``, ``force_var``, ``force_next`` in N, or None when the model cannot scale).
+    :meth:`block` makes the :class:`~feedio.schema.EstimateBlock` (once), :meth:`scalar_columns`
+    the per-sample columns of :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
+
+    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "_block", "_json")
+
+    def __init__(self, machine: str, axis: str, seq: int, t: np.ndarray, v_meas: np.ndarray, rows: np.ndarray,
+                 irows: np.ndarray, force: np.ndarray | None) -> None:
+        self.machine, self.axis, self.seq = machine, axis, seq
+        self.t, self.v_meas, self.rows, self.irows, self.force = t, v_meas, rows, irows, force
+        self._block: EstimateBlock | None = None
+        self._json: bytes | None = None
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+    def block(self) -> EstimateBlock:
+        """The :class:`~feedio.schema.EstimateBlock` (made on the first call; the columns of
+        :data:`~kernels.online.ROWS` and :data:`~kernels.online.IROWS` are its fields in that order)."""
+        if self._block is None:
+            force = () if self.force is None else self.force.tolist()
+            self._block = EstimateBlock(self.machine, self.axis, self.seq, self.t.tolist(), self.v_meas.tolist(),
+                                        *self.rows.tolist(), *self.irows.tolist(), *force)
+        return self._block
+
+    def json(self) -> bytes:
+        """The JSON of :meth:`block` — the bytes ``feedio.schema.encode(self.block())`` gives — made
+        from the columns with one ``msgspec`` call, without the schema object (the live monitor
+        publishes it before anything else). Names match ``NAME_PATTERN`` (no character to escape)."""
+        if self._json is None:
+            cols = [self.t.tolist(), self.v_meas.tolist(), *self.rows.tolist(), *self.irows.tolist()]
+            if self.force is not None:
+                cols += self.force.tolist()
+            parts = _json.encode(cols)[2:-2].split(b"],[")  # "[[c0],[c1],…]" -> c0, c1, …
+            body = [f'{{"machine":"{self.machine}","axis":"{self.axis}","seq":{self.seq}'.encode()]
+            for key, part in zip(_COLUMN_KEYS, parts):
+                body += (key, b"[", part, b"]")
+            body.append(b"}")
+            self._json = b"".join(body)
+        return self._json
+
+    def scalar_columns(self) -> dict[str, np.ndarray]:
+        """``v_meas, f, f_sd, f_next, force, force_sd, force_next`` (NaN where missing or not finite;
+        standard deviations from the variances) and ``flags``: the keyword arguments of
+        :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
+        r = self.rows
+        nan = np.full(self.t.size, np.nan)
+        fc = (nan, nan, nan) if self.force is None else (_finite(self.force[0]), _sd(self.force[1]),
+                                                          _finite(self.force[2]))
+        return {"v_meas": _finite(self.v_meas), "f": _finite(r[online.R_F]), "f_sd": _sd(r[online.R_FVAR]),
+                "f_next": _finite(r[online.R_FNEXT]), "force": fc[0], "force_sd": fc[1], "force_next": fc[2],
+                "flags": self.irows[online.R_FLAGS]}
 
 
 class AxisEstimator:
@@ -114,6 +190,13 @@ class AxisEstimator:
             stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window))
         self.tracker = self._new_tracker()
         self.counters: Counter[str] = Counter()
+        b = self.force_gain
+        #: divisors of the rows f, f_var, f_next that give force, force_var, force_next (None: no scale)
+        self._force_div = None if b is None else np.array([[-b], [b * b], [-b]])
+        #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
+        self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
+        self._seq_refused = np.zeros(len(online.COUNTERS), dtype=np.int64)
+        self._seq_refused[online.COUNTERS.index("rejected_seq_range")] = 1
         self._state = online.new_state()
         self._xbuf, self._obuf = online.new_scratch()
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
@@ -146,6 +229,12 @@ class AxisEstimator:
     # ------------------------------------------------------------------ main entry
     def process(self, block: SampleBlock) -> EstimateBlock | None:
         """Estimates for the samples of ``block`` (None when every sample was dropped or refused)."""
+        rows = self.process_rows(block)
+        return None if rows is None else rows.block()
+
+    def process_rows(self, block: SampleBlock) -> EstimateRows | None:
+        """:meth:`process` returning the rows as columns (:class:`EstimateRows`): the schema object
+        and its JSON are made only when asked for."""
         n = len(block.t)
         exo = block.u if self.model.form == "force-input" else block.v_ref
         if exo is None:
@@ -154,36 +243,33 @@ class AxisEstimator:
                 f"axis {block.machine}/{block.axis}: the {self.model.form} model needs "
                 f"'{'u' if self.model.form == 'force-input' else 'v_ref'}' in every sample block"
             )
-        self.counters["samples_in"] += n
+        c = self.counters
+        c["samples_in"] += n
         seq0 = block.seq
-        if isinstance(seq0, bool) or not isinstance(seq0, Integral) or not 0 <= seq0 <= SEQ_MAX - (n - 1):
-            self.counters["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
+        if type(seq0) is not int and (isinstance(seq0, bool) or not isinstance(seq0, Integral)) \
+                or not 0 <= seq0 <= SEQ_MAX - (n - 1):
+            c["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
+            self.block_counts = self._seq_refused
             return None
         seq0 = int(seq0)
-        t = np.asarray(block.t, dtype=np.float64)
+        t = np.array(block.t, dtype=np.float64)
         e = _as_column(exo)
         v = _as_column(block.v_meas)
         rows, irows, counts = online.new_rows(n)
         first = online.track_block(*self.tracker.core_arrays(self._xbuf), *self._cfg, *self._state, seq0,
                                    t, e, v, rows, irows, counts, self._xbuf, self._obuf)
-        for name, count in zip(online.COUNTERS, counts.tolist()):
-            if count:
-                self.counters[name] += count
+        self.block_counts = counts
+        for name, k in zip(online.COUNTERS, counts.tolist()):
+            if k:
+                c[name] += k
         if first == n:
             return None
-        self.counters["estimates_out"] += n - first
-        return self._block(block.machine, block.axis, seq0 + first, t[first:], v[first:], rows[:, first:],
-                           irows[:, first:])
-
-    def _block(self, machine, axis, seq0, t, v, rows, irows) -> EstimateBlock:
-        cols = dict(zip(online.ROWS, rows.tolist()))
-        cols.update(zip(online.IROWS, irows.tolist()))
-        b = self.force_gain
-        if b is not None:
-            f, f_var, f_next = rows[online.R_F], rows[online.R_FVAR], rows[online.R_FNEXT]
-            cols.update(force=(-f / b).tolist(), force_var=(f_var / (b * b)).tolist(),
-                        force_next=(-f_next / b).tolist())
-        return EstimateBlock(machine=machine, axis=axis, seq=int(seq0), t=t.tolist(), v_meas=v.tolist(), **cols)
+        c["estimates_out"] += n - first
+        if first:
+            t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
+        # F = −f/b, var F = var f / b², F_next = −f_next/b (force-input form, or velocity loop with known K)
+        force = None if self._force_div is None else rows[online.R_F:online.R_FNEXT + 1] / self._force_div
+        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows, irows, force)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -49,6 +49,11 @@ def test_record_writer_writes_the_bytes_of_the_mcap_writer(seed):
         if r < 0.05:
             for w in (wa, wb):
                 w.add_metadata("m", {"k": str(step), "x": "y"})
+        elif r < 0.07:
+            d = data()
+            for w in (wa, wb):
+                w.add_attachment(create_time=step, log_time=10 * step, name=f"a{step}", media_type="text/plain",
+                                 data=d)
         elif r < 0.1 or not channels:
             ids = []
             for w in (wa, wb):
