@@ -84,7 +84,7 @@ _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
                      "shutdown_discarded": "shutdown_discarded"}
 #: messages up to this size (bytes) are estimated in the Zenoh callback when nothing else is (a few
 #: hundred samples: a few ms of tracker work); larger ones go through the input queue
-INLINE_BYTES = 16 * 1024
+INLINE_BYTES = 2048
 
 
 class Monitor:

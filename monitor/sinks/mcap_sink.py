@@ -60,7 +60,7 @@ block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``); a pipe 
 ``report_interval`` s) and once at the end; the parent's status merges it (files, failures,
 drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
 the pipe closes and it finishes the file anyway), logs like the monitor (same format) and runs
-at ``nice`` 5: below the estimator, above nothing that matters.
+at ``nice`` 10, as the Rerun process: on a busy machine the estimator gets the CPU first.
 """
 
 from __future__ import annotations
@@ -390,7 +390,7 @@ class McapProcessSink(QueuedSink):
     def __init__(self, path: str | os.PathLike, rotate_bytes: int | None = None, rotate_seconds: float | None = None,
                  *, metas: S.TrialMeta | Sequence[S.TrialMeta], flush_seconds: float = 0.5, maxsize: int = 4096,
                  name: str = "mcap", scalars: bool = True, max_pending_bytes: int | None = None,
-                 start_timeout: float = 60.0, report_interval: float = 0.5, nice: int = 5) -> None:
+                 start_timeout: float = 60.0, report_interval: float = 0.5, nice: int = 10) -> None:
         path = Path(path)
         if not path.parent.is_dir():
             raise FileNotFoundError(f"directory of the MCAP log {str(path)!r} does not exist")
