@@ -550,9 +550,9 @@ class TrialWriter:
         self._check_open()
         cid = self._channel(machine, axis, SCALARS)
         starts = np.cumsum(sizes) - sizes
-        bad = np.flatnonzero((seq < 0) | (seq > S.SEQ_MAX) | ~np.isfinite(t) | (log_ns < 0))
-        if (bad.size or not (log_ns.size == t.size == seq.size == n) or records.size != int(sizes.sum())
-                or np.any(records[starts] != 5)):
+        if (not (log_ns.size == t.size == seq.size == n) or records.size != int(starts[-1] + sizes[-1])
+                or seq.min() < 0 or seq.max() > S.SEQ_MAX or log_ns.min() < 0 or not np.isfinite(t).all()
+                or (records[starts] != 5).any()):
             raise ValueError(f"{self.path}: scalars records of {machine}/{axis} that cannot be written")
         records[starts + 9] = cid & 0xFF
         records[starts + 10] = cid >> 8
@@ -562,6 +562,21 @@ class TrialWriter:
         n = int(sizes.size)
         if int(sizes.max()) - 31 > MAX_MESSAGE_BYTES:
             raise ValueError(f"{self.path}: a scalars message is larger than {MAX_MESSAGE_BYTES} bytes")
+        t0 = self._chunk_t0 if self._chunk_t0 is not None and math.isfinite(self._chunk_t0) else float(t[0])
+        if float(t.max()) - t0 < self._chunk_seconds and self._writer.records_fitting(sizes) == n \
+                and not (n and self._writer.closes_after(int(records.size))):
+            # the usual case: every message goes into the open chunk, none closes it
+            self._stream.messages = self.messages + n
+            try:
+                self._inside(self._writer.add_records, cid, records, sizes, lt)
+            finally:
+                self._stream.messages = self.messages
+            self.messages += n
+            self._stream.messages = self.messages
+            self._pending += n
+            if self._chunk_t0 is None or not math.isfinite(self._chunk_t0):
+                self._chunk_t0 = t0
+            return
         ends = np.cumsum(sizes)
         i = 0
         while i < n:

@@ -244,6 +244,10 @@ class McapWriter:
         over = np.flatnonzero(np.cumsum(sizes) > self._chunk_size - self._count)
         return int(over[0]) + 1 if over.size else int(sizes.size)
 
+    def closes_after(self, nbytes: int) -> bool:
+        """True when ``nbytes`` more in the open chunk would close it (its size beyond ``chunk_size``)."""
+        return self._count + nbytes > self._chunk_size
+
     def add_records(self, channel_id: int, records, sizes: np.ndarray, log_times: np.ndarray) -> None:
         """Append message records built by the caller: ``records`` holds them back to back
         (``sizes[i]`` bytes each, 31-byte header included, see :func:`message_header`), all of

@@ -40,7 +40,7 @@ message.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import msgspec
 import numpy as np
@@ -66,23 +66,16 @@ FIELDS = tuple(S.DisturbanceScalars.__struct_fields__)
 VALUES = FIELDS[3:]
 assert FIELDS[:3] == ("t", "seq", "flags") and VALUES == (
     "v_meas", "f", "f_sd", "f_next", "force", "force_sd", "force_next", "truth_force", "truth_f", "dynamometer")
-_V_VMEAS, _V_F, _V_FSD, _V_FNEXT, _V_FORCE, _V_FORCESD, _V_FORCENEXT, _V_TFORCE, _V_TF, _V_DYN = range(len(VALUES))
 
-# waiting samples of an axis: integer columns (seq, log, flags), float columns (t, v_meas, f_next,
-# force_next, then the filtered values of the next row f, f_sd, force, force_sd; NaN: none), done
-_I_SEQ, _I_LOG, _I_FLAGS = range(3)
-_F_T, _F_VMEAS, _F_FNEXT, _F_FORCENEXT, _F_F, _F_FSD, _F_FORCE, _F_FORCESD = range(8)
+_I_SEQ, _I_FLAGS = 0, 2  # rows of _Axis.ints (seq, log, flags)
+_F_T = 0  # row of _Axis.floats
 
 
-def _column(values, n: int, sqrt: bool = False) -> np.ndarray:
-    """A block column as float64, NaN where missing or non-finite (``sqrt``: a variance → a
-    standard deviation, NaN where negative)."""
+def _column(values, n: int) -> np.ndarray:
+    """A block column as float64, NaN where missing or non-finite."""
     if values is None:
         return np.full(n, np.nan)
     a = np.array(values, dtype=np.float64)  # None -> NaN
-    if sqrt:
-        with np.errstate(invalid="ignore"):
-            a = np.sqrt(a)
     a[~np.isfinite(a)] = np.nan
     return a
 
@@ -202,20 +195,48 @@ assert MESSAGE_HEADER == 31
 
 
 # ---- the pairer ---------------------------------------------------------------------------------
-@dataclass
+# waiting samples of an axis, oldest at ``head``: ``ints`` rows (seq, log, flags), ``floats`` rows
+# (t, v_meas, f_next, force_next, then the filtered values of the next row f, f_sd, force, force_sd;
+# NaN: none), ``done`` (the next row came)
+_N_INTS, _N_FLOATS = 3, 8
+
+
 class _Axis:
-    ints: np.ndarray = field(default_factory=lambda: np.empty((3, 0), dtype=np.int64))
-    floats: np.ndarray = field(default_factory=lambda: np.empty((8, 0)))
-    done: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=bool))
-    truth_seq: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # sorted, unique
-    truth_vals: np.ndarray = field(default_factory=lambda: np.empty((3, 0)))  # force, f, dynamometer
-    truth_end: int | None = None  # highest truth seq seen + 1 (None: no truth yet)
-    last_ns: int = -1
-    released: int | None = None  # seq of the last sample written
+    __slots__ = ("ints", "floats", "done", "head", "tail", "truth_seq", "truth_vals", "truth_end", "last_ns",
+                 "released")
+
+    def __init__(self, capacity: int = 256) -> None:
+        self.ints = np.empty((_N_INTS, capacity), dtype=np.int64)
+        self.floats = np.empty((_N_FLOATS, capacity))
+        self.done = np.empty(capacity, dtype=np.bool_)
+        self.head = self.tail = 0
+        self.truth_seq = np.empty(0, dtype=np.int64)  # sorted, unique
+        self.truth_vals = np.empty((3, 0))  # force, f, dynamometer
+        self.truth_end: int | None = None  # highest truth seq seen + 1 (None: no truth yet)
+        self.last_ns = -1
+        self.released: int | None = None  # seq of the last sample written
 
     @property
     def pending(self) -> int:
-        return int(self.done.size)
+        return self.tail - self.head
+
+    def room(self, n: int) -> None:
+        """Make room for ``n`` more samples after ``tail`` (moves the waiting ones to the front, grows)."""
+        cap = self.done.size
+        if self.tail + n <= cap:
+            return
+        k = self.pending
+        if k + n > cap // 2:
+            cap = max(2 * cap, 2 * (k + n))
+            ints, floats, done = (np.empty((_N_INTS, cap), dtype=np.int64), np.empty((_N_FLOATS, cap)),
+                                  np.empty(cap, dtype=np.bool_))
+        else:
+            ints, floats, done = self.ints, self.floats, self.done
+        ints[:, :k] = self.ints[:, self.head:self.tail]
+        floats[:, :k] = self.floats[:, self.head:self.tail]
+        done[:k] = self.done[self.head:self.tail]
+        self.ints, self.floats, self.done = ints, floats, done
+        self.head, self.tail = 0, k
 
 
 class ScalarsPairer:
@@ -252,16 +273,16 @@ class ScalarsPairer:
         n = len(block.t)
         return self.add_rows(
             block.machine, block.axis, block.seq, np.array(block.t, dtype=np.float64), last_ns,
-            v_meas=_column(block.v_meas, n), f=_column(block.f, n), f_sd=_column(block.f_var, n, sqrt=True),
-            f_next=_column(block.f_next, n), force=_column(block.force, n),
-            force_sd=_column(block.force_var, n, sqrt=True), force_next=_column(block.force_next, n),
-            flags=np.array(block.flags, dtype=np.int64))
+            v_meas=_column(block.v_meas, n), f=_column(block.f, n), f_var=_column(block.f_var, n),
+            f_next=_column(block.f_next, n), force=_column(block.force, n), force_var=_column(block.force_var, n),
+            force_next=_column(block.force_next, n), flags=np.array(block.flags, dtype=np.int64))
 
-    def add_rows(self, machine: str, axis: str, seq0: int, t: np.ndarray, last_ns: int, *, v_meas, f, f_sd, f_next,
-                 force, force_sd, force_next, flags) -> list[ScalarsBatch]:
-        """:meth:`add_estimates` for rows given as columns (float64, NaN where missing; ``f_sd`` and
-        ``force_sd`` standard deviations; ``flags`` int64); ``t`` (s) of the ``n`` rows, the first
-        with sequence number ``seq0``; ``last_ns`` the log time of the last row (0 … 2⁶³ − 1 ns)."""
+    def add_rows(self, machine: str, axis: str, seq0: int, t: np.ndarray, last_ns: int, *, v_meas, f, f_var, f_next,
+                 force=None, force_var=None, force_next=None, flags) -> list[ScalarsBatch]:
+        """:meth:`add_estimates` for rows given as float64 columns (any value that is not finite, and a
+        negative variance, counts as missing; ``force*`` None: the model has no force scale) and
+        ``flags`` (int64); ``t`` (s) of the ``n`` rows, the first with sequence number ``seq0``;
+        ``last_ns`` the log time of the last row (0 … 2⁶³ − 1 ns)."""
         n = int(t.size)
         if n == 0:
             return []
@@ -272,26 +293,12 @@ class ScalarsPairer:
         span = t[-1] - t
         span[~(np.isfinite(span) & (span > 0.0))] = 0.0
         log_ns = last_ns - np.round(np.minimum(span, _MAX_SPAN_S) * 1e9).astype(np.int64)
-        seq = int(seq0) + np.arange(n, dtype=np.int64)
-        if st.pending and not st.done[-1]:
-            st.done[-1] = True
-            if st.ints[_I_SEQ, -1] == seq0 - 1:  # otherwise a gap: the values describe a sample never seen
-                st.floats[_F_F:, -1] = (f[0], f_sd[0], force[0], force_sd[0])
-        ints = np.empty((3, n), dtype=np.int64)
-        ints[_I_SEQ], ints[_I_LOG], ints[_I_FLAGS] = seq, log_ns, flags
-        floats = np.empty((8, n))
-        floats[_F_T], floats[_F_VMEAS], floats[_F_FNEXT], floats[_F_FORCENEXT] = t, v_meas, f_next, force_next
-        for row, col in ((_F_F, f), (_F_FSD, f_sd), (_F_FORCE, force), (_F_FORCESD, force_sd)):
-            floats[row, :-1] = col[1:]  # row i+1 describes sample i (consecutive within a block)
-            floats[row, -1] = np.nan
-        done = np.ones(n, dtype=bool)
-        done[-1] = False
-        if st.pending:
-            st.ints = np.concatenate((st.ints, ints), axis=1)
-            st.floats = np.concatenate((st.floats, floats), axis=1)
-            st.done = np.concatenate((st.done, done))
-        else:
-            st.ints, st.floats, st.done = ints, floats, done
+        if force is None:
+            force = force_var = force_next = _NO_FORCE if n <= _NO_FORCE.size else np.full(n, np.nan)
+        st.room(n)
+        _append(st.ints, st.floats, st.done, st.head, st.tail, int(seq0), t, log_ns, v_meas, f, f_var, f_next,
+                force, force_var, force_next, flags)
+        st.tail += n
         return self._ready(machine, axis, st)
 
     def add_truth(self, machine: str, axis: str, block: S.TruthBlock) -> list[ScalarsBatch]:
@@ -300,7 +307,7 @@ class ScalarsPairer:
         n = len(block.t)
         vals = np.stack((_column(block.force, n), _column(block.f, n), _column(block.dynamometer, n)))
         seq = block.seq + np.arange(n, dtype=np.int64)
-        floor = int(st.ints[_I_SEQ, 0]) if st.pending else (None if st.released is None else st.released + 1)
+        floor = int(st.ints[_I_SEQ, st.head]) if st.pending else (None if st.released is None else st.released + 1)
         if floor is not None and seq[0] < floor:
             keep = seq >= floor
             seq, vals = seq[keep], vals[:, keep]
@@ -351,63 +358,130 @@ class ScalarsPairer:
         if L == 0:
             return []
         truth_end = -1 if st.truth_end is None else st.truth_end
-        before = 0 if before_ns is None else max(int(before_ns), -(2**63))
+        before = 0 if before_ns is None else min(max(int(before_ns), -_MAX_NS), _MAX_NS)
         pos = np.empty(L, dtype=np.int64)
         ns = np.empty(L, dtype=np.int64)
-        r = _release(st.ints[_I_SEQ], st.ints[_I_LOG], st.done, st.truth_seq, truth_end,
+        vals = np.empty((len(VALUES), L))
+        r = _release(st.ints, st.floats, st.done, st.head, st.tail, st.truth_seq, st.truth_vals, truth_end,
                      self._expects((machine, axis)), self.hold_samples, before_ns is not None, before, force,
-                     st.last_ns, pos, ns)
+                     st.last_ns, pos, ns, vals)
         if r == 0:
             return []
         if r < 0:
             raise ValueError(f"scalars of {machine}/{axis}: log times beyond 2**63−1 ns")
-        ints, floats = st.ints[:, :r], st.floats[:, :r]
-        vals = np.empty((len(VALUES), r))
-        vals[_V_VMEAS], vals[_V_FNEXT], vals[_V_FORCENEXT] = floats[_F_VMEAS], floats[_F_FNEXT], floats[_F_FORCENEXT]
-        vals[_V_F], vals[_V_FSD], vals[_V_FORCE], vals[_V_FORCESD] = floats[_F_F:]
-        vals[_V_TFORCE:] = np.nan
-        hit = np.flatnonzero(pos[:r] >= 0)
-        if hit.size:  # the truth of these samples: paired, and gone from the table (a dict pop)
-            tpos = pos[hit]
-            vals[_V_TFORCE:, hit] = st.truth_vals[:, tpos]
+        used = pos[:r]
+        used = used[used >= 0]
+        if used.size:  # the truth of these samples: paired, and gone from the table (a dict pop)
             keep = np.ones(st.truth_seq.size, dtype=bool)
-            keep[tpos] = False
+            keep[used] = False
             st.truth_seq, st.truth_vals = st.truth_seq[keep], st.truth_vals[:, keep]
+        h = st.head
         st.last_ns = int(ns[r - 1])
-        st.released = int(ints[_I_SEQ, -1])
-        batch = ScalarsBatch(machine, axis, ns[:r], ints[_I_SEQ].copy(), floats[_F_T].copy(), ints[_I_FLAGS].copy(),
-                             vals)
-        st.ints, st.floats, st.done = st.ints[:, r:], st.floats[:, r:], st.done[r:]
+        st.released = int(st.ints[_I_SEQ, h + r - 1])
+        batch = ScalarsBatch(machine, axis, ns[:r], st.ints[_I_SEQ, h:h + r].copy(), st.floats[_F_T, h:h + r].copy(),
+                             st.ints[_I_FLAGS, h:h + r].copy(), vals[:, :r])
+        st.head += r
+        if st.head == st.tail:
+            st.head = st.tail = 0
         return [batch]
 
 
+_NO_FORCE = np.full(4096, np.nan)
+_NO_FORCE.setflags(write=False)
+
+
 @njit(cache=True, nogil=True)
-def _release(seq, log, done, truth_seq, truth_end, expects, hold, has_before, before, force, last_ns, pos, ns):
+def _value(x):
+    return x if np.isfinite(x) else np.nan
+
+
+@njit(cache=True, nogil=True)
+def _sd(var):
+    return np.sqrt(var) if np.isfinite(var) and var >= 0.0 else np.nan
+
+
+@njit(cache=True, nogil=True)
+def _append(ints, floats, done, head, tail, seq0, t, log_ns, v_meas, f, f_var, f_next, force, force_var, force_next,
+            flags):
+    """Append the ``n`` rows at ``tail`` (room made): row i is sample seq0 + i; it waits for row i+1, whose
+    filtered values (f, sd of f_var, force, sd of force_var) describe it — within the block always, and
+    for the sample waiting before the block when its seq is seq0 − 1 (else a gap: nothing to pair)."""
+    n = t.shape[0]
+    if tail > head and not done[tail - 1]:
+        done[tail - 1] = True
+        if ints[0, tail - 1] == seq0 - 1:
+            floats[4, tail - 1] = _value(f[0])
+            floats[5, tail - 1] = _sd(f_var[0])
+            floats[6, tail - 1] = _value(force[0])
+            floats[7, tail - 1] = _sd(force_var[0])
+    for i in range(n):
+        k = tail + i
+        ints[0, k] = seq0 + i
+        ints[1, k] = log_ns[i]
+        ints[2, k] = flags[i]
+        floats[0, k] = t[i]
+        floats[1, k] = _value(v_meas[i])
+        floats[2, k] = _value(f_next[i])
+        floats[3, k] = _value(force_next[i])
+        if i + 1 < n:
+            floats[4, k] = _value(f[i + 1])
+            floats[5, k] = _sd(f_var[i + 1])
+            floats[6, k] = _value(force[i + 1])
+            floats[7, k] = _sd(force_var[i + 1])
+            done[k] = True
+        else:
+            floats[4, k] = np.nan
+            floats[5, k] = np.nan
+            floats[6, k] = np.nan
+            floats[7, k] = np.nan
+            done[k] = False
+
+
+@njit(cache=True, nogil=True)
+def _release(ints, floats, done, head, tail, truth_seq, truth_vals, truth_end, expects, hold, has_before, before,
+             force, last_ns, pos, ns, vals):
     """How many waiting samples go out now (a prefix), walking them in order as the per-sample rule
     says: sample j waits (and so do all after it) unless ``force``, or more than ``hold`` samples wait
     from j on, or it was stamped before ``before`` (when ``has_before``), or it has its next row
     (``done``) and does not wait for truth — it waits when truth is expected, none is there for its
     ``seq`` (a truth value goes to the first sample of that seq only) and the truth seen so far does
-    not reach past it (``truth_end`` < 0: none seen). Fills ``pos`` (the truth position of each
-    released sample, −1: none) and ``ns`` (stamps: max(log, previous + 1, 0), the previous starting at
-    ``last_ns``); returns the count, or −1 when a stamp would pass 2⁶³ − 1."""
-    L = seq.shape[0]
+    not reach past it (``truth_end`` < 0: none seen). Fills, per released sample, ``pos`` (its truth
+    position, −1: none), ``ns`` (stamps: max(log, previous + 1, 0), the previous starting at
+    ``last_ns``) and ``vals`` (rows :data:`VALUES`); returns the count, or −1 when a stamp would pass
+    2⁶³ − 1."""
+    L = tail - head
     T = truth_seq.shape[0]
     used = np.zeros(T, dtype=np.bool_)
     prev = last_ns
     for j in range(L):
-        s = seq[j]
+        k = head + j
+        s = ints[0, k]
         p = np.searchsorted(truth_seq, s)
         hit = p < T and truth_seq[p] == s and not used[p]
-        if not force and L - j <= hold and (not has_before or log[j] >= before):
-            if not done[j] or (expects and not hit and (truth_end < 0 or s >= truth_end)):
+        if not force and L - j <= hold and (not has_before or ints[1, k] >= before):
+            if not done[k] or (expects and not hit and (truth_end < 0 or s >= truth_end)):
                 return j
-        pos[j] = p if hit else -1
-        if hit:
-            used[p] = True
         if prev == 9223372036854775807:
             return -1
-        stamp = max(log[j], prev + 1, 0)
+        stamp = max(ints[1, k], prev + 1, 0)
         ns[j] = stamp
         prev = stamp
+        vals[0, j] = floats[1, k]   # v_meas
+        vals[1, j] = floats[4, k]   # f
+        vals[2, j] = floats[5, k]   # f_sd
+        vals[3, j] = floats[2, k]   # f_next
+        vals[4, j] = floats[6, k]   # force
+        vals[5, j] = floats[7, k]   # force_sd
+        vals[6, j] = floats[3, k]   # force_next
+        if hit:
+            used[p] = True
+            pos[j] = p
+            vals[7, j] = truth_vals[0, p]
+            vals[8, j] = truth_vals[1, p]
+            vals[9, j] = truth_vals[2, p]
+        else:
+            pos[j] = -1
+            vals[7, j] = np.nan
+            vals[8, j] = np.nan
+            vals[9, j] = np.nan
     return L

@@ -74,18 +74,6 @@ def _as_column(values) -> np.ndarray:
     return np.array(values, dtype=np.float64)
 
 
-def _finite(a: np.ndarray) -> np.ndarray:
-    """``a`` with NaN where it is not finite (a copy only when needed)."""
-    ok = np.isfinite(a)
-    return a if ok.all() else np.where(ok, a, np.nan)
-
-
-def _sd(var: np.ndarray) -> np.ndarray:
-    """Standard deviation of a variance column, NaN where it is not finite or negative."""
-    with np.errstate(invalid="ignore"):
-        return _finite(np.sqrt(var))
-
-
 _json = msgspec.json.Encoder()
 #: JSON keys of the columns of an EstimateBlock after machine, axis and seq, in field order
 _COLUMN_KEYS = [f',"{name}":'.encode() for name in EstimateBlock.__struct_fields__[3:]]
@@ -136,17 +124,14 @@ class EstimateRows:
             self._json = b"".join(body)
         return self._json
 
-    def scalar_columns(self) -> dict[str, np.ndarray]:
-        """``v_meas, f, f_sd, f_next, force, force_sd, force_next`` (NaN where missing or not finite;
-        standard deviations from the variances) and ``flags``: the keyword arguments of
-        :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
-        r = self.rows
-        nan = np.full(self.t.size, np.nan)
-        fc = (nan, nan, nan) if self.force is None else (_finite(self.force[0]), _sd(self.force[1]),
-                                                          _finite(self.force[2]))
-        return {"v_meas": _finite(self.v_meas), "f": _finite(r[online.R_F]), "f_sd": _sd(r[online.R_FVAR]),
-                "f_next": _finite(r[online.R_FNEXT]), "force": fc[0], "force_sd": fc[1], "force_next": fc[2],
-                "flags": self.irows[online.R_FLAGS]}
+    def scalar_columns(self) -> dict[str, np.ndarray | None]:
+        """The columns :meth:`feedio.scalars.ScalarsPairer.add_rows` takes (views, no copies):
+        ``v_meas, f, f_var, f_next``, ``force, force_var, force_next`` (None without a force scale) and
+        ``flags``."""
+        r, fc = self.rows, self.force
+        return {"v_meas": self.v_meas, "f": r[online.R_F], "f_var": r[online.R_FVAR], "f_next": r[online.R_FNEXT],
+                "force": None if fc is None else fc[0], "force_var": None if fc is None else fc[1],
+                "force_next": None if fc is None else fc[2], "flags": self.irows[online.R_FLAGS]}
 
 
 class AxisEstimator:

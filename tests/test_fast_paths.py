@@ -76,8 +76,9 @@ def test_estimator_rows_are_the_estimate_block(trial, work):
         blk = est.block()
         assert est.json() == S.encode(blk)
         cols = est.scalar_columns()
-        np.testing.assert_array_equal(cols["f_sd"], np.sqrt(np.array(blk.f_var, dtype=float)))
+        np.testing.assert_array_equal(cols["f_var"], np.array(blk.f_var, dtype=float))
         np.testing.assert_array_equal(cols["force"], np.array(blk.force, dtype=float))
+        np.testing.assert_array_equal(cols["flags"], blk.flags)
 
 
 # ---- the stage rings ---------------------------------------------------------------------------------
@@ -235,6 +236,16 @@ def test_mcap_process_sink_reports_a_failing_writer_in_the_parent_status(tmp_pat
     st = sink.status()
     assert st["failures"] >= 1 and "Is a directory" in st["last_error"], st
     assert st["accepted"] == 50 and st["dropped"] == 0
+
+
+def test_mcap_process_sink_queue_is_bounded_in_bytes(tmp_path):
+    sink = McapProcessSink(tmp_path / "b.mcap", metas=[_meta()], max_bytes=4096, start_timeout=60)
+    try:
+        assert not sink.offer_encoded(b"S", b" " * 5000, time.time_ns())  # more than the whole bound: refused
+        assert sink.status()["dropped"] == 1 and sink.status()["accepted"] == 0
+    finally:
+        assert sink.close(timeout=60)
+    assert sink.status()["queued_bytes"] == 0
 
 
 def _meta():

@@ -373,13 +373,15 @@ class McapSink(QueuedSink):
 # the MCAP log in a child process
 # ==============================================================================================
 _FRAME = struct.Struct("<cqII")  # tag, received_ns, head length, payload length
+_SEND_BYTES = 8 * 2**20  # a pipe message holds the frames of up to about this many bytes
 
 
 class McapProcessSink(QueuedSink):
     """A :class:`McapSink` run in a child process, fed with encoded messages (module docstring).
 
     Same arguments as :class:`McapSink` (``metas`` required: the child cannot ask for them),
-    plus ``start_timeout`` (s to wait for the child to start), ``report_interval`` (s between
+    plus ``max_bytes`` (the queue's bound in payload bytes, besides ``maxsize`` items),
+    ``start_timeout`` (s to wait for the child to start), ``report_interval`` (s between
     the child's status reports) and ``nice`` (the child's niceness increment). :meth:`status`
     adds the child's counters: ``written``, ``failures`` (with undecodable frames), ``dropped``
     (with the child's own queue drops), ``last_error``, ``state`` and the MCAP fields (``files``,
@@ -389,8 +391,9 @@ class McapProcessSink(QueuedSink):
 
     def __init__(self, path: str | os.PathLike, rotate_bytes: int | None = None, rotate_seconds: float | None = None,
                  *, metas: S.TrialMeta | Sequence[S.TrialMeta], flush_seconds: float = 0.5, maxsize: int = 4096,
-                 name: str = "mcap", scalars: bool = True, max_pending_bytes: int | None = None,
-                 start_timeout: float = 60.0, report_interval: float = 0.5, nice: int = 10) -> None:
+                 max_bytes: int = 64 * 2**20, name: str = "mcap", scalars: bool = True,
+                 max_pending_bytes: int | None = None, start_timeout: float = 60.0, report_interval: float = 0.5,
+                 nice: int = 10) -> None:
         path = Path(path)
         if not path.parent.is_dir():
             raise FileNotFoundError(f"directory of the MCAP log {str(path)!r} does not exist")
@@ -416,6 +419,8 @@ class McapProcessSink(QueuedSink):
             raise OSError(f"MCAP sink: the logging process {why}")
         self.path = path
         self.child_status: dict[str, Any] = {}
+        self.max_bytes = int(max_bytes)
+        self._queued_bytes = 0
         super().__init__(maxsize, name=name)
 
     def _receive(self, timeout: float) -> dict | None:
@@ -430,8 +435,19 @@ class McapProcessSink(QueuedSink):
     def offer_encoded(self, tag: bytes, payload: bytes, received_ns: int, head: bytes = b"") -> bool:
         """Queue one encoded message: ``tag`` ``b"S"`` (a SampleBlock as received), ``b"E"`` (an
         EstimateBlock as published) or ``b"T"`` (a TruthBlock, ``head`` = ``b"machine\\0axis"``);
-        ``received_ns`` its log time (ns since the epoch)."""
-        return super().offer((tag, int(received_ns), head, payload))
+        ``received_ns`` its log time (ns since the epoch). Refused and counted (``dropped``) when the
+        queue holds ``maxsize`` items or ``max_bytes`` payload bytes."""
+        size = len(payload) + len(head)
+        with self._lock:
+            if self._queued_bytes + size > self.max_bytes:
+                self.dropped += 1
+                return False
+            self._queued_bytes += size
+        if super().offer((tag, int(received_ns), head, payload)):
+            return True
+        with self._lock:
+            self._queued_bytes -= size
+        return False
 
     def offer(self, item: Any, received_ns: int | None = None) -> bool:
         """Queue a :class:`SampleBlock` or :class:`EstimateBlock` (encoded here)."""
@@ -469,15 +485,26 @@ class McapProcessSink(QueuedSink):
         out = {k: c.get(k, d) for k, d in (("files", []), ("current_file", None), ("incomplete_files", []),
                                            ("messages_lost", 0), ("flush_failures", 0), ("pending_bytes", 0),
                                            ("scalars_written", 0))}
-        out.update(process_alive=self._proc.is_alive(), pid=self._proc.pid, undecodable=int(c.get("undecodable", 0)))
+        out.update(process_alive=self._proc.is_alive(), pid=self._proc.pid, undecodable=int(c.get("undecodable", 0)),
+                   queued_bytes=self._queued_bytes)
         return out
 
     # ---- worker side (a thread of the monitor process) ----------------------------------------
     def handle_batch(self, items: Sequence[Any]) -> None:
-        parts = []
-        for tag, rx, head, payload in items:
-            parts += (_FRAME.pack(tag, rx, len(head), len(payload)), head, payload)
-        self._conn.send_bytes(b"".join(parts))
+        parts: list[bytes] = []
+        size = 0
+        try:
+            for tag, rx, head, payload in items:
+                parts += (_FRAME.pack(tag, rx, len(head), len(payload)), head, payload)
+                size += len(head) + len(payload) + _FRAME.size
+                if size >= _SEND_BYTES:  # one pipe message of at most about this much
+                    self._conn.send_bytes(b"".join(parts))
+                    parts, size = [], 0
+            if parts:
+                self._conn.send_bytes(b"".join(parts))
+        finally:
+            with self._lock:
+                self._queued_bytes -= sum(len(h) + len(p) for _, _, h, p in items)
 
     def _take_reports(self, timeout: float = 0.0) -> bool:
         """Read the child's status reports waiting on the pipe; True once the final one arrived."""
