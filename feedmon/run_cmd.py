@@ -176,7 +176,7 @@ def _run_live(cfg: RunConfig) -> int:
 
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
-    sys.setswitchinterval(0.0001)
+    sys.setswitchinterval(0.0005)
     axes = load_axes(cfg.model)
     warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     store = StateStore(cfg.state_dir)

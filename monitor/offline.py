@@ -421,11 +421,9 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
         drains: dict[str, tuple[tuple | None, list[tuple]]] = {}
 
         def stream(conn) -> Iterator[tuple[tuple, str, list[tuple]]]:
-            while True:
-                try:
-                    msg = conn.recv_bytes()
-                except EOFError:
-                    raise RuntimeError("an offline worker process ended without finishing") from None
+            for msg in _read_ahead(conn):
+                if msg is None:
+                    raise RuntimeError("an offline worker process ended without finishing")
                 view, pos = memoryview(msg), 0
                 while pos < len(view):
                     tag = view[pos:pos + 1].tobytes()
@@ -466,6 +464,48 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                 p.join(5)
             conn.close()
     return {k: sum(r[k] for r in results) for k in ("samples", "estimates", "truth")}
+
+
+#: pipe messages of one worker read ahead (each up to ~_SEND_BYTES): a worker whose axes run ahead in
+#: time is not held by the merge, which waits for the others (about 64 MiB per worker at most)
+_READ_AHEAD = 256
+
+
+def _read_ahead(conn) -> Iterator[bytes | None]:
+    """The pipe messages of a worker, read on a thread of their own into a bounded queue, until the
+    worker closes the pipe (then None)."""
+    q: queue.Queue = queue.Queue(maxsize=_READ_AHEAD)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        while True:
+            try:
+                msg = conn.recv_bytes()
+            except (EOFError, OSError):
+                put(None)
+                return
+            if not put(msg):
+                return
+
+    th = threading.Thread(target=run, name="offline-merge-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            msg = q.get()
+            yield msg
+            if msg is None:
+                return
+    finally:
+        stop.set()
 
 
 def _log_format() -> str | None:
