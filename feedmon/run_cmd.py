@@ -200,11 +200,12 @@ def _run_live(cfg: RunConfig) -> int:
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
         if cfg.rrd is not None or cfg.serve_rerun is not None:
+            from monitor.sinks.forward import RerunForwardSink
             from monitor.sinks.rerun_layout import describe_model
-            from monitor.sinks.rerun_process import RerunProcessSink
 
             info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
-            rs_ = RerunProcessSink(cfg.rrd, cfg.serve_rerun, axis_info=info)  # own process: never holds our GIL
+            # own process: never holds our GIL; fed the bytes received and published (no second encoding)
+            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info)
             sinks.append(rs_)
             if cfg.rrd:
                 _say(f"Rerun recording: {cfg.rrd}")

@@ -66,6 +66,7 @@ __all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError"]
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
 _TRAINED = "estimator.trained"
+_C_SEQ_RANGE = online.COUNTERS.index("rejected_seq_range")
 
 
 def _as_column(values) -> np.ndarray:
@@ -180,8 +181,6 @@ class AxisEstimator:
         self._force_div = None if b is None else np.array([[-b], [b * b], [-b]])
         #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
         self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
-        self._seq_refused = np.zeros(len(online.COUNTERS), dtype=np.int64)
-        self._seq_refused[online.COUNTERS.index("rejected_seq_range")] = 1
         self._state = online.new_state()
         self._xbuf, self._obuf = online.new_scratch()
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
@@ -234,7 +233,8 @@ class AxisEstimator:
         if type(seq0) is not int and (isinstance(seq0, bool) or not isinstance(seq0, Integral)) \
                 or not 0 <= seq0 <= SEQ_MAX - (n - 1):
             c["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
-            self.block_counts = self._seq_refused
+            self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
+            self.block_counts[_C_SEQ_RANGE] = n
             return None
         seq0 = int(seq0)
         t = np.array(block.t, dtype=np.float64)

@@ -35,6 +35,7 @@ import numpy as np
 
 from feedio import schema as S
 from feedio.limits import DEFAULT, NAME_RE, InputLimits
+from kernels.online import COUNTERS
 
 from .axes import AxisRuntime
 from .estimator import EstimateRows
@@ -84,8 +85,6 @@ class Pipeline:
         self._key_prefix = f"{prefix}/"
         self._axis_by_key = {f"{prefix}/{m}/{a}/{kind}": ax for (m, a), ax in axes.items()
                              for kind in ("samples", "truth")}
-        from kernels.online import COUNTERS
-
         # positions of the logged reasons in the estimator's per-block counts (all of them are counted there)
         self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS]) \
             if all(k in COUNTERS for k, _ in _LOGGED_REASONS) else None

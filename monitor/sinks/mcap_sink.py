@@ -50,7 +50,7 @@ The live monitor runs the MCAP log in a child process (:class:`McapProcessSink`)
 decoding, pairing, JSON encoding, zstd compression and file I/O never hold the monitor's
 interpreter lock. The monitor hands it the bytes it already has — each sample block as
 received from Zenoh, each estimate block as published (``offer_encoded``) — no pickling, no
-second encoding; its worker thread sends what gathered (about every 10 ms) in one write to a
+second encoding; its worker thread sends what gathered (about every 50 ms) in one write to a
 pipe. The child decodes them (the schema checks again: what is logged went through the same
 decoder as before) and runs a :class:`McapSink`, so the file is the same as with the sink
 in-process. Wire format: frames ``tag (1 byte), received_ns (int64), head length (u32),
