@@ -223,7 +223,8 @@ class Monitor:
             self._refuse(reason, key)
             return
         try:
-            self._guarded(key, payload.to_bytes(), t, t, rx)
+            data = payload.to_bytes()
+            self._guarded(key, data, t, time.perf_counter(), rx)
         finally:
             with self._cv:
                 self._busy = False

@@ -139,8 +139,9 @@ STAGES = ("queue", "decode", "estimate", "encode", "publish", "sinks")
 class StageRing:
     """Fixed-size ring of per-message stage times (µs), one row per stage of :data:`STAGES`:
 
-    * ``queue``: from the Zenoh callback to the start of the work (0 when the message is
-      estimated on arrival, the time it waited in the input queue otherwise);
+    * ``queue``: from the arrival in the Zenoh callback to the start of decoding: the callback's
+      own bookkeeping (size check, lock, copy of the payload) and, for a message that went through
+      the input queue, its wait there and the hand-over to the estimator thread;
     * ``decode``: JSON → :class:`~feedio.schema.SampleBlock`, schema and key checks;
     * ``estimate``: routing and the estimator (the compiled tracker loop and the Python around it);
     * ``encode``: the :class:`~feedio.schema.EstimateBlock` and its JSON;
