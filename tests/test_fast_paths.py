@@ -373,6 +373,17 @@ def test_offline_cli_forks_workers_and_writes_the_same_file(two_axes):
     assert outs[0] == outs[1]
 
 
+def test_jobs_option_is_checked(two_axes, tmp_path, capsys):
+    from feedmon.cli import main
+
+    base = ["run", "--from", str(two_axes / "two.mcap"), "-o", str(tmp_path / "o.mcap"), "--model",
+            str(two_axes / "X.model.toml")]
+    assert main([*base, "--jobs", "0"]) == 2
+    assert "--jobs" in capsys.readouterr().err
+    assert main(["run", "--model", str(two_axes / "X.model.toml"), "--jobs", "2"]) == 2
+    assert "--jobs is for --from" in capsys.readouterr().err
+
+
 def test_offline_worker_error_is_raised_clearly(two_axes, tmp_path):
     """A trial damaged after its first chunk: the worker's error reaches the caller (named file and
     offset), no hang, no partial success."""
