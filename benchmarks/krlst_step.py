@@ -1,315 +1,187 @@
-"""KRLS-T step latency: the @njit core against a plain NumPy implementation.
+"""KRLS-T step latency: the ``@njit`` core against the NumPy reference, measured in one run.
 
-    python benchmarks/krlst_step.py [--steps 20000] [--budgets 50 100 200 400]
+    python benchmarks/krlst_step.py [--steps 4000] [--numpy-steps 1500]
 
-Streams a 333 Hz locally periodic signal (55 Hz + 110 Hz + noise) through a
-tracker with the thesis hyperparameters (σ1 = 1.2, σ2 = 0.495, ψ = 1/55 s,
-γ = 5.85, λ = 0.996) after a warm-up that fills the dictionary, so every
-measured step predicts, updates and prunes (or does a reduced update).
-Each call is timed with ``time.perf_counter_ns``:
+Streams after a warm-up that fills the dictionary, so every measured step predicts,
+updates and prunes (or does a reduced update); γ = 5.85, λ = 0.996, ε_j = 1e-6 (thesis):
 
-* ``core``: one call of ``kernels._krlst_core.learn`` from Python (includes the
-  numba dispatch, reported separately as ``dispatch``: an empty @njit call with
-  the same arguments);
-* ``core+table``: the same with the uniform-grid lag table (``grid_step``);
-* ``learn_many``: wall time of the njit loop over the same steps / steps;
-* ``numpy``: :class:`benchmarks.krlst_numpy.NumpyKRLST` (fewer steps at large M);
-* ``learn_one``: the public Python API, table on.
-* ``refine``: ``core+table`` with ``refine=True`` (iterative refinement of the Q update).
+* time kernel: ``LocallyPeriodic(σ1=1.2, σ2=0.495, ψ=1/55 s)`` on ``t`` at 333 Hz (55 Hz +
+  110 Hz + noise), lag table on;
+* spindle kernel: ``Product(SquaredExponential(1.2, dims=0), Periodic(0.495, 2π/4, dims=1))``
+  on ``x = (t, θ)``, θ the cumulative spindle angle (rad) at ~3000 rpm with a slow speed
+  ripple, ψ one tooth of a 4-tooth cutter; the disturbance is periodic in θ.
 
-Second table, the monitor's per-sample work (train on the previous sample, predict
-the next one), table on:
+Rows (µs per sample, median and p99 over the timed samples):
 
-* ``learn+pred``: ``learn_one(x_k, y_k)`` then ``predict_one(x_{k+1}, forget=True)``
-  (the old way: the predict passes run twice);
-* ``update+next``: ``update(y_k)`` then ``predict_next(x_{k+1})`` (split step);
-* ``core l+p`` / ``core u+a``: the same pairs as direct core calls;
-* ``track_many``: wall time of ``KRLST.track_many`` over blocks of 32 samples / sample.
+* ``split step``: the monitor's split step, core ``update(y_k)`` then ``arm(x_{k+1})``
+  (``refine=True`` as the monitor runs it), two calls from Python per sample
+  (``KRLST.update`` / ``KRLST.predict_next`` make the same two calls);
+* ``… compiled``: the same two calls inside a compiled loop, as ``kernels.online.track_block``
+  runs them (chunks of 20 samples timed, the loop given the two base buffers; p99 is of the
+  chunk means);
+* ``step M=400``: one ``learn`` (arm + update) from Python, lag table on, ``refine=False``
+  (kafbox's recursion) and ``refine=True``.
 
-Third: ``refresh_inverse`` (one re-inversion of Q) and the k_t row cost per element.
+The NumPy column is :class:`kernels.krlst_numpy.NumpyKRLST` (kafbox's algorithm in
+whole-array NumPy) on the same stream and kernel, measured in the same run, and the
+ratio is NumPy median / core median. The machine may be shared: compare medians and
+same-run ratios, and run it more than once.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from numba import njit
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from krlst_numpy import NumpyKRLST  # noqa: E402
-
-from kernels import KRLST, LocallyPeriodic  # noqa: E402
-from kernels import _krlst_core as core  # noqa: E402
-from kernels.covariance import kernel_row_at, kernel_value  # noqa: E402
+from kernels import KRLST, LocallyPeriodic, Periodic, Product, SquaredExponential
+from kernels import _krlst_core as core
+from kernels.krlst_numpy import NumpyKRLST
 
 TS = 1 / 333
-HYPER = dict(gamma=5.85, forgetting=0.996, jitter=1e-6)
+HYPER = {"gamma": 5.85, "forgetting": 0.996, "jitter": 1e-6}
+CHUNK = 20
 
 
-def stream(n, seed=0):
+def time_stream(n, seed=0):
     rng = np.random.default_rng(seed)
     t = np.arange(n) * TS
     y = 1e-3 * (np.sin(2 * np.pi * 55 * t) + 0.5 * np.sin(2 * np.pi * 110 * t + 0.3))
-    return t, y + 1e-4 * rng.standard_normal(n)
+    return t.reshape(-1, 1), y + 1e-4 * rng.standard_normal(n)
 
 
-def kernel():
+def spindle_stream(n, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * TS
+    theta = 2 * np.pi * 50.0 * t + 0.2 * np.sin(2 * np.pi * 0.3 * t)        # 3000 rpm, slow ripple
+    y = 1e-3 * (np.sin(4 * theta) + 0.3 * np.sin(8 * theta + 0.5))
+    return np.column_stack([t, theta]), y + 1e-4 * rng.standard_normal(n)
+
+
+def time_kernel():
     return LocallyPeriodic(sigma1=1.2, sigma2=0.495, period=1 / 55)
 
 
-@njit
-def _empty(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, y, out):
-    out[0] = y
+def spindle_kernel():
+    return Product(SquaredExponential(1.2, dims=0), Periodic(0.495, 2 * np.pi / 4, dims=1))
 
 
-def time_core(M, t, y, warm, steps, grid_step, fn=None, **kw):
-    tr = KRLST(kernel(), budget=M, grid_step=grid_step, refresh_every=0, **kw, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    kinds, params, cols = tr._spec
-    X, Q, S, K, mu, order, ist, fst, P = tr._state
-    W, tab, out = tr._W, tr._tab, tr._out
-    fn = core.learn if fn is None else fn
-    xs = t[warm:warm + steps].reshape(-1, 1).copy()
-    ys = y[warm:warm + steps].copy()
+def _warm(kernel, X, y, M, grid_step, refine):
+    tr = KRLST(kernel, budget=M, grid_step=grid_step, refresh_every=0, refine=refine, **HYPER)
+    warm = 4 * M + 1000
+    tr.learn_many(X[:warm], y[:warm])
+    return tr, warm
+
+
+def time_split_calls(kernel, X, y, M, grid_step, steps):
+    """µs per sample: ``update(y_k)`` then ``arm(x_{k+1})``, two Python calls."""
+    tr, w = _warm(kernel, X, y, M, grid_step, True)
+    tr.predict_next(X[w])
+    fbuf, ibuf = tr.core_buffers(X[0])
+    out = np.zeros(core.N_OUT)
     ns = np.empty(steps, dtype=np.int64)
     pc = time.perf_counter_ns
+    update, arm = core.update_buffers, core.arm_buffers
     for i in range(steps):
-        x = xs[i]
-        yi = ys[i]
+        yk, xn = y[w + i], X[w + i + 1]
         a = pc()
-        fn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, yi, out)
+        update(fbuf, ibuf, yk, out)
+        arm(fbuf, ibuf, xn, out)
         ns[i] = pc() - a
     return ns / 1e3
 
 
-def time_learn_many(M, t, y, warm, steps, grid_step):
-    tr = KRLST(kernel(), budget=M, grid_step=grid_step, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    a = time.perf_counter()
-    res = tr.learn_many(t[warm:warm + steps], y[warm:warm + steps])
-    return (time.perf_counter() - a) / steps * 1e6, float(np.mean(res["reduced"]))
+@njit(nogil=True)
+def _split_loop(fbuf, ibuf, xs, ys, out):
+    st = core.state_of(fbuf, ibuf)
+    for i in range(ys.shape[0]):
+        core.update(st, ys[i], out)
+        core.arm(st, xs[i], out)
 
 
-def time_learn_one(M, t, y, warm, steps):
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
+def time_split_compiled(kernel, X, y, M, grid_step, steps):
+    """µs per sample of the same two calls in a compiled loop (means of CHUNK samples)."""
+    tr, w = _warm(kernel, X, y, M, grid_step, True)
+    tr.predict_next(X[w])
+    fbuf, ibuf = tr.core_buffers(X[0])
+    out = np.zeros(core.N_OUT)
+    _split_loop(fbuf, ibuf, X[w + 1:w + 1], y[w:w], out)
+    means = []
+    pc = time.perf_counter_ns
+    for i in range(0, steps - CHUNK + 1, CHUNK):
+        xs, ys = X[w + 1 + i:w + 1 + i + CHUNK], y[w + i:w + i + CHUNK]
+        a = pc()
+        _split_loop(fbuf, ibuf, xs, ys, out)
+        means.append((pc() - a) / CHUNK)
+    return np.array(means) / 1e3
+
+
+def time_learn(kernel, X, y, M, grid_step, refine, steps):
+    """µs per ``learn`` (arm + update) call from Python."""
+    tr, w = _warm(kernel, X, y, M, grid_step, refine)
+    fbuf, ibuf = tr.core_buffers(X[0])
+    out = np.zeros(core.N_OUT)
     ns = np.empty(steps, dtype=np.int64)
     pc = time.perf_counter_ns
+    learn = core.learn_buffers
     for i in range(steps):
-        ti, yi = float(t[warm + i]), float(y[warm + i])
+        x, yi = X[w + i], y[w + i]
         a = pc()
-        tr.learn_one(ti, yi)
+        learn(fbuf, ibuf, x, yi, out)
         ns[i] = pc() - a
     return ns / 1e3
 
 
-def time_numpy(M, t, y, warm, steps):
-    nk = NumpyKRLST(kernel(), budget=M, **HYPER)
+def time_numpy(kernel, X, y, M, steps):
+    nk = NumpyKRLST(kernel, budget=M, **HYPER)
+    warm = 4 * M + 1000
     for i in range(warm):
-        nk.learn_one(t[i], y[i])
+        nk.learn_one(X[i], y[i])
     ns = np.empty(steps, dtype=np.int64)
     pc = time.perf_counter_ns
     for i in range(steps):
         a = pc()
-        nk.learn_one(t[warm + i], y[warm + i])
+        nk.learn_one(X[warm + i], y[warm + i])
         ns[i] = pc() - a
     return ns / 1e3
-
-
-def time_monitor_pairs(M, t, y, warm, steps):
-    """µs per monitored sample: old (learn_one + predict_one) vs split (update + predict_next)."""
-    pc = time.perf_counter_ns
-    res = {}
-    # -- public API
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    ns = np.empty(steps, dtype=np.int64)
-    for i in range(steps):
-        tk, yk, tn = float(t[warm + i]), float(y[warm + i]), float(t[warm + i + 1])
-        a = pc()
-        tr.learn_one(tk, yk)
-        tr.predict_one(tn, noise=False, forget=True)
-        ns[i] = pc() - a
-    res["learn+pred"] = ns / 1e3
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    tr.predict_next(float(t[warm]))
-    ns = np.empty(steps, dtype=np.int64)
-    for i in range(steps):
-        yk, tn = float(y[warm + i]), float(t[warm + i + 1])
-        a = pc()
-        tr.update(yk)
-        tr.predict_next(tn)
-        ns[i] = pc() - a
-    res["update+next"] = ns / 1e3
-    # -- core calls
-    xs = t[warm:warm + steps + 1].reshape(-1, 1).copy()
-    ys = y[warm:warm + steps].copy()
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    kinds, params, cols = tr._spec
-    X, Q, S, K, mu, order, ist, fst, P = tr._state
-    W, tab, out = tr._W, tr._tab, tr._out
-    ns = np.empty(steps, dtype=np.int64)
-    for i in range(steps):
-        x, xn, yi = xs[i], xs[i + 1], ys[i]
-        a = pc()
-        core.learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, x, yi, out)
-        core.predict(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xn, True, out)
-        ns[i] = pc() - a
-    res["core l+p"] = ns / 1e3
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    X, Q, S, K, mu, order, ist, fst, P = tr._state
-    W, tab, out = tr._W, tr._tab, tr._out
-    core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xs[0], out)
-    ns = np.empty(steps, dtype=np.int64)
-    for i in range(steps):
-        xn, yi = xs[i + 1], ys[i]
-        a = pc()
-        core.update(X, Q, S, K, mu, order, ist, fst, P, W, yi, out)
-        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xn, out)
-        ns[i] = pc() - a
-    res["core u+a"] = ns / 1e3
-    # -- track_many, blocks of 32
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    tr.predict_next(float(t[warm]))
-    xb = t[warm + 1:warm + 1 + steps]
-    yb = y[warm:warm + steps]
-    mask = np.ones(steps, dtype=bool)
-    a = time.perf_counter()
-    for lo in range(0, steps, 32):
-        tr.track_many(xb[lo:lo + 32], yb[lo:lo + 32], mask[lo:lo + 32])
-    res["track_many"] = (time.perf_counter() - a) / steps * 1e6
-    return res
-
-
-def time_refresh(M, t, y, warm, reps=20):
-    tr = KRLST(kernel(), budget=M, grid_step=TS, refresh_every=0, **HYPER)
-    tr.learn_many(t[:warm], y[:warm])
-    X, Q, S, K, mu, order, ist, fst, P = tr._state
-    Q0, ist0 = Q.copy(), ist.copy()
-    ns = []
-    for _ in range(reps):
-        Q[:] = Q0
-        ist[:] = ist0
-        a = time.perf_counter_ns()
-        core.refresh_inverse(Q, K, order, ist, tr._W)
-        ns.append(time.perf_counter_ns() - a)
-    return np.array(ns) / 1e3
-
-
-@njit
-def _row_loop(kinds, params, cols, X, idx, n, x, out, reps):
-    for _ in range(reps):
-        kernel_row_at(kinds, params, cols, X, idx, n, x, out)
-
-
-@njit
-def _inline_loop(kinds, params, cols, X, idx, n, x, out, reps):
-    s1, s2, psi = params[0, 0], params[0, 1], params[0, 2]
-    for _ in range(reps):
-        for l in range(n):
-            i = idx[l]
-            d = X[i, 0] - x[0]
-            s = math.sin(math.pi * d / psi)
-            out[i] = math.exp(-(d * d) / (2.0 * s1 * s1) - (s * s) / (2.0 * s2 * s2))
-
-
-@njit
-def _value_loop(kinds, params, cols, X, idx, n, x, out, reps):
-    for _ in range(reps):
-        for l in range(n):
-            i = idx[l]
-            out[i] = kernel_value(kinds, params, cols, X[i], x)
-
-
-def time_kernel_row(n=100, reps=20000):
-    """ns per k_t element: kernel_row_at vs a hand-inlined LP formula vs per-pair kernel_value(X[i], x)."""
-    kinds, params, cols = kernel().spec()
-    X = (np.arange(n) * TS).reshape(-1, 1)
-    x = np.array([n * TS + 1e-4])
-    idx = np.random.default_rng(0).permutation(n).astype(np.int64)
-    out = np.empty(n)
-    res = {}
-    for name, fn in (("kernel_row_at", _row_loop), ("inline", _inline_loop), ("kernel_value(X[i])", _value_loop)):
-        fn(kinds, params, cols, X, idx, n, x, out, 1)
-        best = np.inf
-        for _ in range(5):
-            a = time.perf_counter()
-            fn(kinds, params, cols, X, idx, n, x, out, reps)
-            best = min(best, (time.perf_counter() - a) / (reps * n) * 1e9)
-        res[name] = best
-    return res
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=20000)
-    ap.add_argument("--numpy-steps", type=int, default=3000)
-    ap.add_argument("--budgets", type=int, nargs="+", default=[50, 100, 200, 400])
+    ap.add_argument("--steps", type=int, default=4000, help="timed samples per core row")
+    ap.add_argument("--numpy-steps", type=int, default=1500, help="timed samples of the NumPy reference at M=100")
     args = ap.parse_args(argv)
-
     steps = args.steps
-    t, y = stream(4 * max(args.budgets) + 2000 + steps)
-    print(f"KRLS-T step latency, µs (median / p99), {steps} timed steps after warm-up; "
-          f"LP kernel, 333 Hz, γ={HYPER['gamma']}, λ={HYPER['forgetting']}")
-    hdr = (f"{'M':>4} | {'core':>15} | {'core+table':>15} | {'refine':>15} | {'learn_many/step':>15} | "
-           f"{'numpy':>15} | {'numpy/core':>10} | {'numpy/table':>11} | {'learn_one':>15} | {'reduced':>7}")
+    n = 4 * 400 + 1000 + steps + 2
+    Xt, yt = time_stream(n)
+    Xs, ys = spindle_stream(n)
+    tk, sk = time_kernel(), spindle_kernel()
+
+    np_t100 = time_numpy(tk, Xt, yt, 100, args.numpy_steps)
+    np_s100 = time_numpy(sk, Xs, ys, 100, args.numpy_steps)
+    np_t400 = time_numpy(tk, Xt, yt, 400, max(args.numpy_steps // 5, 50))
+    rows = [
+        ("split step M=100, time kernel", time_split_calls(tk, Xt, yt, 100, TS, steps), np_t100, "≤ 6 µs, ≥ 60×", 6.0),
+        ("  … compiled loop", time_split_compiled(tk, Xt, yt, 100, TS, steps), np_t100, "", None),
+        ("split step M=100, spindle kernel", time_split_calls(sk, Xs, ys, 100, None, steps), np_s100,
+         "≤ 6 µs, ≥ 60×", 6.0),
+        ("  … compiled loop", time_split_compiled(sk, Xs, ys, 100, None, steps), np_s100, "", None),
+        ("step M=400, time kernel", time_learn(tk, Xt, yt, 400, TS, False, steps // 4), np_t400, "≤ 60 µs", 60.0),
+        ("  … refine=True", time_learn(tk, Xt, yt, 400, TS, True, steps // 4), np_t400, "", None),
+    ]
+    print("KRLS-T step, µs per sample (median / p99); NumPy reference measured in the same run")
+    hdr = f"{'measure':<34} | {'median':>8} | {'p99':>8} | {'NumPy':>8} | {'ratio':>6} | {'target':<14} | met"
     print(hdr)
     print("-" * len(hdr))
-    dispatch = None
-    for M in args.budgets:
-        warm = 4 * M + 1000
-        c = time_core(M, t, y, warm, steps, None)
-        ct = time_core(M, t, y, warm, steps, TS)
-        cr = time_core(M, t, y, warm, steps, TS, refine=True)
-        if dispatch is None:
-            dispatch = time_core(M, t, y, warm, steps, TS, fn=_empty)
-        lm, red = time_learn_many(M, t, y, warm, steps, TS)
-        nsteps = min(steps, args.numpy_steps if M <= 200 else args.numpy_steps // 2)
-        npy = time_numpy(M, t, y, warm, nsteps)
-        lo = time_learn_one(M, t, y, warm, min(steps, 10000))
-
-        def mp(a):
-            return f"{np.median(a):7.2f} /{np.percentile(a, 99):7.2f}"
-
-        print(f"{M:>4} | {mp(c)} | {mp(ct)} | {mp(cr)} | {lm:15.2f} | {mp(npy)} | "
-              f"{np.median(npy) / np.median(c):10.1f} | {np.median(npy) / np.median(ct):11.1f} | "
-              f"{mp(lo)} | {red:7.2f}")
-    print(f"dispatch of an empty @njit call with the same arguments: median {np.median(dispatch):.2f} µs, "
-          f"p99 {np.percentile(dispatch, 99):.2f} µs (included in 'core' and 'core+table')")
-
-    def mp(a):
-        return f"{np.median(a):7.2f} /{np.percentile(a, 99):7.2f}"
-
-    print()
-    print("Monitor step (train on sample k, predict k+1), µs per sample (median / p99), table on")
-    hdr = (f"{'M':>4} | {'learn+pred':>15} | {'update+next':>15} | {'ratio':>5} | {'core l+p':>15} | "
-           f"{'core u+a':>15} | {'ratio':>5} | {'track_many':>10}")
-    print(hdr)
-    print("-" * len(hdr))
-    for M in args.budgets:
-        warm = 4 * M + 1000
-        r = time_monitor_pairs(M, t, y, warm, min(steps, 10000))
-        print(f"{M:>4} | {mp(r['learn+pred'])} | {mp(r['update+next'])} | "
-              f"{np.median(r['learn+pred']) / np.median(r['update+next']):5.2f} | {mp(r['core l+p'])} | "
-              f"{mp(r['core u+a'])} | {np.median(r['core l+p']) / np.median(r['core u+a']):5.2f} | "
-              f"{r['track_many']:10.2f}")
-
-    print()
-    print("refresh_inverse (Q = K_D⁻¹ by Cholesky), µs: " + ", ".join(
-        f"M={M}: {np.median(time_refresh(M, t, y, 4 * M + 1000)):.0f}" for M in args.budgets))
-    kr = time_kernel_row()
-    print("k_t row, ns per element (n = 100, LP kernel, no table): " + ", ".join(f"{k} {v:.1f}" for k, v in kr.items()))
+    for name, a, ref, target, limit in rows:
+        med, p99, nmed = np.median(a), np.percentile(a, 99), np.median(ref)
+        ratio = nmed / med
+        met = ""
+        if limit is not None:
+            met = "yes" if med <= limit and (limit > 10 or ratio >= 60) else "no"
+        print(f"{name:<34} | {med:8.2f} | {p99:8.2f} | {nmed:8.1f} | {ratio:5.0f}× | {target:<14} | {met}")
 
 
 if __name__ == "__main__":

@@ -68,8 +68,13 @@ def _case(kind: str, n: int) -> dict:
             K[n + 1:, :n] = (Z / scale).T
             sol = np.linalg.solve(K, np.concatenate([y, np.zeros(1 + m)]))
             return sol[n + 1:] / scale
+    elif kind == "levinson":
+        pl_lssvm(warm.Z, warm.y, kernel, GAMMA, Ts=s.Ts, solver="levinson")
+
+        def call():
+            return pl_lssvm(Z, y, kernel, GAMMA, Ts=s.Ts, solver="levinson")
     elif kind == "loglik":
-        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts, dense_limit=0)
+        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts)
 
         def call():
             return log_marginal_likelihood(Z, y, kernel, GAMMA, s.Ts)
@@ -79,7 +84,7 @@ def _case(kind: str, n: int) -> dict:
         def call():
             return log_marginal_likelihood(Z, y, kernel, GAMMA, s.Ts, segment=1500)
     elif kind == "tune":
-        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts, segment=1500)
+        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts)
 
         def call():
             return tune(Z, y, s.Ts, PSI)
@@ -92,12 +97,12 @@ def _case(kind: str, n: int) -> dict:
     elapsed = time.perf_counter() - t0
     rss1 = _maxrss_mb()
     info = {"kind": kind, "n": n, "seconds": elapsed, "rss_delta_mb": rss1 - rss0}
-    if kind in ("toeplitz", "loglik", "loglik-seg"):
+    if kind in ("toeplitz", "levinson", "loglik", "loglik-seg"):
         tracemalloc.start()
         call()
         info["tracemalloc_mb"] = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
-    if kind == "toeplitz":
+    if kind in ("toeplitz", "levinson"):
         info.update(solver=out.solver, iterations=out.iterations,
                     beta_err=float(np.max(np.abs(out.beta[:2] - s.beta[:2]) / s.beta[:2])))
     elif kind == "dense":
@@ -119,7 +124,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[2000, 10000, 20000, 100000])
     ap.add_argument("--dense-max", type=int, default=10000, help="largest N for the dense KKT reference")
+    ap.add_argument("--levinson-max", type=int, default=30000, help="largest N for the O(N²) Levinson path")
     ap.add_argument("--tune-n", type=int, default=10000)
+    ap.add_argument("--emps", help="folder with DATA_EMPS*.mat: time 'feedmon identify' on them (default $FEEDMON_EMPS_DIR)")
     ap.add_argument("--case", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.case:
@@ -132,9 +139,11 @@ def main(argv=None) -> int:
               f"{'β1,2 err %':>10} | {'dense s':>8} {'dense MB':>9} {'speed-up':>9}")
     print(header)
     print("-" * len(header))
-    for n in args.sizes:
-        t = _run("toeplitz", n)
-        d = _run("dense", n) if n <= args.dense_max else None
+    for n, kind in [(n, k) for n in args.sizes for k in ("toeplitz", "levinson")]:
+        if kind == "levinson" and n > args.levinson_max:
+            continue
+        t = _run(kind, n)
+        d = _run("dense", n) if n <= args.dense_max and kind == "toeplitz" else None
         if "error" in t:
             print(f"{n:>7} | error: {t['error']}")
             continue
@@ -150,9 +159,9 @@ def main(argv=None) -> int:
 
     n = args.tune_n
     print(f"\nREML likelihood and tuning at N = {n}")
-    for kind, label in (("loglik", "log_marginal_likelihood, exact (Levinson log-det + PCG)"),
-                        ("loglik-seg", "log_marginal_likelihood, segment=1500 (tune's objective)"),
-                        ("tune", "tune (grid 27 + Nelder–Mead, segment=1500)")):
+    for kind, label in (("loglik", "log_marginal_likelihood, exact (Levinson whitening)"),
+                        ("loglik-seg", "log_marginal_likelihood, segment=1500 (block-diagonal)"),
+                        ("tune", "tune (5 starts + Nelder–Mead, exact REML, 30 evaluations)")):
         r = _run(kind, n)
         if "error" in r:
             print(f"  {label:<58} error: {r['error']}")
@@ -163,7 +172,38 @@ def main(argv=None) -> int:
                      f"{r['evaluations']} evaluations")
         mem = f", RSS Δ {r['rss_delta_mb']:.1f} MB"
         print(f"  {label:<58} {r['seconds']:8.3f} s{mem}{extra}", flush=True)
+
+    folder = args.emps or os.environ.get("FEEDMON_EMPS_DIR")
+    if not folder:
+        print("\n'feedmon identify' on EMPS: give --emps DIR or set FEEDMON_EMPS_DIR")
+        return 0
+    print("\n'feedmon identify' on the EMPS trials, no flags (import once, then one subprocess each)")
+    for mat, rate in (("DATA_EMPS.mat", 333), ("DATA_EMPS.mat", 1000), ("DATA_EMPS_PULSES.mat", 333),
+                      ("DATA_EMPS_PULSES.mat", 1000)):
+        r = _emps(os.path.join(folder, mat), rate)
+        print(f"  {mat:<22} {rate:>5} Hz  {r}", flush=True)
     return 0
+
+
+def _emps(mat: str, rate: int) -> str:
+    import tempfile
+
+    if not os.path.isfile(mat):
+        return f"not found: {mat}"
+    with tempfile.TemporaryDirectory() as tmp:
+        trial = os.path.join(tmp, "t.mcap")
+        feedmon = [sys.executable, "-m", "feedmon"]
+        subprocess.run([*feedmon, "import", "emps", mat, "-o", trial, "--rate", str(rate)], check=True,
+                       capture_output=True)
+        t0 = time.perf_counter()
+        proc = subprocess.run([*feedmon, "identify", trial, "--json"], capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode not in (0, 1):
+            return f"error: {proc.stderr.strip().splitlines()[-1]}"
+        doc = json.loads(proc.stdout)
+        kernels = sum(1 for c in doc["candidates"] if c["method"] == "pl_lssvm")
+        return (f"{wall:6.1f} s wall (Numba compiled), chosen {doc['chosen']}, {kernels} kernel candidates, "
+                f"ψ {doc['period']['value'] and round(doc['period']['value'], 5)} ({doc['period']['source']})")
 
 
 if __name__ == "__main__":

@@ -50,6 +50,8 @@ Checks (the exit code is 1 when one fails)
   disturbance force, and the RMS error relative to the RMS of the truth, over the first and the
   last window (one hour, or a third of shorter runs): equal within ``--corr-tol`` and
   ``--nrmse-tol``. Rows flagged REJECTED or WARMUP are left out.
+* **health**: the axis' health reports (about one per second of stream, online β in the default
+  *track* mode) are all ``ok`` at these nominal conditions: no ``warn``, no ``alarm``.
 * **rate** (only with ``--rate-check``): overall throughput ≥ ``--min-rate`` samples/s
   (default 3330 = 10× real time of one 333 Hz axis), and no slowdown: the last checkpoint
   interval runs at ≥ 80 % of the first post-warm-up one.
@@ -276,6 +278,12 @@ class SoakResult:
     nan: int = 0
     counters: dict[str, int] = field(default_factory=dict)
     objects: list[int] = field(default_factory=list)
+    health: dict[str, int] = field(default_factory=lambda: {"ok": 0, "warn": 0, "alarm": 0})
+    health_reasons: set[str] = field(default_factory=set)
+    health_events: list[str] = field(default_factory=list)  # the first non-ok reports (stream time, reasons)
+    nu2_max: float = 0.0  # largest window mean of ν² in a report
+    z_max: dict[str, float] = field(default_factory=dict)  # largest |drift| of each parameter vs the model file (%)
+    zs_max: dict[str, float] = field(default_factory=dict)  # largest |drift| in standard errors (the model's β is exact)
 
     @property
     def rate(self) -> float:
@@ -312,6 +320,7 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
     def say(msg: str = "") -> None:
         print(msg, file=out, flush=True)
 
+    D = DRIVE
     seconds = opts.hours * 3600.0
     stream = DriveStream(seconds, seed=opts.seed, glitch_rate=opts.glitch_rate, nan_rate=opts.nan_rate)
     total = stream.total
@@ -363,8 +372,26 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
             if decoded is None:
                 raise AssertionError("the soak stream produced a malformed block")
             block = decoded
-        rows = pipe.estimate(block).est
+        res_est = pipe.estimate(block)
+        rows = res_est.est
         est = None if rows is None else rows.block()
+        for h in res_est.health:
+            res.health[h.state] += 1
+            if h.state != "ok" and len(res.health_events) < 20:
+                res.health_events.append(f"{_fmt_t(h.t)} {h.state}: {'; '.join(h.reasons)}")
+            res.health_reasons.update(r.split(" (")[0] for r in h.reasons if not r.startswith("not "))
+            if h.nu2 is not None:
+                res.nu2_max = max(res.nu2_max, h.nu2)
+            for name, ref in (("inertia", D["inertia"]), ("damping", D["damping"]),
+                              ("coulomb", 0.5 * (D["coulomb_pos"] + D["coulomb_neg"]))):
+                v = getattr(h, name)
+                if v is not None:
+                    res.z_max[name] = max(res.z_max.get(name, 0.0), 100.0 * abs(v / ref - 1.0))
+            for name, ref in (("inertia", D["inertia"]), ("damping", D["damping"]),
+                              ("coulomb_pos", D["coulomb_pos"]), ("coulomb_neg", D["coulomb_neg"])):
+                v, se = getattr(h, name), getattr(h, f"{name}_se")
+                if v is not None and se:
+                    res.zs_max[name] = max(res.zs_max.get(name, 0.0), abs(v - ref) / se)
         if est is not None:
             if opts.wire:
                 rows.json()  # what the monitor publishes
@@ -479,6 +506,14 @@ def _judge(res: SoakResult, opts, sent: int, duplicates_sent: int, rss0: float) 
                            f"last: corr {l_.corr:.4f}, NRMSE {l_.nrmse:.4f} (RMSE {l_.rmse:.2f} N); "
                            f"Δcorr {dc:+.4f} (tol {opts.corr_tol:g}), ΔNRMSE {dn:+.4f} (tol {opts.nrmse_tol:g}), "
                            f"corr ≥ {opts.min_corr:g}")
+    hc = res.health
+    drift = ", ".join(f"{k} {v:.2f} %" for k, v in res.z_max.items())
+    drift += "; in standard errors: " + ", ".join(f"{k} {v:.1f}" for k, v in res.zs_max.items())
+    ch["health"] = (hc["warn"] == 0 and hc["alarm"] == 0 and hc["ok"] > 0,
+                    f"{hc['ok']:,} ok / {hc['warn']} warn / {hc['alarm']} alarm health reports (must be no warn, no "
+                    f"alarm); largest mean ν² of a report {res.nu2_max:.2f}; largest online parameter error vs the "
+                    f"truth: {drift}" + (f"; reasons: {'; '.join(sorted(res.health_reasons))}"
+                                         if res.health_reasons else ""))
     if opts.rate_check:
         rows = [r for r in res.rows if r.stream_s > (opts.warmup_minutes or 0) * 60.0] or res.rows
         first_rate = rows[0].rate if len(rows) > 1 else res.rate
@@ -499,6 +534,8 @@ def _report(res: SoakResult, opts, say) -> None:
         say(f"GC-tracked objects at the checkpoints: first {res.objects[0]:,}, last {res.objects[-1]:,}")
     for name, (ok, text) in res.checks.items():
         say(f"  [{'PASS' if ok else 'FAIL'}] {name:<10} {text}")
+    for line in res.health_events:
+        say(f"  health report {line}")
     say("soak: PASS" if res.ok else "soak: FAIL")
     if opts.json:
         Path(opts.json).write_text(json.dumps({

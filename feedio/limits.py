@@ -63,6 +63,7 @@ class PhysicalLimits(msgspec.Struct, frozen=True):
     v_max: float = 50.0  # |velocity| (m/s): v_ref, v_meas
     u_max: float = 1e7  # |force command| (N)
     t_max: float = T_MAX  # |controller time| (s)
+    spindle_rpm_max: float = 200_000.0  # |spindle speed| (rpm): faster is unusable (the tracker falls back)
 
 
 PHYSICAL = PhysicalLimits()
@@ -119,8 +120,10 @@ class InputLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     @property
     def transport_max_message_bytes(self) -> int:
         """What the monitor's Zenoh links accept at all (2 × ``max_message_bytes`` + 64 KiB): a
-        larger message is dropped by Zenoh before it is reassembled (memory stays bounded) and is
-        not counted; one between the two limits reaches the callback and is counted ``too_large``."""
+        larger message is dropped by Zenoh before it is reassembled and is not counted; one between
+        the two limits reaches the callback and is counted ``too_large``. Zenoh 1.10 applies its limit
+        loosely (measured: after a first drop on a link, messages up to ~5x it were reassembled, 10x
+        and 64x dropped), so memory stays bounded but the callback's exact limit is what counts."""
         return 2 * self.max_message_bytes + 65536
 
     def __post_init__(self) -> None:

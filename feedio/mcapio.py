@@ -10,7 +10,8 @@ Layout of a trial file
   ground truth), ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
   written by the monitor) and ``/<machine>/<axis>/disturbance/scalars``
   (:class:`DisturbanceScalars`, one message of plain numbers per sample, written by
-  the monitor for other tools; see :mod:`feedio.scalars`).
+  the monitor for other tools; see :mod:`feedio.scalars`) and ``/<machine>/<axis>/health``
+  (:class:`Health`, about one report per second of data, written by the monitor).
 * One metadata record ``feedmon.trial`` per axis (MCAP metadata is map<str,str>):
   key ``meta`` holds the :class:`TrialMeta` JSON, plus readable keys ``machine``,
   ``axis``, ``form``, ``Ts``, ``source`` and the trial's start time ``start_time``
@@ -79,6 +80,7 @@ __all__ = [
     "METADATA_NAME",
     "KINDS",
     "SCALARS",
+    "HEALTH",
     "MAX_LOG_TIME_NS",
     "MAX_MESSAGE_BYTES",
     "MAX_PENDING_BYTES",
@@ -89,8 +91,11 @@ __all__ = [
 
 METADATA_NAME = "feedmon.trial"
 SCALARS = "disturbance/scalars"
+HEALTH = "health"
 KINDS = {"samples": S.SampleBlock, "truth": S.TruthBlock, "disturbance": S.EstimateBlock,
-         SCALARS: S.DisturbanceScalars}
+         SCALARS: S.DisturbanceScalars, HEALTH: S.Health}
+#: message types of one sample each (``t`` a number, not a column)
+_SINGLE = (S.DisturbanceScalars, S.Health)
 
 #: largest log time, ns since the Unix epoch (int64, year 2262): what every MCAP tool can hold
 MAX_LOG_TIME_NS = 2**63 - 1
@@ -109,7 +114,7 @@ MAX_READ_AHEAD_BLOCKS = 200_000
 
 
 def topic(machine: str, axis: str, kind: str) -> str:
-    """``/<machine>/<axis>/<kind>`` with kind in samples, truth, disturbance, disturbance/scalars."""
+    """``/<machine>/<axis>/<kind>`` with kind in samples, truth, disturbance, disturbance/scalars, health."""
     if kind not in KINDS:
         raise ValueError(f"unknown channel kind {kind!r}; use one of {', '.join(KINDS)}")
     return f"/{machine}/{axis}/{kind}"
@@ -606,6 +611,20 @@ class TrialWriter:
                     self.last_flush_error = exc
             i += k
 
+    def write_health(self, report: S.Health, *, log_time: int | None = None) -> None:
+        """Append a :class:`Health` report on ``/<machine>/<axis>/health``; ``log_time`` (ns since the
+        epoch) defaults to ``start + t``."""
+        if type(report) is not S.Health:
+            raise TypeError(f"write_health needs a Health report, got {type(report).__name__}")
+        self._check_open()
+        cid = self._channel(report.machine, report.axis, HEALTH)
+        what = f"health seq {report.seq}"
+        if not (0 <= report.seq <= S.SEQ_MAX and math.isfinite(report.t)):
+            raise ValueError(f"{self.path}: {what} at t = {report.t!r} s: the sequence number must lie in 0…SEQ_MAX "
+                             "and the time must be finite")
+        lt = self.log_time_of(report.t, what) if log_time is None else log_time
+        self._add(cid, S.encode(report), lt, report.seq, report.t, report.t, "health")
+
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.
         ``OSError`` when the disk refuses (the bytes are kept for the next flush)."""
@@ -876,7 +895,7 @@ class _Open:
             except S.SchemaError as exc:
                 raise TrialFileError(f"{self.path}: channel {name}, {exc}") from None
             seq = block.seq
-            last = seq + (len(block.t) - 1 if type_ is not S.DisturbanceScalars else 0)
+            last = seq + (len(block.t) - 1 if type_ not in _SINGLE else 0)
             if last > S.SEQ_MAX:
                 raise TrialFileError(
                     f"{self.path}: channel {name}, message {idx}: sequence number {seq} "
@@ -894,7 +913,7 @@ def list_axes(path) -> list[str]:
 def iter_blocks(path, axis: str | None = None, kinds: Sequence[str] = ("samples",)) -> Iterator[tuple[str, object]]:
     """Replay iterator: ``(kind, block)`` of one axis in file (sequence) order.
 
-    ``kinds`` any of "samples", "truth", "disturbance", "disturbance/scalars" (absent
+    ``kinds`` any of "samples", "truth", "disturbance", "disturbance/scalars", "health" (absent
     channels are skipped).
     """
     f = _Open(path)

@@ -66,6 +66,11 @@ __all__ = [
     "TruthBlock",
     "EstimateBlock",
     "DisturbanceScalars",
+    "Health",
+    "HEALTH_STATES",
+    "REASONS_MAX",
+    "REASON_CHARS_MAX",
+    "decode_health",
     "Provenance",
     "TrialTruth",
     "TrialMeta",
@@ -310,6 +315,71 @@ class DisturbanceScalars(msgspec.Struct, **_STRUCT_OPTS):
     dynamometer: float | None = None
 
 
+#: health states of :class:`Health`, in increasing severity
+HEALTH_STATES = ("ok", "warn", "alarm")
+#: bounds of a :class:`Health` report's ``reasons``
+REASONS_MAX, REASON_CHARS_MAX = 32, 500
+_Value = Annotated[float, msgspec.Meta(description="SI value; null: not given (see reasons)")] | None
+_SE = Annotated[float, msgspec.Meta(ge=0.0, description="standard error, same unit; null: not given")] | None
+
+
+class Health(msgspec.Struct, forbid_unknown_fields=True):
+    """Health report of one axis (topic ``<machine>/<axis>/health``, MCAP channel
+    ``/<machine>/<axis>/health``), about once a second of data time (issue 11).
+
+    ``seq``, ``t``: the sample the report was made at (sequence number, controller time s).
+    ``state``: ``ok``, ``warn`` or ``alarm`` (the worst of the model-validity test on the
+    normalised innovations and the drift test of each physical parameter against the model file);
+    ``reasons``: why (one line each), and which values are not given and why.
+    The online physical parameters with their standard errors (delta method): ``inertia`` (kg),
+    ``damping`` (N·s/m), ``coulomb`` (N, mean of ``coulomb_pos`` and ``coulomb_neg``, the
+    magnitudes for v > Ω and v < −Ω) and ``offset`` (N, the constant force); ``null`` when it
+    cannot be given (adaptation off, a column the model does not have, absolute values of a
+    velocity-loop model without the loop gain K) — the reasons say which. ``nu2``: mean squared
+    normalised innovation over the report's window (1 when the model explains the data; null
+    when nothing was learned); ``adaptation``: the mode β ran in (``off``, ``track``, ``apply``).
+    Unlike the blocks, absent values are written as ``null`` (never left out).
+    """
+
+    machine: Name
+    axis: Name
+    seq: Seq
+    t: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX, description=f"controller time (s), 0 <= t <= {T_MAX:g}")]
+    state: Literal["ok", "warn", "alarm"]
+    reasons: Annotated[list[Annotated[str, msgspec.Meta(max_length=REASON_CHARS_MAX)]],
+                       msgspec.Meta(max_length=REASONS_MAX)] = []
+    inertia: _Value = None
+    inertia_se: _SE = None
+    damping: _Value = None
+    damping_se: _SE = None
+    coulomb: _Value = None
+    coulomb_se: _SE = None
+    coulomb_pos: _Value = None
+    coulomb_pos_se: _SE = None
+    coulomb_neg: _Value = None
+    coulomb_neg_se: _SE = None
+    offset: _Value = None
+    offset_se: _SE = None
+    nu2: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
+    adaptation: Literal["off", "track", "apply"] = "track"
+
+    def __post_init__(self) -> None:
+        check_name(self.machine, "Health field 'machine'")
+        check_name(self.axis, "Health field 'axis'")
+        if not (math.isfinite(self.t) and 0.0 <= self.t <= T_MAX):
+            raise ValueError(f"Health field 't' is {self.t!r}; controller time must be finite, 0 <= t <= {T_MAX:g} s")
+        for name in ("inertia", "inertia_se", "damping", "damping_se", "coulomb", "coulomb_se", "coulomb_pos",
+                     "coulomb_pos_se", "coulomb_neg", "coulomb_neg_se", "offset", "offset_se", "nu2"):
+            value = getattr(self, name)
+            if value is not None and not math.isfinite(value):
+                raise ValueError(f"Health field '{name}' is {value!r}; give a finite number or null")
+
+
+def decode_health(data: bytes | str, *, what: str = "health report") -> Health:
+    """Decode a :class:`Health` report (names, bounds and finiteness checked)."""
+    return decode(data, Health, what=what)
+
+
 class Provenance(msgspec.Struct, **_STRUCT_OPTS):
     """Where a trial came from. ``created`` is only set when the caller gives it
     (simulated trials stay byte-identical for the same seed)."""
@@ -421,6 +491,7 @@ SCHEMA_NAMES = {
     TruthBlock: "feedmon.TruthBlock",
     EstimateBlock: "feedmon.EstimateBlock",
     DisturbanceScalars: "feedmon.DisturbanceScalars",
+    Health: "feedmon.Health",
     TrialMeta: "feedmon.TrialMeta",
 }
 
@@ -441,7 +512,7 @@ def json_schema(type_: type) -> dict:
         "$id": f"https://feedmon.invalid/schemas/{SCHEMA_NAMES.get(type_, name)}.json",
     }
     out.update(top)
-    if hasattr(type_, "__post_init__") and "t" in getattr(type_, "__struct_fields__", ()):
+    if type_ in (SampleBlock, TruthBlock, EstimateBlock):  # the columnar blocks
         out["description"] = (
             (out.get("description", "") + "\n\n").lstrip()
             + "Every per-sample array has the same length as 't' (at least 1); null = missing sample."

@@ -38,7 +38,9 @@ Notes on zenoh-python 1.x found while writing this
   remote ``declare_queryable`` may get no reply. Wait for ``matching`` / retry.
 * ``Handler.recv()`` has no timeout; poll ``try_recv()`` or use a callback.
 * ``transport/link/rx/max_message_size`` (default 1 GiB) bounds what a link reassembles; a larger
-  message is dropped silently and the link stays up (:func:`limit_message_size`). A key
+  message is dropped silently and the link stays up (:func:`limit_message_size`). Zenoh 1.10
+  applies it loosely: after a first drop on a link, messages of 2–5× the limit were reassembled
+  (10× and 64× dropped; measured), and messages around a drop may be lost. A key
   expression longer than a batch (~64 kB) makes the *sending* session panic, so keys stay short.
 * All errors are ``zenoh.ZError`` (a plain ``Exception``); :func:`open_session`
   turns them into ``ValueError`` (bad configuration) or ``OSError`` (cannot
@@ -68,6 +70,7 @@ __all__ = [
     "samples_key",
     "truth_key",
     "disturbance_key",
+    "health_key",
     "status_key",
     "parse_key",
     "free_tcp_port",
@@ -262,8 +265,10 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
 def limit_message_size(config: zenoh.Config, nbytes: int) -> zenoh.Config:
     """Make the links of sessions opened with ``config`` drop every received message larger than
     ``nbytes`` (``transport/link/rx/max_message_size``; Zenoh's default is 1 GiB): such a message is
-    never reassembled in memory and never reaches a callback. Zenoh does not say it dropped one,
-    so give callbacks that count refusals a smaller limit of their own. Returns ``config``."""
+    never reassembled in memory and never reaches a callback. Zenoh does not say it dropped one, and
+    Zenoh 1.10 enforces it loosely (after a first drop on a link, up to ~5× ``nbytes`` was seen
+    reassembled), so this is a memory backstop: give callbacks an exact, smaller limit of their own
+    and count refusals there. Returns ``config``."""
     if not 1 <= int(nbytes) <= 1 << 32:
         raise ValueError(f"message size limit must be 1 … 2**32 bytes, got {nbytes}")
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(int(nbytes)))
@@ -338,6 +343,11 @@ def truth_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*")
 def disturbance_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
     """``<prefix>/<machine>/<axis>/disturbance`` (the monitor's EstimateBlocks)."""
     return _axis_key(prefix, machine, axis, "disturbance")
+
+
+def health_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
+    """``<prefix>/<machine>/<axis>/health`` (the monitor's health reports, :class:`feedio.schema.Health`)."""
+    return _axis_key(prefix, machine, axis, "health")
 
 
 def status_key(prefix: str = DEFAULT_PREFIX) -> str:

@@ -1,8 +1,10 @@
-"""``feedmon identify``: LS and PL-LSSVM on a recorded trial, a model file and a report."""
+"""``feedmon identify``: candidate models chosen by evidence, a model file and a report (issue 10)."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -13,26 +15,37 @@ from rich.table import Table
 def register(sub) -> None:
     p = sub.add_parser(
         "identify",
-        help="identify an axis model (β) from a recorded trial by LS and PL-LSSVM",
-        description="Identify the feed-drive model of one axis from a trial file (LS and PL-LSSVM, method §3–4) "
-        "and write the model file for 'feedmon run'.",
+        help="identify an axis model (β) from a recorded trial: LS and PL-LSSVM candidates, chosen by evidence",
+        description="Identify the feed-drive model of one axis from a trial file. Candidates — least squares, "
+        "PL-LSSVM with a squared-exponential kernel in time, PL-LSSVM with the locally periodic kernel at the "
+        "period(s) in play — are tuned by restricted marginal likelihood and the valid one with the highest "
+        "evidence is written to the model file for 'feedmon run'. A model that cannot be right (unstable pole, "
+        "inertia or damping ≤ 0, negative Coulomb friction) is refused: exit 1, nothing written.",
     )
     p.add_argument("trial", help="trial file (.mcap) from 'feedmon simulate', 'feedmon import' or a monitor log")
     p.add_argument("-o", "--output", help="model file to write (TOML), e.g. axis-x.model.toml")
     p.add_argument("--axis", help="axis name (or machine/axis) when the trial holds several")
     p.add_argument("--form", choices=["velocity-loop", "force-input"], help="input form (default: the trial's)")
-    p.add_argument("--period", type=float, help="disturbance period ψ in s (e.g. 0.018182 for 55 Hz)")
+    p.add_argument("--period", type=float, help="disturbance period ψ in s (e.g. 0.018182 for 55 Hz); "
+                   "default: the spindle speed, else found in the data")
     p.add_argument("--spindle-rpm", type=float, help="spindle speed (rpm): ψ = 60/rpm (tool runout)")
-    p.add_argument("--teeth", type=int, help="tooth count of the tool (recorded; ψ is the spindle period)")
-    p.add_argument("--sigma1", type=float, help="σ1 (s) of the locally periodic kernel (default 0.59)")
+    p.add_argument("--teeth", type=int, help="tooth count of the tool (informational: with runout ψ is the spindle "
+                   "period; the tooth-passing line is one of its harmonics)")
+    p.add_argument("--sigma1", type=float, help="σ1 (s) of the locally periodic kernel (start of tuning; "
+                   "kept with --no-tune; default 0.59)")
     p.add_argument("--sigma2", type=float, help="σ2 of the locally periodic kernel (default 0.42)")
     p.add_argument("--gamma", type=float, help="regularisation γ (default 50.3)")
-    p.add_argument("--tune", action="store_true", help="choose σ1, σ2, γ by maximum marginal likelihood")
+    p.add_argument("--no-tune", action="store_true",
+                   help="keep the given (or thesis) hyperparameters instead of tuning them by REML")
+    p.add_argument("--tune", action="store_true", help=argparse.SUPPRESS)  # the default now; old scripts still run
+    p.add_argument("--method", choices=["auto", "ls", "pl-lssvm"], default="auto",
+                   help="model to write: the valid candidate with the highest evidence (auto), or the best of one family")
+    p.add_argument("--force", action="store_true",
+                   help="write the model even when it is not valid (with a warning in the file; 'feedmon run' refuses it)")
     p.add_argument("--no-coulomb", action="store_true", help="drop the Coulomb friction columns")
     p.add_argument("--coulomb", action="store_true", help="keep the Coulomb columns even without speed reversal")
     p.add_argument("--omega", type=float, help="Coulomb dead band Ω in m/s (default: 3× the velocity noise)")
     p.add_argument("--loop-gain", type=float, help="velocity-loop gain K (N·s/m) to get J and B instead of J/K, B/K")
-    p.add_argument("--method", choices=["pl-lssvm", "ls"], default="pl-lssvm", help="β written to the model file")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and a markdown summary into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.set_defaults(func=run)
@@ -46,48 +59,55 @@ def run(args) -> int:
 
     if args.coulomb and args.no_coulomb:
         raise ValueError("--coulomb and --no-coulomb contradict each other; give one")
+    if args.period is not None and args.spindle_rpm is not None:
+        raise ValueError("--period and --spindle-rpm both give the disturbance period; give one of them")
+    if args.tune and args.no_tune:
+        raise ValueError("--tune and --no-tune contradict each other; tuning is the default")
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
     trial = read_trial(args.trial, axis=args.axis)
     err = Console(stderr=True)
-    show_progress = args.tune and sys.stderr.isatty() and not args.json
+    show_progress = not args.no_tune and sys.stderr.isatty() and not args.json
     progress_cb = None
     if show_progress:
         from rich.progress import Progress
 
         progress = Progress(console=err, transient=True)
-        task = progress.add_task("tuning σ1, σ2, γ", total=None)
+        task = progress.add_task("tuning", total=None)
         progress.start()
 
-        def progress_cb(n, params, ll, best):
-            progress.update(task, description=f"tuning: {n} evaluations, best log-likelihood {best:.6g}")
+        def progress_cb(label, n, values, ll, best):
+            progress.update(task, description=f"tuning {label}: {n} evaluations, best log-likelihood {best:.6g}")
     try:
         ident = identify(
             trial, form=args.form, period=args.period, spindle_rpm=args.spindle_rpm, sigma1=args.sigma1,
-            sigma2=args.sigma2, gamma=args.gamma, tune=args.tune, coulomb=coulomb, omega=args.omega,
-            loop_gain=args.loop_gain, progress=progress_cb,
+            sigma2=args.sigma2, gamma=args.gamma, tune=not args.no_tune, method=args.method, coulomb=coulomb,
+            omega=args.omega, loop_gain=args.loop_gain, progress=progress_cb,
         )
     finally:
         if show_progress:
             progress.stop()
     doc = ident.to_json()
-    if args.teeth is not None:
-        doc["teeth"] = args.teeth
     written = []
-    if args.output:
-        model = ident.to_model(method=args.method, feedmon_version=__version__)
+    refused = ident.refusal is not None and not args.force
+    if args.output and not refused:
+        model = ident.to_model(feedmon_version=__version__, force=args.force)
         written.append(save_model(model, args.output))
-        doc["model_file"] = str(args.output)
     if args.report:
         from monitor.report import write_report
 
         written += write_report(ident, args.report)
-        doc["report"] = [str(p) for p in written[1 if args.output else 0:]]
     if args.json:
         print(json.dumps(doc, indent=2, default=_jsonable))
-        return 0
-    _print_table(ident, doc)
+    else:
+        _print_table(ident)
     for path in written:
         err.print(f"wrote {path}")
+    if ident.refusal is not None:
+        if refused:
+            err.print(f"[bold red]error:[/] {ident.refusal}. Nothing written"
+                      + (" (--force writes it anyway, with a warning in the file)" if args.output else ""))
+            return 1
+        err.print(f"[bold yellow]warning:[/] {ident.refusal}; written anyway (--force), 'feedmon run' will refuse it")
     return 0
 
 
@@ -97,23 +117,35 @@ def _jsonable(x):
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
-def _print_table(ident, doc) -> None:
-    from monitor.report import summary_table
+def _print_table(ident) -> None:
+    from monitor.report import candidate_rows, summary_table
 
     console = Console()
-    hp = ident.hyperparameters
-    table = Table(title=f"{ident.machine}/{ident.axis} — {Path(ident.trial_path).name} ({ident.form})")
-    for col in ("parameter", "LS (± s.e.)", "PL-LSSVM", "truth"):
+    cands = Table(title=f"{ident.machine}/{ident.axis} — {Path(ident.trial_path).name} ({ident.form}): candidates")
+    for col in ("candidate", "hyperparameters", "log evidence", "valid", ""):
+        cands.add_column(col, justify="left" if col in ("candidate", "hyperparameters", "") else "right",
+                         overflow="fold")
+    for row in candidate_rows(ident):
+        cands.add_row(*row)
+    console.print(cands)
+    table = Table(title="parameters (± standard error)")
+    cols = ["parameter", "LS", "PL-LSSVM" + (f" ({ident.pl.candidate.label[10:]})" if ident.pl else ""),
+            "truth / reference"]
+    for col in cols:
         table.add_column(col, justify="right" if col != "parameter" else "left")
     for row in summary_table(ident):
         table.add_row(*row)
     console.print(table)
-    console.print(
-        f"Ts = {ident.Ts:.6g} s, ψ = {ident.period:.6g} s ({ident.period_source}), Ω = {ident.omega:.3g} m/s; "
-        f"σ1 = {hp['sigma1']:.4g} s, σ2 = {hp['sigma2']:.4g}, γ = {hp['gamma']:.4g}"
-        + (f" (tuned, log-likelihood {hp['log_likelihood']:.6g}, {hp.get('evaluations')} evaluations)" if hp.get("tuned") else "")
-    )
-    if ident.truth and ident.truth.get("disturbance_correlation") is not None:
-        console.print(f"disturbance vs truth: correlation {ident.truth['disturbance_correlation']:.4f}")
-    for note in ident.notes:
+    psi = "none" if ident.period is None else f"{ident.period:.6g} s ({ident.period_source})"
+    console.print(f"Ts = {ident.Ts:.6g} s, ψ = {psi}, Ω = {ident.omega:.3g} m/s; {ident.coulomb_note}")
+    if ident.chosen is not None:
+        console.print(f"[bold]chosen: {ident.chosen.label}[/] (log evidence {ident.chosen.log_evidence:.6g})")
+    truth = ident.truth or {}
+    for key, label in (("disturbance_correlation", "disturbance vs truth: correlation"),
+                       ("pl_lssvm_disturbance_correlation", "PL-LSSVM disturbance vs truth: correlation")):
+        value = truth.get(key)
+        if value is not None and math.isfinite(value):
+            console.print(f"{label} {value:.4f}")
+            break
+    for note in ident.notes + (ident.pl.candidate.notes if ident.pl else []):
         console.print(f"note: {note}")

@@ -146,7 +146,7 @@ def _run_offline(args, cfg: RunConfig) -> int:
     for opt in ("mcap", "rrd", "serve_rerun"):
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
-    axes = load_axes(cfg.model)
+    axes = load_axes(cfg.model, cfg)
     res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
@@ -177,7 +177,7 @@ def _run_live(cfg: RunConfig) -> int:
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
     sys.setswitchinterval(0.0005)
-    axes = load_axes(cfg.model)
+    axes = load_axes(cfg.model, cfg)
     warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     store = StateStore(cfg.state_dir)
     for ax in axes.values():

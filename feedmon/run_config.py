@@ -1,7 +1,9 @@
 """The ``feedmon run`` configuration: one msgspec Struct for the ``--config`` file and the options.
 
 The TOML file has a ``[run]`` table (the long option names, dashes as underscores) with a
-``[run.limits]`` sub-table (:class:`feedio.limits.InputLimits`)::
+``[run.limits]`` sub-table (:class:`feedio.limits.InputLimits`) and optional ``[run.tracker]``,
+``[run.adaptation]``, ``[run.health]`` sub-tables that override the model files' online settings
+for every axis (:mod:`monitor.online_settings`; a key left out keeps the model file's value)::
 
     [run]
     model = ["/var/lib/feedmon/models/axis-x.model.toml"]
@@ -29,6 +31,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from feedio.limits import InputLimits, range_text
+from monitor import online_settings as OS
 
 __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
 
@@ -59,6 +62,10 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     multicast: bool = False
     prefix: Annotated[str, msgspec.Meta(min_length=1, max_length=200)] = "feedmon"
     limits: InputLimits = InputLimits()
+    # online settings for every axis instead of the model files' ([run.tracker], [run.adaptation], [run.health])
+    tracker: OS.TrackerOverride = OS.TrackerOverride()
+    adaptation: OS.AdaptationOverride = OS.AdaptationOverride()
+    health: OS.HealthOverride = OS.HealthOverride()
 
 
 class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -175,7 +182,7 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         cfg = RunConfig()
     cli: dict[str, Any] = {}
     for name in RunConfig.__struct_fields__:
-        if name == "limits" or not hasattr(args, name):
+        if name in ("limits", "tracker", "adaptation", "health") or not hasattr(args, name):
             continue
         value = getattr(args, name)
         if value is None or value is False:  # not given (flags cannot switch off what the file switches on)

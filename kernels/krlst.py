@@ -28,7 +28,9 @@ in place as soon as it arrives, :meth:`KRLST.update` does steps 3–5 with the r
 once it is known; ``learn_one(x, y)`` is exactly ``predict_next(x)`` then ``update(y)``.
 :meth:`KRLST.track_many` runs that pattern over a block in one ``@njit`` call.
 
-The numerics live in :mod:`kernels._krlst_core` (``@njit``, allocation-free).
+The numerics live in :mod:`kernels._krlst_core` (``@njit``, allocation-free); its
+:class:`~kernels._krlst_core.State` is what :meth:`KRLST.core_state` hands to compiled loops
+that drive the tracker (:func:`kernels.online.track_block`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import numpy as np
 from . import _krlst_core as core
 from .covariance import (
     KIND_LOCALLY_PERIODIC,
+    KIND_LOCALLY_PERIODIC_ZERO_MEAN,
     KIND_PERIODIC,
     KIND_SE,
     Kernel,
@@ -49,17 +52,20 @@ from .covariance import (
     Periodic,
     Product,
     SquaredExponential,
+    ZeroMeanLocallyPeriodic,
 )
 
 __all__ = ["KRLST", "Step"]
 
-_TRACK_STEP_FIELDS = ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced", "filtered",
-                      "filtered_var")
-_TRACK_NEXT_FIELDS = ("next_mean", "next_sigma_f2", "next_sigma_y2", "next_gamma2")
-
-_STATE_NAMES = ("X", "Q", "Sigma", "K", "mu", "order", "ist", "fst", "P")
-_OUT_FIELDS = ("mean", "sigma_y2", "sigma_f2", "gamma2", "removed", "reduced",
-               "filtered", "filtered_var", "s02", "size")
+#: Step / learn_many fields and their slots in the core's ``out`` buffer
+_OUT_FIELDS = (("mean", core.O_MEAN), ("sigma_y2", core.O_SY2), ("sigma_f2", core.O_SF2), ("gamma2", core.O_G2),
+               ("removed", core.O_REMOVED), ("reduced", core.O_REDUCED), ("filtered", core.O_FILT),
+               ("filtered_var", core.O_FILTVAR), ("s02", core.O_S02), ("size", core.O_SIZE))
+#: track_many's prediction fields and their slots in the ``out`` of the core's arm
+_NEXT_FIELDS = (("next_mean", core.A_MEAN), ("next_sigma_f2", core.A_SF2), ("next_sigma_y2", core.A_SY2),
+                ("next_gamma2", core.A_G2))
+#: version of the snapshot layout (1: full Q, Σ, K matrices; 2: core.State fields)
+SNAPSHOT_LAYOUT = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +123,8 @@ def _kernel_from_spec(kinds: np.ndarray, params: np.ndarray, cols: np.ndarray) -
             parts.append(Periodic(p[0], p[1], dims=dims))
         elif kind == KIND_LOCALLY_PERIODIC:
             parts.append(LocallyPeriodic(p[0], p[1], p[2], dims=dims))
+        elif kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+            parts.append(ZeroMeanLocallyPeriodic(p[0], p[1], p[2], dims=dims))
         else:
             raise ValueError(f"snapshot holds an unknown kernel kind {kind}")
     if not parts:
@@ -156,10 +164,12 @@ class KRLST:
         ``Q`` update. kafbox's recursion multiplies the error of ``Q`` by up to
         ``~1/γ² ≲ 1/ε_j`` on a step, so with ``ε_j = 1e-6`` ``max|Q K_D − I|`` is ~3e-6
         typically and reaches 1e-4…1e-3 (and no periodic refresh prevents that: the
-        error is back within ~100 steps); with ``refine`` it stays ~1e-9. Costs one
-        extra sweep over ``Q`` while the dictionary grows (fused with the pruning
-        sweep once it is full). Off by default: the golden vectors follow kafbox,
-        whose own ``Q`` error steers its pruning near-ties.
+        error is back within ~100 steps); with ``refine`` it stays ~1e-9. It is needed on
+        every step: on a 333 Hz stream ``|q|²/γ²`` exceeds 2e4 on 99 % of them (median
+        4e5 at M = 100). ``K_D q`` comes with the ``Σ q`` pass; ``Q(k_t − K_D q)`` costs an
+        extra sweep over ``Q`` while the dictionary grows and shares the pruning sweep once
+        it is full (~0.2 µs of a ~4 µs step at M = 100). Off by default: the golden vectors
+        follow kafbox, whose own ``Q`` error steers its pruning near-ties.
 
     Examples
     --------
@@ -218,8 +228,8 @@ class KRLST:
         self.refine = bool(refine)
         self._spec = kernel.spec()
         self._dim = 0
-        self._state = None                  # (X, Q, S, K, mu, order, ist, fst, P) once initialised
-        self._W = np.zeros((core.N_W + self.budget + 1, self.budget + 1))   # scratch
+        self._buf = None                    # (float64, int64) base buffers of the core state
+        self._st = None                     # core.State: views of self._buf
         self._out = np.zeros(core.N_OUT)
         self._xbuf = None
         self._tab = np.zeros(0)
@@ -237,72 +247,76 @@ class KRLST:
     @property
     def size(self) -> int:
         """Current dictionary size ``|D|``."""
-        return 0 if self._state is None else int(self._state[6][core.I_N])
+        return 0 if self._st is None else int(self._st.ist[core.I_N])
 
     @property
     def armed(self) -> bool:
         """True between :meth:`predict_next` and :meth:`update` (a prediction waits for its ``y``)."""
-        return self._state is not None and bool(self._state[6][core.I_ARMED])
+        return self._st is not None and bool(self._st.ist[core.I_ARMED])
 
     @property
     def s02(self) -> float:
         """Signal power ``s0²`` (eq. 2.20); 0 before the first sample."""
-        return 0.0 if self._state is None else float(self._state[7][core.F_S02])
+        return 0.0 if self._st is None else float(self._st.fst[core.F_S02])
 
     def _logical(self) -> np.ndarray:
-        st = self._state
-        return st[5][: st[6][core.I_N]]
+        st = self._st
+        return st.order[: st.ist[core.I_N]]
 
     @property
     def dictionary(self) -> np.ndarray:
         """Dictionary inputs, shape ``(n, d)``, oldest first (a copy)."""
-        if self._state is None:
+        if self._st is None:
             return np.zeros((0, self._dim))
-        return self._state[0][self._logical()].copy()
+        return self._st.X[self._logical()].copy()
 
     @property
     def mu(self) -> np.ndarray:
         """Posterior mean ``μ`` of ``f`` at the dictionary (a copy)."""
-        if self._state is None:
+        if self._st is None:
             return np.zeros(0)
-        return self._state[4][self._logical()].copy()
+        return self._st.mu[self._logical()].copy()
 
     def _materialized(self) -> tuple[np.ndarray, np.ndarray]:
-        X, Q, S, K, mu, order, ist, fst, P = self._state
-        Qm = np.zeros_like(Q)
-        Sm = np.zeros_like(S)
-        core.materialize(Q, S, P, ist, fst, int(ist[core.I_HW]), Qm, Sm)
+        cap = self.budget + 1
+        Qm = np.zeros((cap, cap))
+        Sm = np.zeros((cap, cap))
+        core.materialize(self._st, Qm, Sm)
         idx = self._logical()
         return Qm[np.ix_(idx, idx)], Sm[np.ix_(idx, idx)]
 
     @property
     def Sigma(self) -> np.ndarray:
         """Posterior covariance ``Σ`` (normalised) at the dictionary (a copy)."""
-        if self._state is None:
+        if self._st is None:
             return np.zeros((0, 0))
         return self._materialized()[1]
 
     @property
     def Q(self) -> np.ndarray:
         """``Q ≈ K_D⁻¹`` (a copy)."""
-        if self._state is None:
+        if self._st is None:
             return np.zeros((0, 0))
         return self._materialized()[0]
 
     @property
     def K(self) -> np.ndarray:
         """Cached dictionary kernel matrix ``K_D = k(D, D) + ε_j I`` (a copy)."""
-        if self._state is None:
+        if self._st is None:
             return np.zeros((0, 0))
+        st = self._st
+        cap = self.budget + 1
+        U = st.K[:cap, :cap]
+        full = U + U.T + np.diag(st.Kd[:cap])
         idx = self._logical()
-        return self._state[3][np.ix_(idx, idx)].copy()
+        return full[np.ix_(idx, idx)]
 
     def inverse_error(self) -> float:
         """``max |Q K_D − I|`` (max-abs norm, ``K_D`` with jitter): drift of ``Q`` from ``K_D⁻¹``.
 
         Kept small by the periodic re-inversion (``refresh_every``).
         """
-        if self._state is None:
+        if self._st is None:
             return 0.0
         Q, K = self.Q, self.K
         return float(np.max(np.abs(Q @ K - np.eye(Q.shape[0]))))
@@ -356,8 +370,18 @@ class KRLST:
         # lets the kernel reject inputs it cannot read (e.g. a periodic factor on 2 columns)
         self.kernel(x_example.reshape(1, -1))
         self._dim = dim
-        self._state = core.new_state(self.budget, dim, self.forgetting, self.sn2, self.jitter, self.grid_step,
-                                     self.refresh_every, self.refine)
+        self._set_buffers(core.new_buffers(self.budget, dim, self.forgetting, self.sn2, self.jitter,
+                                           self.grid_step, self.refresh_every, self.refine, self._spec, self._tab))
+
+    def _set_buffers(self, buf: tuple[np.ndarray, np.ndarray]) -> None:
+        self._buf = buf
+        self._st = core.state_views(*buf)
+
+    def _step(self) -> Step:
+        v = self._out.tolist()
+        return Step(v[core.O_MEAN], v[core.O_SY2], v[core.O_SF2], v[core.O_G2], int(v[core.O_REMOVED]),
+                    v[core.O_REDUCED] != 0.0, v[core.O_FILT], v[core.O_FILTVAR], v[core.O_S02],
+                    int(v[core.O_SIZE]))
 
     # ------------------------------------------------------------------ learning
     def learn_one(self, x, y) -> Step:
@@ -371,23 +395,26 @@ class KRLST:
         """
         xa = self._as_x(x)
         yf = self._as_y(y)
-        if self._state is None:
+        if self._st is None:
             self._start(xa.shape[0], xa)
-        kinds, params, cols = self._spec
-        X, Q, S, K, mu, order, ist, fst, P = self._state
-        out = self._out
-        core.learn(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa, yf, out)
-        v = out.tolist()
-        return Step(v[0], v[1], v[2], v[3], int(v[4]), v[5] != 0.0, v[6], v[7], v[8], int(v[9]))
+        core.learn_buffers(*self._buf, xa, yf, self._out)
+        return self._step()
 
-    def core_arrays(self, x_example) -> tuple:
-        """The arrays the ``@njit`` core works on, in its argument order
-        ``(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab)``, for compiled loops that
-        drive the tracker (:func:`kernels.online.track_block`). Starts a new tracker with the input
-        dimension of ``x_example`` (a 1-D array)."""
-        if self._state is None:
+    def core_state(self, x_example) -> core.State:
+        """The :class:`kernels._krlst_core.State` the ``@njit`` core works on (``core.arm(st, x, out)``,
+        ``core.update(st, y, out)``), for compiled loops that drive the tracker
+        (:func:`kernels.online.track_block`). Starts a new tracker with the input dimension of
+        ``x_example`` (a 1-D array) if none is running. The arrays are the tracker's own (not copies)."""
+        if self._st is None:
             self._start(x_example.shape[0], x_example)
-        return (*self._spec, *self._state, self._W, self._tab)
+        return self._st
+
+    def core_buffers(self, x_example) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers ``(float64, int64)`` behind :meth:`core_state`, for compiled code that
+        takes plain arrays and names them inside with ``kernels._krlst_core.state_of(fbuf, ibuf)``
+        (two arrays cross the Python/numba boundary instead of the ``State``'s 22)."""
+        self.core_state(x_example)
+        return self._buf
 
     def _stream(self, X, y, mask, xname: str, yname: str) -> tuple[np.ndarray, np.ndarray]:
         """Validated contiguous ``(N, d)`` inputs and ``(N,)`` targets; ``y`` must be finite where
@@ -425,8 +452,8 @@ class KRLST:
         N = ya.shape[0]
         outs = np.zeros((N, core.N_OUT))
         if N:
-            core.learn_many(*self.core_arrays(Xa[0]), Xa, ya, outs)
-        res = {name: outs[:, i].copy() for i, name in enumerate(_OUT_FIELDS)}
+            core.learn_many(self.core_state(Xa[0]), Xa, ya, outs)
+        res = {name: outs[:, i].copy() for name, i in _OUT_FIELDS}
         res["removed"] = res["removed"].astype(np.int64)
         res["reduced"] = res["reduced"] != 0.0
         res["size"] = res["size"].astype(np.int64)
@@ -450,13 +477,11 @@ class KRLST:
         non-finite ``x`` raises ``ValueError`` and leaves the state untouched.
         """
         xa = self._as_x(x)
-        if self._state is None:
+        if self._st is None:
             self._start(xa.shape[0], xa)
-        kinds, params, cols = self._spec
-        X, Q, S, K, mu, order, ist, fst, P = self._state
         out = self._out
-        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa, out)
-        return float(out[0]), float(out[1]), float(out[2]), float(out[3])
+        core.arm_buffers(*self._buf, xa, out)
+        return float(out[core.A_MEAN]), float(out[core.A_SF2]), float(out[core.A_SY2]), float(out[core.A_G2])
 
     def update(self, y) -> Step:
         """Steps 3–5 (6 on the first sample) for the ``x`` armed by :meth:`predict_next`.
@@ -469,11 +494,8 @@ class KRLST:
         yf = self._as_y(y)
         if not self.armed:
             raise RuntimeError("KRLST.update needs an armed prediction: call predict_next(x) first")
-        X, Q, S, K, mu, order, ist, fst, P = self._state
-        out = self._out
-        core.update(X, Q, S, K, mu, order, ist, fst, P, self._W, yf, out)
-        v = out.tolist()
-        return Step(v[0], v[1], v[2], v[3], int(v[4]), v[5] != 0.0, v[6], v[7], v[8], int(v[9]))
+        core.update_buffers(*self._buf, yf, self._out)
+        return self._step()
 
     def track_many(self, xs, ys, learn_mask) -> dict[str, np.ndarray]:
         """Monitor block in one ``@njit`` call: per arriving sample ``j``, in order,
@@ -507,17 +529,17 @@ class KRLST:
             raise RuntimeError("track_many: learn_mask[0] is set but no prediction is armed")
         outs = np.zeros((N, core.N_TRACK))
         if N:
-            core.track(*self.core_arrays(Xa[0]), Xa, ya, np.ascontiguousarray(mask), outs)
-        learned = outs[:, 16] != 0.0
+            core.track(self.core_state(Xa[0]), Xa, ya, np.ascontiguousarray(mask), outs)
+        learned = outs[:, core.T_LEARNED] != 0.0
         res: dict[str, np.ndarray] = {"learned": learned}
-        for i, name in enumerate(_TRACK_STEP_FIELDS):
+        for name, i in _OUT_FIELDS[:8]:
             res[name] = outs[:, i].copy()
         res["removed"] = np.where(learned, np.nan_to_num(res["removed"], nan=-1.0), -1.0).astype(np.int64)
         res["reduced"] = learned & (res["reduced"] == 1.0)
-        for i, name in enumerate(_TRACK_NEXT_FIELDS):
-            res[name] = outs[:, core.N_OUT + i].copy()
-        res["s02"] = outs[:, 14].copy()
-        res["size"] = outs[:, 15].astype(np.int64)
+        for name, i in _NEXT_FIELDS:
+            res[name] = outs[:, core.T_NEXT + i].copy()
+        res["s02"] = outs[:, core.T_S02].copy()
+        res["size"] = outs[:, core.T_SIZE].astype(np.int64)
         return res
 
     # ------------------------------------------------------------------ prediction
@@ -533,28 +555,27 @@ class KRLST:
         the monitor's "train, then predict the next" is :meth:`predict_next`.
         """
         xa = self._as_x(x)
-        if self._state is None:
+        if self._st is None:
             return 0.0, math.nan
-        kinds, params, cols = self._spec
-        X, Q, S, K, mu, order, ist, fst, P = self._state
         out = self._out
-        core.predict(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, self._W, self._tab, xa,
-                     bool(forget), out)
-        s02 = float(fst[core.F_S02])
-        var = out[2] if noise else out[1]
-        return float(out[0]), s02 * float(var)
+        core.predict_buffers(*self._buf, xa, bool(forget), out)
+        s02 = float(self._st.fst[core.F_S02])
+        var = out[core.A_SY2] if noise else out[core.A_SF2]
+        return float(out[core.A_MEAN]), s02 * float(var)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:
         """The complete state as a plain ``dict[str, np.ndarray]`` (copies; no pickle needed).
 
         Hyperparameters are 0-d arrays (``grid_step`` 0 for none), the kernel is its
-        :meth:`Kernel.spec` arrays. The state arrays are the core's buffers as they
-        are, pending rank-one updates, the step counter (refresh schedule) and an armed
-        prediction included, so :meth:`restore` continues bit-identically.
+        :meth:`Kernel.spec` arrays, ``state_layout`` is :data:`SNAPSHOT_LAYOUT`. The state
+        arrays are the core's :data:`~kernels._krlst_core.STATE_FIELDS` as they are, pending
+        rank-one updates, the step counter (refresh schedule) and an armed prediction
+        included, so :meth:`restore` continues bit-identically.
         """
         kinds, params, cols = self._spec
         snap = {
+            "state_layout": np.array(SNAPSHOT_LAYOUT, dtype=np.int64),
             "gamma": np.array(self.gamma),
             "forgetting": np.array(self.forgetting),
             "budget": np.array(self.budget, dtype=np.int64),
@@ -567,17 +588,21 @@ class KRLST:
             "kernel_params": params.copy(),
             "kernel_cols": cols.copy(),
         }
-        if self._state is not None:
-            for name, arr in zip(_STATE_NAMES, self._state):
-                snap[name] = arr.copy()
+        if self._st is not None:
+            for name in core.STATE_FIELDS:
+                snap[name] = getattr(self._st, name).copy()
         return snap
 
     @classmethod
     def restore(cls, snap: dict) -> KRLST:
-        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot.
+        """Rebuild a tracker from :meth:`snapshot`; raises ``ValueError`` on a malformed snapshot
+        (shapes and dtypes against :func:`~kernels._krlst_core.new_state`, then the state's
+        invariants, :func:`~kernels._krlst_core.validate_state`).
 
-        Snapshots written before ``refresh_every`` and the split step existed (shorter
-        ``ist``/``fst``/``P``, no ``refresh_every`` key) are accepted: they get the default
+        Snapshots of layout 1 (full ``Q``, ``Sigma``, ``K`` matrices, written before the
+        triangular core; no ``state_layout`` key) are converted, their pending updates
+        applied. Those written before ``refresh_every`` and the split step existed
+        (shorter ``ist``/``fst``/``P``, no ``refresh_every`` key) get the default
         ``refresh_every`` and no armed prediction.
         """
         try:
@@ -591,32 +616,102 @@ class KRLST:
                           grid_step=grid_step if grid_step > 0 else None, refresh_every=refresh_every,
                           refine=refine)
             dim = int(snap["dim"])
+            layout = int(snap["state_layout"]) if "state_layout" in snap else 1
         except KeyError as exc:
             raise ValueError(f"snapshot is missing {exc.args[0]!r}") from None
         if dim == 0:
             return tracker
-        cap = tracker.budget + 1
-        shapes = {"X": ((cap, dim), np.float64), "Q": ((cap, cap), np.float64),
-                  "Sigma": ((cap, cap), np.float64), "K": ((cap, cap), np.float64),
-                  "mu": ((cap,), np.float64), "order": ((cap,), np.int64),
-                  "ist": ((core.N_IST,), np.int64), "fst": ((core.N_FST,), np.float64),
-                  "P": ((core.N_P, cap), np.float64)}
-        # the format before refresh_every / predict_next: fewer entries, zero-padded
-        old = {"ist": ((6,), np.int64), "fst": ((10,), np.float64), "P": ((3, cap), np.float64)}
-        state = []
-        for name, (shape, dtype) in shapes.items():
-            if name not in snap:
+        if dim < 0:
+            raise ValueError(f"snapshot 'dim' must be >= 0, got {dim}")
+        tracker._start(dim, np.zeros(dim))
+        st = tracker._st
+        fresh_fst = st.fst.copy()
+        if layout == 1:
+            arrays = _from_layout1(tracker, snap, dim)
+        elif layout == SNAPSHOT_LAYOUT:
+            arrays = snap
+        else:
+            raise ValueError(f"snapshot 'state_layout' {layout} is not supported (1 or {SNAPSHOT_LAYOUT})")
+        for name in core.STATE_FIELDS:
+            if name not in arrays:
                 raise ValueError(f"snapshot is missing {name!r}")
-            arr = np.array(snap[name], dtype=dtype, copy=True, order="C")
-            if name in old and arr.shape == old[name][0] and "refresh_every" not in snap:
-                padded = np.zeros(shape, dtype=dtype)
-                padded[tuple(slice(0, k) for k in arr.shape)] = arr
-                arr = padded
-            if arr.shape != shape:
-                raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {shape}")
-            state.append(arr)
-        state[6][core.I_REFRESH] = tracker.refresh_every
-        state[6][core.I_REFINE] = int(tracker.refine)
-        tracker._dim = dim
-        tracker._state = tuple(state)
+            dst = getattr(st, name)
+            arr = np.asarray(arrays[name])
+            if arr.shape != dst.shape:
+                raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {dst.shape}")
+            if np.issubdtype(dst.dtype, np.integer) and not np.issubdtype(arr.dtype, np.integer):
+                raise ValueError(f"snapshot {name!r} must hold integers, got {arr.dtype}")
+            dst[...] = arr
+        st.ist[core.I_REFRESH] = tracker.refresh_every
+        st.ist[core.I_REFINE] = int(tracker.refine)
+        core.validate_state(st)                      # before the compiled code indexes with it
+        for slot in (core.F_LAM, core.F_SN2, core.F_JIT, core.F_INVTS):
+            if st.fst[slot] != fresh_fst[slot]:
+                raise ValueError(f"snapshot 'fst' holds hyperparameters {st.fst[[core.F_LAM, core.F_SN2, core.F_JIT]]}"
+                                 " that differ from its own gamma/forgetting/jitter/grid_step entries")
         return tracker
+
+
+def _from_layout1(tracker: KRLST, snap: dict, dim: int) -> dict[str, np.ndarray]:
+    """The :data:`~kernels._krlst_core.STATE_FIELDS` of a layout-1 snapshot (full ``Q``, ``Sigma``,
+    ``K``; pending rank-one updates in ``P`` rows 0–2 and ``ist[4:6]``), pending updates applied."""
+    cap = tracker.budget + 1
+    shapes = {"X": ((cap, dim), np.float64), "Q": ((cap, cap), np.float64),
+              "Sigma": ((cap, cap), np.float64), "K": ((cap, cap), np.float64),
+              "mu": ((cap,), np.float64), "order": ((cap,), np.int64),
+              "ist": ((core.N_IST,), np.int64), "fst": ((15,), np.float64),
+              "P": ((core.N_P, cap), np.float64)}
+    # the format before refresh_every / predict_next: fewer entries, zero-padded
+    old = {"ist": (6,), "fst": (10,), "P": (3, cap)}
+    a = {}
+    for name, (shape, dtype) in shapes.items():
+        if name not in snap:
+            raise ValueError(f"snapshot is missing {name!r}")
+        arr = np.array(snap[name], dtype=dtype, copy=True)
+        if name in old and arr.shape == old[name] and "refresh_every" not in snap:
+            padded = np.zeros(shape, dtype=dtype)
+            padded[tuple(slice(0, k) for k in arr.shape)] = arr
+            arr = padded
+        if arr.shape != shape:
+            raise ValueError(f"snapshot {name!r} has shape {arr.shape}, expected {shape}")
+        a[name] = arr
+    ist, fst, P = a["ist"], a["fst"], a["P"]
+    p, pa, g = P[core.P_P], P[core.P_A], P[core.P_G]
+    Q, S, K = a["Q"], a["Sigma"], a["K"]
+    if ist[core.I_QPEND] >= 1:
+        Q = Q + fst[core.F_QSC] * np.outer(p, p)
+    if ist[core.I_QPEND] == 2:
+        Q = Q - fst[core.F_QBINV] * np.outer(pa, pa)
+    if ist[core.I_SPEND]:
+        S = S - fst[core.F_SC] * np.outer(g, g)
+    st = tracker._st
+    n8 = st.Q.shape[0]
+    fst = np.concatenate([fst, [1.0]])            # c of Δ = c·D
+    out = {"X": a["X"], "order": a["order"], "fst": fst}
+    ist = ist.copy()
+    ist[core.I_QPEND] = 0
+    ist[core.I_SPEND] = 0
+    out["ist"] = ist
+    for name, full in (("Q", Q), ("D", S - K), ("K", K)):
+        upper = np.zeros((n8, n8))
+        upper[:cap, :cap] = np.triu(full, 1)
+        diag = np.zeros(n8)
+        diag[:cap] = np.diag(full)
+        out[name], out[name + "d"] = upper, diag
+    out["mu"] = np.pad(a["mu"], (0, n8 - cap))
+    n = int(ist[core.I_N])
+    if not 0 <= n <= tracker.budget:
+        raise ValueError(f"snapshot dictionary size {n} is outside [0, {tracker.budget}]")
+    occ = np.zeros(n8)
+    occ[a["order"][:n]] = 1.0
+    out["occ"] = occ
+    Pn = np.zeros_like(st.P)
+    Pn[core.P_KT:core.P_RES + 1, :cap] = P[core.P_KT:core.P_RES + 1]   # armed vectors
+    out["P"] = Pn
+    Ph = np.zeros_like(st.Ph)
+    kinds, params, cols = tracker._spec
+    used = list(a["order"][:n]) + ([a["order"][n]] if ist[core.I_ARMED] and n < cap else [])
+    for s in used:
+        core.kernel_phases(kinds, params, cols, np.ascontiguousarray(a["X"][s]), Ph[s])
+    out["Ph"] = Ph
+    return out

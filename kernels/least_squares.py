@@ -26,6 +26,8 @@ RANK_RTOL = 1e-10
 _COULOMB_HINT = {
     "-sigma_p": "no motion above +Ω (no positive speed beyond the dead band)",
     "-sigma_n": "no motion below −Ω (no negative speed beyond the dead band)",
+    "-tau": "the sign of the speed does not change",
+    "-abs_tau": "the speed is never inside the dead band, or always",
 }
 
 

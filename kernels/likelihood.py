@@ -1,56 +1,80 @@
-"""Hyperparameter tuning of PL-LSSVM by restricted (REML) marginal likelihood (method §4; issue 4).
+"""Restricted marginal likelihood (REML) of the PL-LSSVM model, its tuning, and the evidence of a
+candidate model (method §4; issue 10).
 
 The PL-LSSVM model read as a Gaussian process with an explicit linear basis:
 
-    y = Z̃ b + f + ε,    f ~ GP(0, s² k),    ε ~ N(0, s²/γ · I)   ⇒   cov(y) = s² A,  A = Ω + γ⁻¹I
+    y = Z̃ b + f + ε,    f ~ GP(0, s² k),    ε ~ N(0, s²/γ · I)   ⇒   cov(y) = s² A,  A = Ω + γ⁻¹I     (L1)
 
-with ``Z̃ = [1, Z]`` and ``b = [c; β]`` (the PL-LSSVM solution is the GLS/posterior mean of this
-model). ``b`` is integrated out under a flat prior (REML) and the scale ``s²`` is profiled out in
-closed form, ``ŝ² = yᵀPy/(N − p)``:
+with ``Z̃ = [1, Z]`` (or ``Z`` when it has its own constant column ``one``) and ``b = [c; β]``; the
+PL-LSSVM solution is the GLS / posterior mean of this model. Least squares is the same reading with
+no kernel, ``A = I`` (white equation error). ``b`` is integrated out under a flat prior (REML) and
+the scale ``s²`` is profiled out in closed form, ``ŝ² = yᵀPy/(N − p)``:
 
-    ℓ(σ1, σ2, γ) = −½ [ (N − p)(log(2π ŝ²) + 1) + log|A| + log|Z̃ᵀA⁻¹Z̃| − log|Z̃ᵀZ̃| ]
+    ℓ(θ) = −½ [ (N − p)(log(2π ŝ²) + 1) + log|A| + log|Z̃ᵀA⁻¹Z̃| − log|Z̃ᵀZ̃| ]                      (L2)
 
-where ``yᵀPy = (y − Z̃b̂)ᵀA⁻¹(y − Z̃b̂) = rᵀα`` and ``p`` = columns of ``Z̃``. The
-``− log|Z̃ᵀZ̃|`` term (constant in the hyperparameters) makes ℓ invariant to rescaling the
-regressor columns (Harville's form). ``log|A|`` comes from Levinson–Durbin
-(:func:`kernels.toeplitz.toeplitz_logdet`, or Levinson whitening for small N), the solves from
-the PL-LSSVM Toeplitz path.
+where ``yᵀPy = (y − Z̃b̂)ᵀA⁻¹(y − Z̃b̂)`` and ``p`` = columns of ``Z̃``. The ``− log|Z̃ᵀZ̃|`` term
+(constant in θ) makes ℓ invariant to rescaling the regressor columns (Harville's form) and makes
+the REML of different covariance models with the same ``Z̃`` comparable — LS gives
+``ℓ_LS = −½ (N − p)(log(2π ŝ²) + 1)``.
 
-Exact evaluation (:func:`log_marginal_likelihood`): ``N ≤ dense_limit`` by Levinson–Durbin
-whitening (``L⁻¹[Z̃, y]`` and ``log|A|`` in one pass, then QR), above it by Levinson–Durbin for ``log|A|`` (``O(N²)``, ~0.1 s at N = 10 000)
-and Toeplitz PCG for the solves.
+GLS covariance of ``b`` (the uncertainty of β under the candidate, issue 10 item 4):
 
-Tuning (:func:`tune`) uses a **segmented** likelihood: the record is cut into ``S`` consecutive
-segments of at most ``segment`` samples (default 1500 ≈ 4.5 s at 333 Hz) that are treated as
-independent realisations of ``f`` with a *shared* ``b``, i.e. ``A`` is replaced by its
-block-diagonal part. The formula above is unchanged (``log|A| = Σ log|A_s|``,
-``Z̃ᵀA⁻¹Z̃ = Σ Z̃_sᵀA_s⁻¹Z̃_s``); it drops only the correlation across segment boundaries, which is
-negligible while ``σ1`` is short compared with a segment (σ1 is bounded by the segment length).
-Why: PCG iteration counts grow steeply for long σ1 and large γ (T. Chan preconditioner, 1000+
-iterations), which made whole-record tuning take minutes; the segments share one Toeplitz matrix,
-so one Levinson–Durbin pass of length ≤ 1500 whitens all of them (``O(segment · N · (p+1))``,
-single-threaded Numba, no BLAS) in tens of milliseconds, independent of the hyperparameters.
+    cov(b̂) = ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹                                                                   (L3)
+
+(``ŝ² (Z̃ᵀZ̃)⁻¹`` for LS).
+
+Evidence of a candidate (:func:`log_evidence`): the REML at the tuned hyperparameters with a
+Laplace/BIC-style penalty for the ``k`` hyperparameters fitted to the data,
+
+    log E = ℓ(θ̂) − ½ k log(N − p)                                                                (L4)
+
+(``s²`` is profiled in every candidate and not counted; hyperparameters given by the user, or kept
+with ``--no-tune``, count 0; a period found from the data counts 1).
+
+Evaluation (:func:`reml_terms`): by **whitening** with the inverse Cholesky factor of the Toeplitz
+``A`` from one Levinson–Durbin pass (:func:`kernels.toeplitz.levinson_whiten`), which gives
+``L⁻¹[Z̃, y]`` and ``log|A|`` together; then a QR of the whitened ``Z̃`` gives ``b̂``, ``yᵀPy``,
+``log|Z̃ᵀA⁻¹Z̃|`` and (L3). Exact, ``O(N² (p + 2))`` time, ``O(N p)`` memory, independent of the
+conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson).
+
+Tuning (:func:`tune`) maximises the exact REML of the whole record. A block-diagonal (segmented)
+approximation is available (``segment``: consecutive segments treated as independent realisations of
+``f`` with a shared ``b``, ``log|A| = Σ log|A_s|``, one Levinson pass of the segment length for all
+of them, ``O(segment · N · (p+1))``) but not used by default: when γ is large (the kernel explains
+nearly all of the residual, as on smooth real data) it misjudges the long-range correlation σ1 by
+thousands of log-likelihood units — every segment start forgets the periodic pattern.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
-from .covariance import LocallyPeriodic
-from .pl_lssvm import _check_gamma, gls_solve, prepare_regression
-from .toeplitz import DENSE_LIMIT, ToeplitzSolver, levinson_whiten, toeplitz_logdet
+from .covariance import Kernel, LocallyPeriodic, SquaredExponential, ZeroMeanLocallyPeriodic
+from .pl_lssvm import _check_gamma, prepare_regression
+from .toeplitz import levinson_whiten
 
-__all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "tune", "TuneResult"]
+__all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "log_evidence", "tune", "TuneResult",
+           "default_bounds", "KINDS", "PERIODIC_KINDS", "BOUND_RTOL"]
+
+#: kernel families that can be tuned: hyperparameter names besides γ
+KINDS = {"squared_exponential": ("lengthscale",), "locally_periodic": ("sigma1", "sigma2"),
+         "locally_periodic_zero_mean": ("sigma1", "sigma2")}
+#: the families with a period ψ
+PERIODIC_KINDS = ("locally_periodic", "locally_periodic_zero_mean")
+#: a tuned value within this fraction (in log space, of the bound interval) of a bound "ends on it"
+BOUND_RTOL = 0.01
+
 
 @dataclass(frozen=True)
 class REMLTerms:
-    """The pieces of the restricted log likelihood (module docstring)."""
+    """The pieces of the restricted log likelihood (L2) and the GLS covariance (L3)."""
 
     log_likelihood: float
     s2: float  # profiled scale ŝ²
@@ -61,7 +85,17 @@ class REMLTerms:
     n: int
     p: int
     b: np.ndarray  # [c; β] (or β when Z has its own constant column)
+    cov: np.ndarray  # ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹, (p, p)
     solver: str
+    intercept: bool = False  # True when b[0] is the PL-LSSVM bias c (Z has no constant column)
+
+    @property
+    def beta(self) -> np.ndarray:
+        return self.b[1:] if self.intercept else self.b
+
+    @property
+    def beta_cov(self) -> np.ndarray:
+        return self.cov[1:, 1:] if self.intercept else self.cov
 
 
 def _logdet_scaled_gram(Zs: np.ndarray) -> float:
@@ -69,48 +103,46 @@ def _logdet_scaled_gram(Zs: np.ndarray) -> float:
     return 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
 
 
-def reml_terms(Z, y, kernel, gamma, Ts, *, names=None, tol: float = 1e-10,
-               dense_limit: int = DENSE_LIMIT, segment: int | None = None, _prepared=None) -> REMLTerms:
-    """All terms of the REML log likelihood of the PL-LSSVM model on a uniform time grid.
+def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: int | None = None,
+               _prepared=None) -> REMLTerms:
+    """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
-    ``kernel`` must be a time kernel (``kernel.is_stationary_1d``), ``Ts`` the sample period (s).
-    Exact unless ``segment`` is given: ``N ≤ dense_limit`` by Levinson whitening + QR,
-    above it Toeplitz PCG (tolerance ``tol``) + Levinson–Durbin. ``segment``: the block-diagonal
-    (segmented) approximation of the module docstring.
+    ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
+    time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact (Levinson
+    whitening of the whole record) unless ``segment`` is given: then the block-diagonal (segmented)
+    approximation of the module docstring.
     """
-    gamma = _check_gamma(gamma)
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
-    Z_arr, y, names, Zt, _ = _prepared
+    Z_arr, y, names, Zt, intercept = _prepared
+    n, p = Zt.shape
+    scale = np.sqrt(np.sum(Zt * Zt, axis=0))
+    if kernel is None:
+        b, quad, logdet_M_s, Rinv = _qr_terms(Zt / scale, y)
+        return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept)
+    gamma = _check_gamma(gamma)
     if not kernel.is_stationary_1d:
         raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
     Ts = float(Ts)
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-    n, p = Zt.shape
-    if segment is not None:
+    if segment is None:
+        segment, label = n, "levinson"
+    else:
         segment = int(segment)
         if segment < 4 * p:
             raise ValueError(f"segment must be at least {4 * p} samples, got {segment}")
-        b, quad, logdet_A, logdet_M_s, scale, count = _whitened_terms(Zt, y, kernel, gamma, Ts, segment)
-        return _assemble(Zt, b, quad, logdet_A, logdet_M_s, scale, f"segmented-{count}")
-    if n <= dense_limit:
-        b, quad, logdet_A, logdet_M_s, scale, _ = _whitened_terms(Zt, y, kernel, gamma, Ts, n)
-        return _assemble(Zt, b, quad, logdet_A, logdet_M_s, scale, "levinson")
-    column = kernel.lag(np.arange(n) * Ts)
-    column[0] += 1.0 / gamma
-    solver = ToeplitzSolver(column, tol=tol, dense_limit=0)
-    logdet_A = toeplitz_logdet(column)
-    b, alpha, _, cho, scale, _, _ = gls_solve(solver, Zt, y)
-    quad = float((y - Zt @ b) @ alpha)
-    logdet_M_scaled = 2.0 * float(np.sum(np.log(np.diag(cho[0]))))
-    return _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, scale, solver.method)
+        segment = min(segment, n)
+        label = None
+    white, logdet_A, count = _whiten(Zt, y, kernel, gamma, Ts, segment)
+    b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
+    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, label or f"segmented-{count}",
+                     intercept)
 
 
-def _whitened_terms(Zt, y, kernel, gamma, Ts, segment):
-    """REML terms with block-diagonal A (consecutive segments of ≤ ``segment`` samples), by whitening
-    each segment with the inverse Cholesky factor of its Toeplitz block, obtained from one
-    Levinson–Durbin pass (:func:`kernels.toeplitz.levinson_whiten`; exact when N ≤ segment)."""
+def _whiten(Zt, y, kernel, gamma, Ts, segment):
+    """``L_s⁻¹[Z̃_s, y_s]`` for consecutive segments of ≤ ``segment`` samples (one Levinson–Durbin
+    pass; exact when ``segment = N``) and ``Σ log|A_s|``."""
     n, p = Zt.shape
     count = max(1, -(-n // segment))
     edges = np.linspace(0, n, count + 1).astype(np.int64)
@@ -124,19 +156,20 @@ def _whitened_terms(Zt, y, kernel, gamma, Ts, segment):
         series[i, :, :lengths[i]] = data[edges[i]:edges[i + 1]].T
     W, logdets = levinson_whiten(column, series, lengths)
     white = np.concatenate([W[i, :, :lengths[i]].T for i in range(count)], axis=0)
-    logdet_A = float(np.sum(logdets))
-    scale = np.sqrt(np.sum(Zt * Zt, axis=0))
-    Zw = white[:, :p] / scale
-    yw = white[:, p]
+    return white, float(np.sum(logdets)), int(count)
+
+
+def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
+    """GLS on whitened, column-scaled data: ``b_s``, ``yᵀPy``, ``log|Z_wᵀZ_w|`` and ``R⁻¹``."""
     Q, R = np.linalg.qr(Zw)
     bs = solve_triangular(R, Q.T @ yw, check_finite=False)
     rw = yw - Zw @ bs
-    quad = float(rw @ rw)
-    logdet_M_scaled = 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
-    return bs / scale, quad, logdet_A, logdet_M_scaled, scale, int(count)
+    logdet = 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
+    Rinv = solve_triangular(R, np.eye(R.shape[0]), check_finite=False)
+    return bs, float(rw @ rw), logdet, Rinv
 
 
-def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, scale, solver) -> REMLTerms:
+def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept) -> REMLTerms:
     n, p = Zt.shape
     if not quad > 0:
         raise ValueError("yᵀPy is not positive: the data are fitted exactly; the likelihood is undefined")
@@ -145,127 +178,188 @@ def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, scale, solver) -> REMLTerm
     dof = n - p
     s2 = quad / dof
     ll = -0.5 * (dof * (math.log(2.0 * math.pi * s2) + 1.0) + logdet_A + logdet_M_scaled - logdet_ZZ_scaled)
+    cov = s2 * (Rinv @ Rinv.T) / np.outer(scale, scale)
     return REMLTerms(log_likelihood=ll, s2=s2, logdet_A=logdet_A, logdet_M=logdet_M_scaled - two_log_scale,
-                     logdet_ZZ=logdet_ZZ_scaled + two_log_scale, quad=quad, n=n, p=p, b=b, solver=solver)
+                     logdet_ZZ=logdet_ZZ_scaled + two_log_scale, quad=quad, n=n, p=p, b=b,
+                     cov=0.5 * (cov + cov.T), solver=solver, intercept=bool(intercept))
 
 
-def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, tol: float = 1e-10,
-                            dense_limit: int = DENSE_LIMIT, segment: int | None = None) -> float:
-    """Restricted log marginal likelihood (REML, ``b`` integrated out, ``s²`` profiled) of the
-    PL-LSSVM model with ``kernel`` and ``gamma`` on a uniform grid of period ``Ts`` (module docstring).
+def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, segment: int | None = None) -> float:
+    """Restricted log marginal likelihood (L2) of the PL-LSSVM model with ``kernel`` and ``gamma``
+    on a uniform grid of period ``Ts`` (``kernel=None``: least squares). Exact by default;
+    ``segment`` selects the block-diagonal approximation (module docstring)."""
+    return reml_terms(Z, y, kernel, gamma, Ts, names=names, segment=segment).log_likelihood
 
-    Exact by default (Levinson whitening for ``N ≤ dense_limit``, else Levinson–Durbin log-det +
-    Toeplitz PCG);
-    ``segment`` selects the segmented approximation used by :func:`tune`.
+
+def log_evidence(log_likelihood: float, k: int, n: int, p: int) -> float:
+    """(L4): ``ℓ − ½ k log(N − p)`` for ``k`` hyperparameters fitted to the data."""
+    return float(log_likelihood) - 0.5 * int(k) * math.log(max(n - p, 2))
+
+
+def default_bounds(kind: str, n: int, Ts: float, period: float | None = None) -> dict:
+    """Hyperparameter bounds scaled to the record (issue 10 item 6), ``T = N Ts`` the record length.
+
+    * locally periodic (and its zero-mean form): ``σ1 ∈ [2ψ, max(4ψ, T)]`` (from a couple of periods to the record: how long
+      the periodic pattern stays correlated), ``σ2 ∈ [max(0.05, π Ts/(2ψ)), 5]`` (within-period
+      smoothness ``σ2 ψ/π`` from half a sample, or 1/60 of a period, to nearly sinusoidal),
+      ``γ ∈ [1e-2, 1e6]`` (disturbance-to-noise variance ratio);
+    * squared exponential: ``ℓ ∈ [10 Ts, max(20 Ts, T)]``, ``γ ∈ [1e-2, 1e6]``.
     """
-    return reml_terms(Z, y, kernel, gamma, Ts, names=names, tol=tol, dense_limit=dense_limit,
-                      segment=segment).log_likelihood
+    if kind not in KINDS:
+        raise ValueError(f"unknown kernel family {kind!r}; use one of {', '.join(KINDS)}")
+    record = n * Ts
+    gamma = (1e-2, 1e6)
+    if kind in PERIODIC_KINDS:
+        if period is None:
+            raise ValueError("the locally periodic kernel needs a period ψ")
+        return {"sigma1": (2.0 * period, max(4.0 * period, record)),
+                "sigma2": (max(0.05, math.pi * Ts / (2.0 * period)), 5.0), "gamma": gamma}
+    return {"lengthscale": (10.0 * Ts, max(20.0 * Ts, record)), "gamma": gamma}
+
+
+def _make_kernel(kind: str, values: dict, period: float | None) -> Kernel:
+    if kind == "locally_periodic":
+        return LocallyPeriodic(values["sigma1"], values["sigma2"], period)
+    if kind == "locally_periodic_zero_mean":
+        return ZeroMeanLocallyPeriodic(values["sigma1"], values["sigma2"], period)
+    return SquaredExponential(values["lengthscale"])
 
 
 @dataclass(frozen=True)
 class TuneResult:
-    """Maximum-likelihood hyperparameters of the locally periodic PL-LSSVM (period fixed)."""
+    """Maximum-likelihood hyperparameters of one kernel family (period fixed)."""
 
-    sigma1: float
-    sigma2: float
+    kind: str
+    hyper: dict  # kernel hyperparameters (sigma1, sigma2 | lengthscale)
     gamma: float
-    log_likelihood: float
+    log_likelihood: float  # the tuning objective at the optimum (exact REML unless segmented)
     evaluations: int
-    period: float = 0.0
+    period: float | None = None
     seconds: float = 0.0
+    segment: int = 0
+    bounds: dict = field(default_factory=dict)
+    on_bound: dict = field(default_factory=dict)  # name → "lower" | "upper"
+    terms: REMLTerms | None = None  # exact REML terms at the optimum (None with a segmented objective)
 
-    def kernel(self) -> LocallyPeriodic:
-        return LocallyPeriodic(self.sigma1, self.sigma2, self.period)
+    def kernel(self) -> Kernel:
+        return _make_kernel(self.kind, self.hyper, self.period)
+
+    @property
+    def sigma1(self) -> float | None:
+        return self.hyper.get("sigma1")
+
+    @property
+    def sigma2(self) -> float | None:
+        return self.hyper.get("sigma2")
 
 
-def _default_bounds(n: int, Ts: float, period: float, segment: int):
-    span = min(n, segment) * Ts
-    return ((2.0 * period, max(4.0 * period, span)), (0.05, 5.0), (1e-1, 1e5))
+def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
+         bounds: dict | None = None, progress=None, names=None, segment: int | None = None,
+         max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
+         _prepared=None) -> TuneResult:
+    """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
-
-def tune(Z, y, Ts, period, *, init=(0.59, 0.42, 50.0), bounds=None, progress=None, names=None,
-         grid: bool = True, segment: int = DENSE_LIMIT, max_evaluations: int = 200, xatol: float = 1e-3,
-         fatol: float = 1e-3) -> TuneResult:
-    """Maximise the REML likelihood over ``log σ1, log σ2, log γ`` with the period ψ fixed.
-
-    The objective is the segmented likelihood (module docstring: block-diagonal ``A`` with
-    segments of at most ``segment`` samples, shared ``[c; β]``; exact when ``N ≤ segment``).
-    Start: the best of ``init`` and a coarse 3 × 3 × 3 grid in log space inside ``bounds``; then
-    bounded Nelder–Mead in log coordinates (``xatol`` in log units, ``fatol`` in log-likelihood).
+    The objective is the exact REML of the whole record (``segment`` selects the block-diagonal
+    approximation instead: faster, but it misjudges long correlation times σ1 when γ is large).
+    Several starts: ``init`` (clipped into the bounds) and, with ``design``, a two-level design at ¼
+    and ¾ of each log range (the 4 corners in 2-D, a half fraction of the 8 corners in 3-D); bounded
+    Nelder–Mead from the best start (``xatol`` in log units, ``fatol`` in log likelihood) until
+    ``max_evaluations``.
+    ``on_bound`` names the values that end within ``BOUND_RTOL`` of a bound (in log space).
 
     Parameters
     ----------
-    Z, y : regression data (method §2); ``Ts`` sample period (s); ``period`` ψ (s), e.g. 1/55.
-    init : (σ1, σ2, γ)
-        Starting point (the thesis' hand-tuned case-1 values by default).
-    bounds : ((lo, hi), (lo, hi), (lo, hi)), optional
-        For σ1 (s), σ2, γ. Default σ1 ∈ [2ψ, segment duration], σ2 ∈ [0.05, 5], γ ∈ [0.1, 1e5].
+    Z, y : regression data (method §2); ``Ts`` sample period (s); ``period`` ψ (s) for the locally
+        periodic kernel.
+    kind : "locally_periodic", "locally_periodic_zero_mean" or "squared_exponential"
+    init : dict, optional
+        Starting values by name (e.g. ``{"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}``).
+    bounds : dict name → (lo, hi), optional
+        Default :func:`default_bounds`.
     progress : callable, optional
-        ``progress(evaluations, (σ1, σ2, γ), log_likelihood, best)`` after each evaluation.
-
-    Returns
-    -------
-    TuneResult
-        ``log_likelihood`` is the objective (segmented) value at the optimum; compare
-        hyperparameter sets on the full record with :func:`log_marginal_likelihood`.
+        ``progress(evaluations, values, log_likelihood, best)`` after each evaluation.
     """
     start_time = time.perf_counter()
-    prepared = prepare_regression(Z, y, names)
+    if kind not in KINDS:
+        raise ValueError(f"unknown kernel family {kind!r}; use one of {', '.join(KINDS)}")
+    prepared = prepare_regression(Z, y, names) if _prepared is None else _prepared
     n = prepared[0].shape[0]
     Ts = float(Ts)
-    period = float(period)
-    if not (math.isfinite(period) and period > 0):
-        raise ValueError(f"period ψ must be a positive number of seconds, got {period!r}")
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-    if bounds is None:
-        bounds = _default_bounds(n, Ts, period, segment)
-    bounds = tuple((float(lo), float(hi)) for lo, hi in bounds)
-    if len(bounds) != 3 or any(not (0 < lo < hi) for lo, hi in bounds):
-        raise ValueError(f"bounds must be three (lo, hi) pairs with 0 < lo < hi for σ1, σ2, γ; got {bounds!r}")
-    log_bounds = [(math.log(lo), math.log(hi)) for lo, hi in bounds]
-    lo_arr = np.array([b[0] for b in log_bounds])
-    hi_arr = np.array([b[1] for b in log_bounds])
-    state = {"evaluations": 0, "best": -math.inf, "best_x": None}
+    periodic = kind in PERIODIC_KINDS
+    if periodic:
+        period = float(period) if period is not None else math.nan
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"period ψ must be a positive number of seconds, got {period!r}")
+    names_all = KINDS[kind] + ("gamma",)
+    bounds = default_bounds(kind, n, Ts, period if periodic else None) if bounds is None else dict(bounds)
+    try:
+        box = [(float(bounds[k][0]), float(bounds[k][1])) for k in names_all]
+    except (KeyError, TypeError, IndexError):
+        raise ValueError(f"bounds must give (lo, hi) for {', '.join(names_all)}; got {bounds!r}") from None
+    if any(not (0 < lo < hi and math.isfinite(hi)) for lo, hi in box):
+        raise ValueError(f"bounds must be (lo, hi) pairs with 0 < lo < hi for {', '.join(names_all)}; got {bounds!r}")
+    lo_arr = np.log([b[0] for b in box])
+    hi_arr = np.log([b[1] for b in box])
+    state = {"evaluations": 0, "best": -math.inf, "best_x": None, "terms": None}
 
     def objective(theta) -> float:
         theta = np.clip(theta, lo_arr, hi_arr)
-        s1, s2, g = np.exp(theta)
+        vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
-            ll = reml_terms(None, None, LocallyPeriodic(s1, s2, period), g, Ts, segment=segment,
-                            _prepared=prepared).log_likelihood
+            terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, segment=segment,
+                               _prepared=prepared)
+            ll = terms.log_likelihood
         except ValueError:
-            ll = -math.inf
+            terms, ll = None, -math.inf
         state["evaluations"] += 1
         if ll > state["best"]:
-            state["best"], state["best_x"] = ll, np.array(theta)
+            state["best"], state["best_x"], state["terms"] = ll, np.array(theta), terms
         if progress is not None:
-            progress(state["evaluations"], (float(s1), float(s2), float(g)), ll, state["best"])
+            progress(state["evaluations"], vals, ll, state["best"])
         return -ll if math.isfinite(ll) else 1e300
 
-    x0 = np.clip(np.log(np.asarray(init, dtype=np.float64)), lo_arr, hi_arr)
-    starts = [x0]
-    if grid:
-        axes = [np.linspace(lo, hi, 5)[1:-1] for lo, hi in log_bounds]
-        starts += [np.array([a, b, c]) for a in axes[0] for b in axes[1] for c in axes[2]]
+    starts = []
+    if init:
+        x0 = np.array([math.log(init[k]) if init.get(k) else 0.5 * (lo + hi)
+                       for k, lo, hi in zip(names_all, lo_arr, hi_arr)])
+        starts.append(np.clip(x0, lo_arr, hi_arr))
+    levels = [(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo)) for lo, hi in zip(lo_arr, hi_arr)]
+    corners = itertools.product((0, 1), repeat=len(levels)) if design or not starts else ()
+    for corner in corners:
+        if len(levels) == 3 and sum(corner) % 2:  # half fraction 2^(3−1)
+            continue
+        starts.append(np.array([levels[i][c] for i, c in enumerate(corner)]))
     values = [objective(s) for s in starts]
     best = starts[int(np.argmin(values))]
-    remaining = max(10, max_evaluations - state["evaluations"])
-    minimize(objective, best, method="Nelder-Mead", bounds=log_bounds,
-             options={"xatol": xatol, "fatol": fatol, "maxfev": remaining,
-                      "initial_simplex": _simplex(best, log_bounds)})
+    remaining = max_evaluations - state["evaluations"]
+    if remaining >= 4:
+        minimize(objective, best, method="Nelder-Mead", bounds=list(zip(lo_arr, hi_arr)),
+                 options={"xatol": xatol, "fatol": fatol, "maxfev": remaining,
+                          "initial_simplex": _simplex(best, lo_arr, hi_arr)})
     if state["best_x"] is None:
         raise ValueError("the likelihood could not be evaluated anywhere inside the bounds; check the data and bounds")
-    s1, s2, g = np.exp(state["best_x"])
-    return TuneResult(sigma1=float(s1), sigma2=float(s2), gamma=float(g), log_likelihood=float(state["best"]),
-                      evaluations=state["evaluations"], period=period, seconds=time.perf_counter() - start_time)
+    best_vals = dict(zip(names_all, np.exp(state["best_x"]).tolist()))
+    on_bound = {}
+    for k, x, lo, hi in zip(names_all, state["best_x"], lo_arr, hi_arr):
+        if x <= lo + BOUND_RTOL * (hi - lo):
+            on_bound[k] = "lower"
+        elif x >= hi - BOUND_RTOL * (hi - lo):
+            on_bound[k] = "upper"
+    gamma = best_vals.pop("gamma")
+    return TuneResult(kind=kind, hyper=best_vals, gamma=gamma, log_likelihood=float(state["best"]),
+                      evaluations=state["evaluations"], period=period if periodic else None,
+                      seconds=time.perf_counter() - start_time, segment=n if segment is None else int(segment),
+                      bounds=dict(zip(names_all, box)), on_bound=on_bound,
+                      terms=state["terms"] if segment is None else None)
 
 
-def _simplex(x0, log_bounds, step: float = 0.5):
+def _simplex(x0, lo, hi, step: float = 0.5):
     """Initial Nelder–Mead simplex: ±``step`` (log units) per coordinate, kept inside the bounds."""
     pts = [np.array(x0)]
-    for i, (_lo, hi) in enumerate(log_bounds):
+    for i in range(len(x0)):
         p = np.array(x0)
-        p[i] = p[i] + step if p[i] + step <= hi else p[i] - step
+        p[i] = p[i] + step if p[i] + step <= hi[i] else p[i] - step
         pts.append(p)
     return np.array(pts)

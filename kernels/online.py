@@ -13,7 +13,29 @@ for each arriving sample ``j`` of a block,
 4. KRLS-T update with that residual (:func:`kernels._krlst_core.update`, steps 3–5)
    unless the chain restarts at this sample or it is stale;
 5. forgetting and one-step-ahead prediction at ``x(j)`` (:func:`kernels._krlst_core.arm`,
-   steps 1–2), reused by the next update.
+   steps 1–2), reused by the next update;
+6. about once a second of data time (:attr:`OnlineConfig.tick_period`), and at once when the
+   model-validity level changes, a health report (``ticks``, :data:`TICK`).
+
+Online β and health (issue 11; method "Online β and health"). With adaptation on
+(:attr:`OnlineConfig.mode` *track* or *apply*) steps 3–5 are the joint recursion of
+:mod:`kernels.beta_tracker` (:func:`~kernels.beta_tracker.joint_update`,
+:func:`~kernels.beta_tracker.joint_arm`): β̂ and its covariance learn from every sample the
+tracker learns from; *apply* publishes the disturbance, the residual and ``v_pred`` with β̂
+(row ``beta1``: the β1 they go with, for the newton scale), *track* with the model file's β.
+Every learned sample feeds its normalised innovation ``ν`` to the health EWMA
+(:func:`kernels.health.health_sample`; *off*: ``ν`` of the plain tracker); a report runs
+:func:`kernels.health.health_tick` on the physical parameters of β̂ (:func:`~kernels.beta_tracker.physical_se`).
+
+Tracker input. ``x = t`` for a time kernel; ``x = (t, θ)`` for the spindle-phase kernel
+(:attr:`OnlineConfig.spindle`), θ (rad, kept in ``[0, P)``: the kernel is P-periodic in θ) from
+the sample's ``spindle_angle``, else integrated from ``spindle_rpm`` with the trapezoid rule
+``θ_k = θ_{k−1} + (2π/60)·(n_{k−1} + n_k)/2·(t_k − t_{k−1})`` — exact for a speed that changes
+linearly between samples, also across a gap of up to :data:`THETA_GAP_MAX` s; after a longer gap,
+time going backwards or a new session it restarts at ``θ = 2π n t/60``. A sample without a
+usable angle or speed (absent, non-finite, or faster than ``rpm_max``) uses the model's nominal speed
+(counted ``spindle_fallback``): without spindle data the kernel is then exactly the time kernel
+with ψ = 60/n_nominal.
 
 :func:`track_block` runs that loop without allocation; ``monitor.estimator`` is the thin
 Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
@@ -50,12 +72,16 @@ A sample without a usable time is judged by its sequence number alone. So a genu
 (``seq`` and ``t`` jump together) stays a gap, duplicates and re-sends are dropped, and a far
 jump of ``seq`` either way costs one chain restart instead of silencing the axis.
 
+Defence in depth: every input value the loop reads is checked where it is used (non-finite
+angles and speeds fall back as above, never reach the kernel), and the health report buffer is
+bounded (:func:`new_ticks`): a block never writes beyond it.
+
 Every index the compiled code uses is checked: a block whose sequence numbers do not fit
 in ``int64`` (``seq0 < 0`` or ``seq0 + n − 1 > 2**63 − 1``) is refused whole (counted
 ``rejected_seq_range``); the differences of two sequence numbers are formed only between
 non-negative ``int64`` values (no overflow). The KRLS-T buffers are indexed by the core
-with ``ist[I_N]``/``ist[I_HW]``/``order``, which :mod:`monitor.state_check` validates
-before a saved state is restored.
+with its own indices, which :func:`kernels._krlst_core.validate_state` checks before a
+saved state is restored.
 """
 
 from __future__ import annotations
@@ -68,17 +94,27 @@ from numba import njit
 from numba.extending import register_jitable
 
 from . import _krlst_core as core
+from . import beta_tracker as bt
+from . import health as hl
+from ._krlst_simd import view
 from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
 
-__all__ = ["COUNTERS", "ROWS", "IROWS", "SEQ_LIMIT", "REORDER_WINDOW", "OnlineConfig", "ConfigBuffers", "config_of",
-           "new_config", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows", "new_scratch",
-           "track_block"]
+__all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REORDER_WINDOW", "MODES", "OnlineConfig",
+           "ConfigBuffers", "config_of", "new_config", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows",
+           "new_scratch", "new_ticks", "track_block"]
 
 #: counters of the ``counts`` output, in slot order (each a number of samples unless said)
 COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of_range", "rejected_seq_range",
-            "gaps", "missing_samples", "seq_resets", "time_backwards", "restarts", "stale", "trained")
+            "gaps", "missing_samples", "seq_resets", "time_backwards", "restarts", "stale", "trained",
+            "spindle_fallback", "health_reports", "beta_updates")
 (C_DUP, C_OOO, C_NONFINITE, C_RANGE, C_SEQ_RANGE, C_GAPS, C_MISSING, C_RESET, C_BACK, C_RESTART, C_STALE,
- C_TRAINED) = range(len(COUNTERS))
+ C_TRAINED, C_SPINDLE_FALLBACK, C_TICKS, C_BETA_UPDATES) = range(len(COUNTERS))
+
+#: adaptation modes (:attr:`OnlineConfig.mode`), in code order
+MODES = ("off", "track", "apply")
+MODE_OFF, MODE_TRACK, MODE_APPLY = range(3)
+#: longest gap (s of controller time) across which θ is integrated from the spindle speed
+THETA_GAP_MAX = 60.0
 
 #: largest sequence number the compiled loop can form (``int64``); the schema's bound is far lower
 SEQ_LIMIT = 2**63 - 1
@@ -88,10 +124,6 @@ REORDER_WINDOW = 256
 
 # where a sample stands in the stream (see the module docstring)
 _FIRST, _NEXT, _GAP, _RESET, _DUPLICATE, _LATE = range(6)
-
-# slots of the core's ``out`` buffer (kernels._krlst_core: ``_write_out`` after ``update``, ``arm``)
-_UPD_REMOVED, _UPD_REDUCED, _UPD_FILTERED, _UPD_FILTERED_VAR, _UPD_S02 = 4, 5, 6, 7, 8
-_ARM_MEAN, _ARM_SIGMA_F2 = 0, 1
 
 
 class OnlineConfig(NamedTuple):
@@ -109,12 +141,19 @@ class OnlineConfig(NamedTuple):
     stale_detection: bool   #: detect repeated measured velocities
     warmup: int             #: rows flagged WARMUP while the tracker has learned ≤ this many samples
     reorder_window: int     #: W ≥ 1 (samples), see the module docstring
+    mode: int               #: adaptation: MODE_OFF, MODE_TRACK, MODE_APPLY (:data:`MODES`)
+    spindle: bool           #: tracker input x = (t, θ) (spindle-phase kernel), else x = t
+    tick_min: int           #: samples at least between two health reports
+    theta_period: float     #: P (rad): period of the kernel in θ (2π or 2π/teeth)
+    rpm_nominal: float      #: the model's nominal spindle speed (rpm), used without spindle data
+    rpm_max: float          #: |spindle_rpm| beyond which a speed is unusable (rpm)
+    tick_period: float      #: s of data time between two health reports
 
 
 class ConfigBuffers(NamedTuple):
     """The storage of an :class:`OnlineConfig`, as the compiled loop takes it: β, then the integer
-    (``coulomb, intercept, stale_detection, warmup, reorder_window``) and float
-    (``omega, inv_ts, v_max, e_max, t_max``) values."""
+    (``coulomb, intercept, stale_detection, warmup, reorder_window, mode, spindle, tick_min``) and
+    float (``omega, inv_ts, v_max, e_max, t_max, theta_period, rpm_nominal, rpm_max, tick_period``) values."""
 
     beta: np.ndarray
     ints: np.ndarray
@@ -122,18 +161,32 @@ class ConfigBuffers(NamedTuple):
 
 
 def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: float, v_max: float, e_max: float,
-               t_max: float, stale_detection: bool, warmup: int, reorder_window: int) -> ConfigBuffers:
-    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`)."""
+               t_max: float, stale_detection: bool, warmup: int, reorder_window: int, mode: str = "off",
+               spindle: bool = False, theta_period: float = 2.0 * math.pi, rpm_nominal: float = 0.0,
+               rpm_max: float = 1e5, tick_period: float = 1.0) -> ConfigBuffers:
+    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`; ``mode`` one of :data:`MODES`)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if spindle and not (math.isfinite(rpm_nominal) and 0.0 < rpm_nominal <= rpm_max):
+        raise ValueError(f"the spindle-phase kernel needs a nominal speed in (0, {rpm_max:g}] rpm, got {rpm_nominal!r}")
+    if not (math.isfinite(theta_period) and theta_period > 0.0):
+        raise ValueError(f"theta_period must be a positive angle (rad), got {theta_period!r}")
+    if not (math.isfinite(tick_period) and tick_period > 0.0):
+        raise ValueError(f"tick_period must be a positive number of seconds, got {tick_period!r}")
+    tick_min = max(1, int(round(0.5 * tick_period * inv_ts)))
     return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64),
-                         np.array([coulomb, intercept, stale_detection, warmup, reorder_window], dtype=np.int64),
-                         np.array([omega, inv_ts, v_max, e_max, t_max], dtype=np.float64))
+                         np.array([coulomb, intercept, stale_detection, warmup, reorder_window, MODES.index(mode),
+                                   spindle, tick_min], dtype=np.int64),
+                         np.array([omega, inv_ts, v_max, e_max, t_max, theta_period, rpm_nominal, rpm_max,
+                                   tick_period], dtype=np.float64))
 
 
 @register_jitable
 def config_of(beta, ints, floats):
     """The :class:`OnlineConfig` stored in ``(beta, ints, floats)``; works in Python and inside ``@njit``."""
     return OnlineConfig(beta, ints[0] != 0, ints[1] != 0, floats[0], floats[1], floats[2], floats[3], floats[4],
-                        ints[2] != 0, ints[3], ints[4])
+                        ints[2] != 0, ints[3], ints[4], ints[5], ints[6] != 0, ints[7], floats[5], floats[6],
+                        floats[7], floats[8])
 
 
 class OnlineState(NamedTuple):
@@ -147,6 +200,7 @@ class OnlineState(NamedTuple):
     run_len: np.ndarray     #: int64: length of that run (0: none)
     chain: np.ndarray       #: int64: 1 when the last sample was accepted: the next one can form a residual
     trained: np.ndarray     #: int64: samples the tracker learned from
+    tick_n: np.ndarray      #: int64: accepted samples since the last health report
     ref_t: np.ndarray       #: float64: t_r, time of sample s_r (s); NaN: none
     last_t: np.ndarray      #: float64: time of the last accepted sample (s); NaN: none
     last_e: np.ndarray      #: float64: its exogenous input v_ref (m/s) or u (N)
@@ -154,10 +208,14 @@ class OnlineState(NamedTuple):
     last_v_used: np.ndarray  #: float64: the velocity that entered its regressor (the model's for a stale one)
     f_next: np.ndarray      #: float64: the prediction of f made at the last accepted sample (m/s)
     f_next_var: np.ndarray  #: float64: its variance ((m/s)²)
+    theta: np.ndarray       #: float64: θ of the last accepted sample (rad, in [0, P)); NaN: none
+    theta_t: np.ndarray     #: float64: its time (s)
+    theta_rpm: np.ndarray   #: float64: the spindle speed used there (rpm); NaN: none
+    tick_t: np.ndarray      #: float64: data time of the last health report (s); NaN: none yet
 
 
 #: how many fields of :class:`OnlineState` live in :attr:`StateBuffers.ints` (the rest: ``floats``)
-_N_INT_FIELDS = 7
+_N_INT_FIELDS = 8
 
 
 class StateBuffers(NamedTuple):
@@ -171,8 +229,8 @@ class StateBuffers(NamedTuple):
 def state_of(i, f):
     """The named views of the buffers ``(ints, floats)`` (:class:`StateBuffers`); works in Python and
     inside ``@njit``."""
-    return OnlineState(i[0:1], i[1:2], i[2:3], i[3:4], i[4:5], i[5:6], i[6:7],
-                       f[0:1], f[1:2], f[2:3], f[3:4], f[4:5], f[5:6], f[6:7])
+    return OnlineState(i[0:1], i[1:2], i[2:3], i[3:4], i[4:5], i[5:6], i[6:7], i[7:8],
+                       f[0:1], f[1:2], f[2:3], f[3:4], f[4:5], f[5:6], f[6:7], f[7:8], f[8:9], f[9:10], f[10:11])
 
 
 def new_state(trained: int = 0) -> StateBuffers:
@@ -183,9 +241,14 @@ def new_state(trained: int = 0) -> StateBuffers:
     return buf
 
 
-#: rows of the float output of :func:`track_block` (``rows``, shape ``(len(ROWS), n)``), one column per sample
+#: rows of the float output of :func:`track_block` (``rows``, shape ``(len(ROWS) + len(EXTRA_ROWS), n)``),
+#: one column per sample; :data:`ROWS` are the estimate block's columns
 ROWS = ("v_pred", "residual", "f", "f_var", "f_next", "f_next_var")
 R_VPRED, R_RESID, R_F, R_FVAR, R_FNEXT, R_FNEXTVAR = range(len(ROWS))
+#: further float rows: ``beta1`` the β1 of the β the row's disturbance goes with (the model file's,
+#: or β̂ in *apply* mode), for the newton scale ``b`` (method §7)
+EXTRA_ROWS = ("beta1",)
+R_BETA1 = len(ROWS)
 #: rows of the integer output (``irows``, shape ``(len(IROWS), n)``)
 IROWS = ("dict_size", "removed", "flags")
 R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
@@ -197,23 +260,61 @@ R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
 #   dict_size   dictionary size after sample j;  removed  pruned dictionary index (−1: none)
 #   flags       kernels.flags.EstimateFlag bits
 
+#: columns of a health report (``ticks``, one row per report): the sample it was made at, the
+#: physical parameters of β̂ and their standard errors (:data:`kernels.beta_tracker.PHYSICAL`, NaN
+#: when not estimated), the level per :data:`kernels.health.REASONS`, the drift statistics per
+#: :data:`kernels.health.PARAMS`, the innovation window (mean ν², EWMA peak, EWMA now) and the
+#: overall level
+TICK = (("seq", 1), ("t", 1), ("theta", bt.N_PHYS), ("se", bt.N_PHYS), ("level", hl.N_REASON),
+        ("z", len(hl.PARAMS)), ("rel", len(hl.PARAMS)), ("determined", len(hl.PARAMS)), ("nu2_mean", 1),
+        ("ewma_max", 1), ("ewma", 1), ("state", 1))
+_TICK_AT = {}
+_at = 0
+for _name, _width in TICK:
+    _TICK_AT[_name] = _at
+    _at += _width
+N_TICK = _at
+K_SEQ, K_T, K_THETA, K_SE, K_LEVEL, K_Z, K_REL, K_DET, K_NU2, K_EWMAX, K_EWMA, K_STATE = (_TICK_AT[n] for n, _ in TICK)
 
-def new_scratch() -> tuple[np.ndarray, np.ndarray]:
-    """The scratch buffers ``xbuf`` (1,) and ``obuf`` (the core's ``out``) of :func:`track_block`."""
-    return np.zeros(1), np.zeros(core.N_OUT)
+
+def new_scratch(p: int) -> np.ndarray:
+    """The scratch buffer of :func:`track_block` for a model with ``p`` β entries."""
+    return np.zeros(_SCR_FIXED + _scr_p(p))
+
+
+_SCR_X = 0                                    # x (≤ 2)
+_SCR_OUT = 2                                  # the core's out (N_OUT ≥ N_ARM)
+_SCR_BOUT = _SCR_OUT + core.N_OUT             # joint_update's bout
+_SCR_THETA = _SCR_BOUT + bt.N_BOUT            # physical values
+_SCR_SE = _SCR_THETA + bt.N_PHYS
+_SCR_TH5 = _SCR_SE + bt.N_PHYS                # health PARAMS values
+_SCR_SE5 = _SCR_TH5 + len(hl.PARAMS)
+_SCR_FIXED = _SCR_SE5 + len(hl.PARAMS)        # then z (p) and the physical_se work (N_PHYS + 2, p)
+
+
+@register_jitable
+def _scr_p(p):
+    return p + (bt.N_PHYS + 2) * p
 
 
 def new_rows(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Output buffers ``rows`` (:data:`ROWS`), ``irows`` (:data:`IROWS`) and ``counts`` (:data:`COUNTERS`)
-    for a block of ``n`` samples."""
-    return np.empty((len(ROWS), n)), np.empty((len(IROWS), n), dtype=np.int64), np.zeros(len(COUNTERS), np.int64)
+    """Output buffers ``rows`` (:data:`ROWS` then :data:`EXTRA_ROWS`), ``irows`` (:data:`IROWS`) and
+    ``counts`` (:data:`COUNTERS`) for a block of ``n`` samples."""
+    return (np.empty((len(ROWS) + len(EXTRA_ROWS), n)), np.empty((len(IROWS), n), dtype=np.int64),
+            np.zeros(len(COUNTERS), np.int64))
+
+
+def new_ticks(n: int, tick_min: int, change_min: int = 1) -> np.ndarray:
+    """Output buffer of the health reports of a block of ``n`` samples: the periodic ones (at most one
+    per ``tick_min`` samples) and those at a change of the model-validity level (at most one per
+    ``change_min`` samples: the health statistics' persistence or hold, whichever is shorter)."""
+    return np.empty((n // max(1, int(tick_min)) + n // max(1, int(change_min)) + 2, N_TICK))
 
 
 @njit(cache=True, nogil=True)
-def _linear(cfg, e, v):
-    """``βᵀ z(k)`` of method §2 for one sample, ``z = [e, v, −σ_p, −σ_n, 1]`` with the Coulomb
+def _linear(cfg, b, e, v):
+    """``bᵀ z(k)`` of method §2 for one sample, ``z = [e, v, −σ_p, −σ_n, 1]`` with the Coulomb
     columns and the constant only when the model has them (either input form)."""
-    b = cfg.beta
     acc = b[0] * e + b[1] * v
     if cfg.coulomb:
         if v > cfg.omega:
@@ -223,6 +324,37 @@ def _linear(cfg, e, v):
     if cfg.intercept:
         acc += b[b.shape[0] - 1]                  # constant column "one" (offset)
     return acc
+
+
+@njit(cache=True, nogil=True)
+def _theta(cfg, st, sp, j, tj, restart, counts):
+    """θ of sample ``j`` (rad, in ``[0, P)``) for the spindle-phase kernel (module docstring)."""
+    a = np.nan
+    r = np.nan
+    if sp.shape[1] > j:
+        a = sp[0, j]
+        r = sp[1, j]
+    rate = r if (math.isfinite(r) and abs(r) <= cfg.rpm_max) else np.nan
+    P = cfg.theta_period
+    if math.isfinite(a):
+        th = a
+    else:
+        if not math.isfinite(rate):
+            rate = cfg.rpm_nominal                # no usable spindle data: the nominal speed
+            counts[C_SPINDLE_FALLBACK] += 1
+        dt = tj - st.theta_t[0]                   # NaN when there is no previous θ
+        if not restart and math.isfinite(st.theta[0]) and 0.0 < dt <= THETA_GAP_MAX:
+            r0 = st.theta_rpm[0] if math.isfinite(st.theta_rpm[0]) else rate
+            th = st.theta[0] + (2.0 * math.pi / 60.0) * 0.5 * (r0 + rate) * dt   # trapezoid
+        else:
+            th = (2.0 * math.pi / 60.0) * rate * tj   # restart: as if at this speed since t = 0
+    th = th - P * math.floor(th / P)              # the kernel is P-periodic in θ: keep it small
+    if not (0.0 <= th < P):
+        th = 0.0                                  # (rounding at the boundary)
+    st.theta[0] = th
+    st.theta_t[0] = tj
+    st.theta_rpm[0] = rate
+    return th
 
 
 @njit(cache=True, nogil=True)
@@ -262,22 +394,70 @@ def _clear(rows, irows, j, ist):
 
 
 @njit(cache=True, nogil=True)
-def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
-                beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e, v, rows, irows, counts, xbuf, obuf):
+def _tick(cfg, bs, hs, s, tj, ticks, k, scr, p):
+    """Health report ``k`` at sample ``(s, tj)`` into ``ticks[k]`` (:data:`TICK`)."""
+    row = ticks[k]
+    theta = view(scr, _SCR_THETA, (bt.N_PHYS,))
+    se = view(scr, _SCR_SE, (bt.N_PHYS,))
+    th5 = view(scr, _SCR_TH5, (len(hl.PARAMS),))
+    se5 = view(scr, _SCR_SE5, (len(hl.PARAMS),))
+    cw = view(scr, _SCR_FIXED + p, (bt.N_PHYS + 2, p))
+    for i in range(bt.N_PHYS):
+        theta[i] = np.nan
+        se[i] = np.nan
+    if cfg.mode != MODE_OFF:
+        bt.physical_se(bs, theta, se, cw)
+    for i in range(len(hl.PARAMS)):
+        th5[i] = theta[hl.PHYS_INDEX[i]]
+        se5[i] = se[hl.PHYS_INDEX[i]]
+    acc = hs.acc
+    wn = acc[hl.A_WN]
+    row[K_NU2] = acc[hl.A_WSUM] / wn if wn > 0.0 else np.nan
+    row[K_EWMAX] = acc[hl.A_WMAX] if wn > 0.0 else np.nan
+    row[K_EWMA] = acc[hl.A_EWMA]
+    top = hl.health_tick(hs, th5, se5)            # resets the window statistics
+    row[K_SEQ] = float(s)
+    row[K_T] = tj
+    for i in range(bt.N_PHYS):
+        row[K_THETA + i] = theta[i]
+        row[K_SE + i] = se[i]
+    for i in range(hl.N_REASON):
+        row[K_LEVEL + i] = float(hs.level[i])
+    for i in range(len(hl.PARAMS)):
+        row[K_Z + i] = hs.stat[hl.S_Z, i]
+        row[K_REL + i] = hs.stat[hl.S_REL, i]
+        row[K_DET + i] = hs.stat[hl.S_DET, i]
+    row[K_STATE] = float(top)
+
+
+@njit(cache=True, nogil=True)
+def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e,
+                v, sp, rows, irows, counts, ticks, scr):
     """Process one block of samples (method §6); returns the number of leading samples dropped.
 
-    ``kinds … tab``: the tracker's arrays (:meth:`kernels.krlst.KRLST.core_arrays`); ``beta …
-    cfg_floats`` a :class:`ConfigBuffers`; ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number
-    of sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64
-    (n,), NaN = missing. ``rows`` (:data:`ROWS`, ≥ n) and ``irows`` (:data:`IROWS`, ≥ n) receive one
-    column per sample from index ``first`` on (the return value: dropped samples — duplicates and
-    late re-sends — always form a prefix, since the sample after an accepted one is its successor);
-    ``counts`` accumulates :data:`COUNTERS`. ``xbuf`` (1,) and ``obuf`` (≥ ``core.N_OUT``) are scratch.
+    ``fbuf, ibuf``: the tracker's two base buffers (:meth:`kernels.krlst.KRLST.core_buffers`, named
+    inside by :func:`kernels._krlst_core.state_of`); ``bfbuf, bibuf`` the online β state's
+    (:func:`kernels.beta_tracker.new_beta_buffers`), ``hfbuf, hibuf`` the health state's
+    (:func:`kernels.health.new_health_buffers`); ``beta … cfg_floats`` a :class:`ConfigBuffers`;
+    ``st_ints, st_floats`` a :class:`StateBuffers` (updated); ``seq0`` the sequence number of
+    sample 0 (int64); ``t`` (s), ``e`` (``v_ref`` m/s or ``u`` N), ``v`` (``v_m``, m/s): float64
+    (n,), NaN = missing; ``sp`` (2, n) the spindle angle (rad) and speed (rpm), NaN = missing, or
+    (2, 0) when the block has neither. ``rows`` (:data:`ROWS` + :data:`EXTRA_ROWS`, ≥ n) and
+    ``irows`` (:data:`IROWS`, ≥ n) receive one column per sample from index ``first`` on (the
+    return value: dropped samples — duplicates and late re-sends — always form a prefix, since the
+    sample after an accepted one is its successor); ``counts`` accumulates :data:`COUNTERS`
+    (``health_reports``: the rows written to ``ticks``, :func:`new_ticks`); ``scr`` scratch
+    (:func:`new_scratch`).
     """
+    tr = core.unowned(core.state_of(fbuf, ibuf))  # the tracker (no reference counting in the calls below)
+    bs = bt.beta_state_of(bfbuf, bibuf)
+    hs = hl.health_state_of(hfbuf, hibuf)
     n = t.shape[0]
-    if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) or rows.shape[1] < n
+    p = beta.shape[0]
+    if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) + len(EXTRA_ROWS) or rows.shape[1] < n
             or irows.shape[0] != len(IROWS) or irows.shape[1] < n or counts.shape[0] != len(COUNTERS)
-            or xbuf.shape[0] != 1 or obuf.shape[0] < core.N_OUT):
+            or sp.shape[0] != 2 or (sp.shape[1] != 0 and sp.shape[1] != n) or ticks.shape[1] != N_TICK
+            or scr.shape[0] < _SCR_FIXED + _scr_p(p) or bs.beta.shape[0] != p):
         raise ValueError("track_block: inconsistent array shapes")
     if n == 0:
         return 0
@@ -286,10 +466,23 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
         return n
     cfg = config_of(beta, cfg_ints, cfg_floats)
     st = state_of(st_ints, st_floats)
+    mode = cfg.mode
+    joint = mode != MODE_OFF
+    apply = mode == MODE_APPLY
+    bpub = bs.beta if apply else cfg.beta         # the β the published values go with
+    xbuf = view(scr, _SCR_X, (2 if cfg.spindle else 1,))
+    obuf = view(scr, _SCR_OUT, (core.N_OUT,))
+    bout = view(scr, _SCR_BOUT, (bt.N_BOUT,))
+    z = view(scr, _SCR_FIXED, (p,))
+    form_force = bs.lay[bt.L_FORM] == 1
+    i_sp, i_sn, i_one = bs.lay[bt.L_ISP], bs.lay[bt.L_ISN], bs.lay[bt.L_IONE]
+    nticks = 0
+    updates0 = bs.cnt[bt.C_UPDATES]
     first = 0
     for j in range(n):
         s = seq0 + j
         tj, ej, vj = t[j], e[j], v[j]
+        report_now = False
         t_ok = math.isfinite(tj) and abs(tj) <= cfg.t_max
         # ---- 1. place it in the stream ---------------------------------------------------------
         where = _place(cfg, st, s, tj, t_ok)
@@ -313,7 +506,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             st.ref_t[0] = tj
         elif where == _RESET:
             st.ref_t[0] = np.nan                  # no clock reference in the new session yet
-        _clear(rows, irows, j, ist)
+        _clear(rows, irows, j, tr.ist)
         # ---- 2. classify its values --------------------------------------------------------------
         if not (math.isfinite(tj) and math.isfinite(ej) and math.isfinite(vj)):
             counts[C_NONFINITE] += 1
@@ -328,7 +521,8 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
                 st.last_t[0] = np.nan             # time order is judged within a session
             continue
         cont = st.chain[0] != 0 and where == _NEXT
-        if where == _NEXT and tj <= st.last_t[0]:  # False while no sample was accepted (NaN)
+        backwards = where == _NEXT and tj <= st.last_t[0]   # False while no sample was accepted (NaN)
+        if backwards:
             counts[C_BACK] += 1
             fl |= GAP_BIT
             cont = False
@@ -338,7 +532,7 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
         v_used = vj
         if cont:
             # ---- 3. residual of the previous step, eq. 2.13 ----------------------------------------
-            base = _linear(cfg, st.last_e[0], st.last_v_used[0])
+            base = _linear(cfg, bpub, st.last_e[0], st.last_v_used[0])
             f_pred = st.f_next[0]
             v_pred = base + (f_pred if math.isfinite(f_pred) else 0.0)
             rows[R_VPRED, j] = v_pred
@@ -351,17 +545,34 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             else:
                 resid = vj - base
                 rows[R_RESID, j] = resid
-                # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1) ---------------------
-                if core.update(X, Q, S, K, mu, order, ist, fst, P, W, resid, obuf):
-                    rows[R_F, j] = obuf[_UPD_FILTERED]                          # ŷ + σ_f²(y − ŷ)/σ_y²
-                    rows[R_FVAR, j] = obuf[_UPD_FILTERED_VAR] * obuf[_UPD_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
-                    irows[R_REMOVED, j] = int(obuf[_UPD_REMOVED])
-                    if obuf[_UPD_REDUCED] != 0.0:
+                # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1), β and ν -----------
+                nu = np.nan
+                if joint:
+                    bt.regressor(form_force, i_sp, i_sn, i_one, cfg.omega, st.last_e[0], st.last_v_used[0], z)
+                    learned = bt.joint_update(tr, bs, z, vj, True, obuf, bout)
+                    if learned:
+                        nu = bout[bt.B_NU]
+                        rows[R_F, j] = bout[bt.B_FILTERED] if apply else obuf[core.O_FILT]
+                else:
+                    ym, sy2, s02 = tr.fst[core.F_YM], tr.fst[core.F_SY2], tr.fst[core.F_S02]
+                    learned = core.update(tr, resid, obuf)
+                    if learned:
+                        R = s02 * sy2             # the prediction's variance, eq. 2.17/2.20
+                        nu = (resid - ym) / math.sqrt(R) if R > 0.0 else np.nan
+                        rows[R_F, j] = obuf[core.O_FILT]                      # ŷ + σ_f²(y − ŷ)/σ_y²
+                if learned:
+                    rows[R_FVAR, j] = obuf[core.O_FILTVAR] * obuf[core.O_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    irows[R_REMOVED, j] = int(obuf[core.O_REMOVED])
+                    if obuf[core.O_REDUCED] != 0.0:
                         fl |= REDUCED_BIT
                     st.trained[0] += 1
                     counts[C_TRAINED] += 1
                     if st.trained[0] <= cfg.warmup:
                         fl |= WARMUP_BIT
+                    if math.isfinite(nu):
+                        lv0 = hs.level[0]
+                        if hl.health_sample(hs, nu) != lv0:   # model validity: EWMA of ν²
+                            report_now = True     # a change of the validity level is reported at once
                 else:                              # nothing armed (e.g. right after a restore)
                     counts[C_RESTART] += 1
                     fl |= WARMUP_BIT
@@ -369,15 +580,22 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
             counts[C_RESTART] += 1
             fl |= WARMUP_BIT
         # ---- 5. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------------
-        was_empty = ist[core.I_N] == 0
+        was_empty = tr.ist[core.I_N] == 0
         xbuf[0] = tj
-        core.arm(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab, xbuf, obuf)
-        f_next = obuf[_ARM_MEAN]
-        f_next_var = np.nan if was_empty else obuf[_ARM_SIGMA_F2] * fst[core.F_S02]
+        if cfg.spindle:
+            xbuf[1] = _theta(cfg, st, sp, j, tj, where == _RESET or backwards, counts)
+        if joint:
+            bt.joint_arm(tr, bs, xbuf, obuf)
+            f_next = obuf[core.A_MEAN] if apply else tr.fst[core.F_YM]
+        else:
+            core.arm(tr, xbuf, obuf)
+            f_next = obuf[core.A_MEAN]
+        f_next_var = np.nan if was_empty else obuf[core.A_SF2] * tr.fst[core.F_S02]
         rows[R_FNEXT, j] = f_next
         rows[R_FNEXTVAR, j] = f_next_var
+        rows[R_BETA1, j] = bpub[0]
         irows[R_FLAGS, j] = fl
-        irows[R_SIZE, j] = ist[core.I_N]
+        irows[R_SIZE, j] = tr.ist[core.I_N]
         st.chain[0] = 1
         st.last_t[0] = tj
         st.last_e[0] = ej
@@ -385,4 +603,19 @@ def track_block(kinds, params, cols, X, Q, S, K, mu, order, ist, fst, P, W, tab,
         st.last_v_used[0] = v_used
         st.f_next[0] = f_next
         st.f_next_var[0] = f_next_var
+        # ---- 6. health report about once per tick_period of data time -------------------------------
+        if not (st.tick_t[0] <= tj) and st.tick_t[0] != -np.inf:   # first sample, or time went back
+            st.tick_t[0] = tj
+            st.tick_n[0] = 0
+        st.tick_n[0] += 1
+        if report_now or (tj - st.tick_t[0] >= cfg.tick_period and st.tick_n[0] >= cfg.tick_min):
+            if nticks < ticks.shape[0]:
+                _tick(cfg, bs, hs, s, tj, ticks, nticks, scr, p)
+                nticks += 1
+                st.tick_t[0] = tj
+                st.tick_n[0] = 0
+            else:                                 # (cannot happen with new_ticks' bound) report at the next sample
+                st.tick_t[0] = -np.inf
+    counts[C_TICKS] += nticks
+    counts[C_BETA_UPDATES] += bs.cnt[bt.C_UPDATES] - updates0
     return first

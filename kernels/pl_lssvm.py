@@ -12,8 +12,16 @@ are needed:
 
 * time kernels on a uniform grid (``x`` = sample times, or ``Ts``): ``A`` is SPD Toeplitz;
   :class:`kernels.toeplitz.ToeplitzSolver` (FFT-PCG with a Strang or T. Chan circulant
-  preconditioner, dense Cholesky for small N) — ``O(N log N)`` time, ``O(N)`` memory.
+  preconditioner, dense Cholesky for small N) — ``O(N log N)`` per iteration, ``O(N)`` memory —
+  or Levinson–Durbin (:func:`kernels.toeplitz.levinson_solve`, exact in ``O(N²)``, whatever the
+  conditioning). ``solver="auto"``: dense Cholesky up to ``toeplitz_dense_limit`` samples, else
+  PCG, falling back to Levinson (up to ``LEVINSON_LIMIT`` samples) when PCG does not converge
+  (long σ1 with large γ: thousands of iterations).
 * vector inputs ``x`` (N, d): dense Cholesky of ``A``, limited to ``dense_limit`` samples.
+
+Uncertainty: in the Gaussian-process reading of :mod:`kernels.likelihood` (eq. L1) ``[c; β]`` is
+the GLS estimate and its covariance is ``ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹`` with ``ŝ² = rᵀA⁻¹r/(N − p)``,
+``r = y − Z̃[c; β]`` (eq. L3); :attr:`PLLSSVMResult.cov` and ``stderr``.
 
 Numerics: the (p × p) generalised-least-squares system is solved on unit-norm-scaled columns
 (β entries differ by orders of magnitude: Coulomb columns ±1, velocities 1e-2 m/s) and refined
@@ -34,6 +42,7 @@ constraint ``1ᵀα = 0`` is contained in ``Zᵀα = 0``) and ``c = 0`` is repor
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,13 +51,17 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from .covariance import Kernel
 from .least_squares import validate_regression
 from .toeplitz import DENSE_LIMIT as TOEPLITZ_DENSE_LIMIT
-from .toeplitz import ToeplitzSolver
+from .toeplitz import WARN_FACTOR, ToeplitzSolver, levinson_solve
 
-__all__ = ["PLLSSVMResult", "pl_lssvm", "DENSE_LIMIT", "GRID_RTOL", "time_grid", "constant_column",
-           "prepare_regression", "gls_solve"]
+__all__ = ["PLLSSVMResult", "pl_lssvm", "DENSE_LIMIT", "LEVINSON_LIMIT", "GRID_RTOL", "time_grid",
+           "constant_column", "prepare_regression", "gls_solve"]
 
 #: Largest N for the dense path (vector inputs): the N×N matrix takes 8 N² bytes (0.5 GB at 8000).
 DENSE_LIMIT = 8000
+#: Largest N for the Levinson path (``O(N²)``: ~4 s at 25 000 samples, ~25 s at 60 000).
+LEVINSON_LIMIT = 60000
+#: PCG iterations tried by ``solver="auto"`` before it falls back to Levinson.
+AUTO_PCG_ITERATIONS = 400
 #: A step of the time grid may differ from Ts by this fraction before it counts as a gap.
 GRID_RTOL = 0.01
 
@@ -69,13 +82,20 @@ class PLLSSVMResult:
     residuals: np.ndarray  # (N,) y − Zβ − f = α/γ
     linear_residuals: np.ndarray  # (N,) y − Zβ
     rmse: float  # sqrt(mean(residuals²))
-    solver: str  # 'toeplitz-pcg-strang' | 'toeplitz-pcg-tchan' | 'toeplitz-dense' | 'dense'
+    solver: str  # 'toeplitz-pcg-strang' | 'toeplitz-pcg-tchan' | 'toeplitz-dense' | 'toeplitz-levinson' | 'dense'
     iterations: int  # PCG iterations (max over right-hand sides, summed over both solves); 0 for dense
     names: tuple[str, ...]
     gamma: float
     kernel: Kernel
     Ts: float | None  # grid step of the Toeplitz path, None for the dense path
     pcg_residual: float  # largest relative residual of the PCG solves (0 for dense)
+    cov: np.ndarray | None = None  # (m, m) GLS covariance of β, ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹ (eq. L3)
+    s2: float = math.nan  # ŝ² = rᵀA⁻¹r / (N − p)
+
+    @property
+    def stderr(self) -> np.ndarray:
+        """Standard errors of β (square roots of the diagonal of :attr:`cov`)."""
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
 
 
 def constant_column(Z) -> int | None:
@@ -153,10 +173,25 @@ def _dense_kernel_matrix(kernel: Kernel, X: np.ndarray, shift: float, block: int
     return A
 
 
+#: Solvers of :func:`pl_lssvm` (time kernels; vector inputs always use the dense path).
+SOLVERS = ("auto", "pcg", "levinson")
+
 #: PCG tolerance of the first, (p+1)-right-hand-side solve. The refinement solve (tolerance ``tol``) on
 #: the residual removes its effect on b: g = Z̃ᵀA⁻¹(y − Z̃b₀) = M(b − b₀) uses the exact A, and an
 #: approximate M only slows the (one-step) correction by a factor ~FIRST_TOL·κ.
 FIRST_TOL = 1e-8
+
+
+class _LevinsonSolver:
+    """``A⁻¹B`` by Levinson–Durbin (exact, ``O(N²)`` per right-hand side)."""
+
+    def __init__(self, column: np.ndarray):
+        self.column = column
+        self.iterations = 0
+        self.residual = 0.0
+
+    def solve(self, B, tol=None):
+        return levinson_solve(self.column, B)
 
 
 class _DenseSolver:
@@ -173,8 +208,10 @@ class _DenseSolver:
         return cho_solve(self._chol, B, check_finite=False)
 
 
-def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_dense_limit):
+def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_dense_limit, method="auto"):
     """Pick the path of method §4; returns (solver, name, Ts or None)."""
+    if method not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {method!r}")
     if not isinstance(kernel, Kernel):
         raise ValueError(f"kernel must be a kernels.covariance.Kernel, got {type(kernel).__name__}")
     time_kernel = kernel.is_stationary_1d
@@ -214,6 +251,10 @@ def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_
             return _DenseSolver(_dense_kernel_matrix(kernel, X, 1.0 / gamma)), "dense", None
     column = kernel.lag(np.arange(n) * step)
     column[0] += 1.0 / gamma
+    if method == "levinson":
+        return _LevinsonSolver(column), "toeplitz-levinson", step
+    if method == "auto" and max_iter is None and n > toeplitz_dense_limit:
+        max_iter = AUTO_PCG_ITERATIONS
     solver = ToeplitzSolver(column, tol=tol, max_iter=max_iter, dense_limit=toeplitz_dense_limit)
     name = "toeplitz-dense" if solver.method == "dense" else f"toeplitz-{solver.method}"
     return solver, name, step
@@ -222,14 +263,18 @@ def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_
 def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
     """``b = (Z̃ᵀA⁻¹Z̃)⁻¹Z̃ᵀA⁻¹y``, ``α = A⁻¹(y − Z̃b)`` with one refinement step (module docstring).
 
-    Returns ``(b, alpha, W, M_scaled_cho, scale, iterations, pcg_residual)`` where ``W = A⁻¹Z̃``,
-    ``scale`` the column norms of ``Z̃`` and ``M_scaled_cho`` the Cholesky factor of
-    ``D Z̃ᵀA⁻¹Z̃ D`` (``D = diag(1/scale)``).
+    Returns ``(b, alpha, W, M_scaled_cho, scale, iterations, pcg_residual, converged)`` where
+    ``W = A⁻¹Z̃``, ``scale`` the column norms of ``Z̃``, ``M_scaled_cho`` the Cholesky factor of
+    ``D Z̃ᵀA⁻¹Z̃ D`` (``D = diag(1/scale)``) and ``converged`` whether both solves reached their
+    tolerance (within ``WARN_FACTOR``).
     """
     p = Zt.shape[1]
     scale = np.sqrt(np.sum(Zt * Zt, axis=0))
-    S = solver.solve(np.column_stack([Zt, y]), tol=max(getattr(solver, "tol", 0.0), FIRST_TOL))
+    tol = getattr(solver, "tol", 0.0)
+    first_tol = max(tol, FIRST_TOL)
+    S = solver.solve(np.column_stack([Zt, y]), tol=first_tol)
     iterations, resid = solver.iterations, solver.residual
+    converged = resid <= WARN_FACTOR * first_tol
     W, u = S[:, :p], S[:, p]
     Ms = (Zt.T @ W) / np.outer(scale, scale)
     Ms = 0.5 * (Ms + Ms.T)
@@ -242,16 +287,17 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
     # refinement on the residual (small compared with y)
     alpha = solver.solve(y - Zt @ b)
     iterations += solver.iterations
+    converged = converged and solver.residual <= WARN_FACTOR * tol
     resid = max(resid, solver.residual)
     db = cho_solve(cho, (Zt.T @ alpha) / scale, check_finite=False) / scale
     b = b + db
     alpha = alpha - W @ db
-    return b, alpha, W, cho, scale, iterations, resid
+    return b, alpha, W, cho, scale, iterations, resid, converged
 
 
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
              tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
-             toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT) -> PLLSSVMResult:
+             toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto") -> PLLSSVMResult:
     """PL-LSSVM estimate of β and the disturbance ``f`` (method §4, thesis eq. 2.9–2.12).
 
     Parameters
@@ -276,7 +322,9 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     dense_limit : int
         Largest N accepted on the dense (vector-input) path.
     toeplitz_dense_limit : int
-        Time kernels with ``N ≤`` this use a dense Cholesky of the Toeplitz matrix.
+        Time kernels with ``N ≤`` this use a dense Cholesky of the Toeplitz matrix (``solver="auto"``).
+    solver : "auto", "pcg" or "levinson"
+        Path for time kernels (module docstring); "pcg" honours ``toeplitz_dense_limit`` too.
 
     Raises
     ------
@@ -286,15 +334,26 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     """
     gamma = _check_gamma(gamma)
     Z_arr, y, names, Zt, intercept = prepare_regression(Z, y, names)
-    n = Z_arr.shape[0]
+    n, p = Zt.shape
+    method = solver
     solver, solver_name, step = _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit,
-                                              toeplitz_dense_limit)
-    b, alpha, _, _, _, iterations, resid = gls_solve(solver, Zt, y)
+                                              toeplitz_dense_limit, method)
+    fallback = method == "auto" and max_iter is None and solver_name.startswith("toeplitz-pcg") and n <= LEVINSON_LIMIT
+    with warnings.catch_warnings():
+        if fallback:
+            warnings.simplefilter("ignore", RuntimeWarning)  # checked below: Levinson takes over
+        b, alpha, _, cho, scale, iterations, resid, converged = gls_solve(solver, Zt, y)
+    if fallback and not converged:
+        solver, solver_name = _LevinsonSolver(solver.column), "toeplitz-levinson"
+        b, alpha, _, cho, scale, iterations, resid, _ = gls_solve(solver, Zt, y)
     c, beta = (float(b[0]), b[1:]) if intercept else (0.0, b)
     linear = y - Z_arr @ beta
     residuals = alpha / gamma
     f = linear - residuals
+    s2 = float((y - Zt @ b) @ alpha) / (n - p)
+    Minv = cho_solve(cho, np.eye(p), check_finite=False) / np.outer(scale, scale)
+    cov = s2 * 0.5 * (Minv + Minv.T)
     return PLLSSVMResult(beta=beta, c=c, alpha=alpha, f=f, residuals=residuals, linear_residuals=linear,
                          rmse=math.sqrt(float(residuals @ residuals) / n), solver=solver_name,
                          iterations=int(iterations), names=names, gamma=gamma, kernel=kernel, Ts=step,
-                         pcg_residual=float(resid))
+                         pcg_residual=float(resid), cov=cov[1:, 1:] if intercept else cov, s2=s2)

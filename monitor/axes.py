@@ -12,6 +12,7 @@ from feedio import schema as S
 
 from .estimator import AxisEstimator
 from .model_file import AxisModel, file_sha256, load_model
+from .online_settings import apply_overrides
 from .status import AxisStatus
 
 __all__ = ["AxisRuntime", "load_axes", "warm_up", "live_meta"]
@@ -30,15 +31,22 @@ class AxisRuntime:
         return (self.model.machine, self.model.axis)
 
 
-def load_axes(model_paths: Sequence[str | os.PathLike]) -> dict[tuple[str, str], AxisRuntime]:
+def load_axes(model_paths: Sequence[str | os.PathLike], config=None) -> dict[tuple[str, str], AxisRuntime]:
     """Load model files (one per axis); two files for the same axis, or a machine/axis name the
-    message schema does not allow (:data:`feedio.limits.NAME_PATTERN`), are errors."""
+    message schema does not allow (:data:`feedio.limits.NAME_PATTERN`), are errors. ``config`` (a
+    :class:`feedmon.run_config.RunConfig`): its ``tracker``/``adaptation``/``health`` overrides
+    replace the model files' settings (:func:`monitor.online_settings.apply_overrides`)."""
     if not model_paths:
         raise ValueError("at least one --model file is needed")
     axes: dict[tuple[str, str], AxisRuntime] = {}
     for p in model_paths:
         path = Path(p)
         model = load_model(path)
+        if config is not None:
+            try:
+                model = apply_overrides(model, config.tracker, config.adaptation, config.health)
+            except ValueError as exc:
+                raise ValueError(f"model file {path}: {exc}") from None
         for what in ("machine", "axis"):  # the names a message must carry (feedio.schema): else no block could match
             try:
                 S.check_name(getattr(model, what), f"model {what}")

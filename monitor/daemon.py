@@ -29,8 +29,9 @@ Threads of the live monitor
   ``seq`` bounded), so no sink sees a value it cannot store. Sinks are
   :class:`~monitor.sinks.QueuedSink` s: ``offer`` never blocks and never wakes their thread; a
   sink must keep that promise (a sink that blocks holds the thread that estimates).
-  ``Estimated.extra`` messages of an axis (issue 11: health reports) are published on
-  ``<prefix>/<machine>/<axis>/<kind>`` and offered to sinks that have ``offer_extra``.
+  The health reports the block produced (``Estimated.health``, about one per second of data) go
+  to ``<prefix>/<machine>/<axis>/health`` and to the sinks that take them (``offer_health``: the
+  MCAP channel ``/<machine>/<axis>/health``, the Rerun event log).
 * **Sink workers** (one per sink, inside the sinks; the MCAP and Rerun sinks forward to their
   own processes).
 * **Queryable** ``<prefix>/monitor/status`` (a Zenoh thread) answers a cached JSON document,
@@ -176,7 +177,7 @@ class Monitor:
         self.status_refused = 0
         self._subs: list[Any] = []
         self._pubs: dict[tuple[str, str], Any] = {}
-        self._extra_pubs: dict[tuple[str, str, str], Any] = {}
+        self._health_pubs: dict[tuple[str, str], Any] = {}
         self._queryable = None
         self._thread: threading.Thread | None = None
         self._started_mono = time.monotonic()
@@ -260,19 +261,22 @@ class Monitor:
         except Exception as exc:  # noqa: BLE001 - the querier went away, the session is closing
             log.debug("status reply failed: %s", exc)
 
-    def _publisher(self, key: str):
+    def _publisher(self, key: str, high: bool = True):
+        """A JSON publisher, congestion control DROP; ``high``: priority DATA_HIGH and express (the
+        estimates), else DATA (the health reports)."""
         import zenoh
 
-        return self.session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON,
-                                              congestion_control=zenoh.CongestionControl.DROP,
-                                              priority=zenoh.Priority.DATA_HIGH, express=True)
+        return self.session.declare_publisher(
+            key, encoding=zenoh.Encoding.APPLICATION_JSON, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_HIGH if high else zenoh.Priority.DATA, express=high)
 
     def start(self) -> None:
         """Declare publishers, queryable and subscriber(s); start the estimator thread."""
-        from feedio.transport import disturbance_key, samples_key, status_key, truth_key
+        from feedio.transport import disturbance_key, health_key, samples_key, status_key, truth_key
 
         for key in self.axes:
             self._pubs[key] = self._publisher(disturbance_key(self.prefix, *key))
+            self._health_pubs[key] = self._publisher(health_key(self.prefix, *key), high=False)
         self._queryable = self.session.declare_queryable(status_key(self.prefix), self._on_query)
         self._thread = threading.Thread(target=self._run, name="estimator", daemon=True)
         self._thread.start()
@@ -328,7 +332,7 @@ class Monitor:
         if block is None:
             return None
         t1 = time.perf_counter()
-        ax, est, extra = p.estimate(block)
+        ax, est, health = p.estimate(block)
         if ax is None:
             return None
         t2 = time.perf_counter()
@@ -344,8 +348,6 @@ class Monitor:
                         str(exc))
             t4 = time.perf_counter()
             ax.status.latency.record(t4 - t_recv)
-        for kind, body in extra:
-            self._publish_extra(ax, kind, body, rx_ns)
         for sink in self._encoded:
             sink.offer_encoded(b"S", payload, rx_ns)
             if data is not None:
@@ -357,26 +359,25 @@ class Monitor:
         if est is not None:
             ax.status.stages.record(t_start - t_recv, t1 - t_start, t2 - t1, t3 - t2, t4 - t3,
                                     time.perf_counter() - t4)
+        if health:  # after the block's messages (the MCAP log keeps main's order), outside the stage times
+            self._publish_health(ax, health)
         return est
 
-    def _publish_extra(self, ax: AxisRuntime, kind: str, body: bytes, rx_ns: int) -> None:
-        """A further message of ``ax`` (:attr:`monitor.pipeline.Estimated.extra`): published on
-        ``<prefix>/<machine>/<axis>/<kind>`` (publisher declared on first use) and offered to the
-        sinks that take such messages (``offer_extra(machine, axis, kind, body, received_ns)``)."""
-        m, a = ax.key
-        pub = self._extra_pubs.get((m, a, kind))
-        try:
-            if pub is None:
-                pub = self._extra_pubs[(m, a, kind)] = self._publisher(f"{self.prefix}/{m}/{a}/{kind}")
-            pub.put(body)
-        except Exception as exc:  # noqa: BLE001 - session closing, etc.
-            self.publish_errors += 1
-            self.pipeline.burst(f"publish:{ax.status.name}", "publishing %s of %s failed: %s", kind, ax.status.name,
-                                str(exc))
-        for sink in self.sinks:
-            offer = getattr(sink, "offer_extra", None)
-            if offer is not None:
-                offer(m, a, kind, body, rx_ns)
+    def _publish_health(self, ax: AxisRuntime, reports: list[S.Health]) -> None:
+        """Health reports of an axis: on Zenoh (``<prefix>/<machine>/<axis>/health``) and to every sink
+        that takes them (MCAP channel, Rerun event log)."""
+        pub = self._health_pubs.get(ax.key)
+        for h in reports:
+            try:
+                pub.put(S.encode(h))
+            except Exception as exc:  # noqa: BLE001 - session closing, etc.
+                self.publish_errors += 1
+                self.pipeline.burst(f"publish_health:{ax.status.name}", "publishing the health of %s failed: %s",
+                                    ax.status.name, str(exc))
+            for sink in self.sinks:
+                offer = getattr(sink, "offer_health", None)
+                if offer is not None:
+                    offer(h.machine, h.axis, h)
 
     def _handle_truth(self, key: str, payload: bytes, rx_ns: int) -> None:
         ax = self.pipeline.axis_of_key(key)
@@ -494,14 +495,14 @@ class Monitor:
                     except Exception as exc:  # noqa: BLE001 - OSError, a bad name, anything: say it, go on
                         self._problem("cannot save the tracker state of %s: %s: %s", ax.status.name,
                                       type(exc).__name__, exc)
-            for obj in [*self._pubs.values(), *self._extra_pubs.values(), self._queryable]:
+            for obj in [*self._pubs.values(), *self._health_pubs.values(), self._queryable]:
                 try:
                     if obj is not None:
                         obj.undeclare()
                 except Exception as exc:  # noqa: BLE001
                     log.warning("undeclaring a publisher/queryable failed: %s", exc)
             self._pubs.clear()
-            self._extra_pubs.clear()
+            self._health_pubs.clear()
             self._queryable = None
         except BaseException as exc:  # noqa: BLE001 - even an interrupt must not leave "stopping" behind
             self._problem("shutdown interrupted: %s: %s", type(exc).__name__, exc)

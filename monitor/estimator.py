@@ -44,21 +44,34 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
   the axis moves (the thesis' recording glitch): STALE flag, the tracker is not
   trained on them (predict only) and the model's velocity prediction stands in
   for the repeated value in the next regressor.
+
+Online β and health (issue 11, :mod:`monitor.online_settings`): β̂ and its covariance run beside
+the tracker (:class:`kernels.beta_tracker.OnlineBeta`, mode ``[adaptation] mode``), the health
+statistics on every learned sample (:class:`kernels.health.HealthMonitor`); the compiled loop
+writes a health report about once a second of data time, and :meth:`AxisEstimator.take_health`
+hands them out as :class:`~feedio.schema.Health` messages. With the spindle-phase kernel the
+tracker input is ``(t, θ)`` from the samples' ``spindle_angle`` / ``spindle_rpm``
+(:mod:`kernels.online`). β̂, its covariance and the health state are part of the snapshot.
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from numbers import Integral
 
 import msgspec
 import numpy as np
 
-from feedio.limits import LIMITS, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
-from feedio.schema import EstimateBlock, SampleBlock
+from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
+from feedio.schema import REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
+from kernels import health as hl
+from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
+from kernels.health import HealthMonitor, describe, physical_vector
 
 from .model_file import AxisModel
+from .online_settings import OnlineSettings, spindle_of
 from .state_check import StateError, check_snapshot
 
 __all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError"]
@@ -169,12 +182,24 @@ class AxisEstimator:
             raise ValueError(f"axis {model.machine}/{model.axis}: beta has {self.beta.size} values for "
                              f"{len(names)} names {names}; the online residual uses e, v"
                              f"{', −σ_p, −σ_n' if model.coulomb else ''}{', one' if intercept else ''}")
+        self.settings = getattr(model, "online", None) or OnlineSettings()
+        self.spindle = spindle_of(model.tracker.kernel)
+        #: why values of the health reports are not given (static per axis)
+        self.notes: list[str] = []
+        self.mode = self.settings.adaptation.mode
+        self.tracker = self._new_tracker()
+        self.online = self._new_online(self.tracker)       # may switch the mode off (notes say why)
+        self.health = self._new_health()
+        self.notes += self._notes()
         e_max = LIMITS["u"] if model.form == "force-input" else LIMITS["v"]
+        sp = self.spindle
         self._cfg = online.new_config(
             beta=self.beta, coulomb=bool(model.coulomb), intercept=intercept, omega=float(model.omega),
             inv_ts=1.0 / float(model.Ts), v_max=LIMITS["v"], e_max=float(e_max), t_max=LIMITS["t"],
-            stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window))
-        self.tracker = self._new_tracker()
+            stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window),
+            mode=self.mode, spindle=sp is not None, theta_period=sp.period if sp else 2.0 * math.pi,
+            rpm_nominal=sp.spindle_rpm if sp else 0.0, rpm_max=PHYSICAL.spindle_rpm_max,
+            tick_period=self.settings.health.period)
         self.counters: Counter[str] = Counter()
         b = self.force_gain
         #: divisors of the rows f, f_var, f_next that give force, force_var, force_next (None: no scale)
@@ -182,7 +207,14 @@ class AxisEstimator:
         #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
         self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
         self._state = online.new_state()
-        self._xbuf, self._obuf = online.new_scratch()
+        self._xdim = 2 if sp is not None else 1
+        self._xbuf = np.zeros(self._xdim)  # an example input (its size) for the tracker's buffers
+        self._scratch = online.new_scratch(len(names))
+        self._no_spindle = np.zeros((2, 0))
+        self._health_out: list[Health] = []
+        hp = self.health.state.par  # fewest samples between two changes of the validity level
+        self._change_min = int(max(1.0, min(hp[hl.Q_NPERS], hp[hl.Q_NHOLD])))
+        self._tick_min = int(online.config_of(*self._cfg).tick_min)  # fewest samples between two periodic reports
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
     def _new_tracker(self) -> KRLST:
@@ -200,6 +232,55 @@ class AxisEstimator:
             refine=True,
         )
 
+    def _new_online(self, tracker: KRLST) -> OnlineBeta:
+        """The online β of the model (β₀, its covariance when the model file has one, the settings);
+        a β that is not a physical drive cannot be adapted: the mode falls back to ``off``."""
+        m, a = self.model, self.settings.adaptation
+        names = tuple(m.beta_names)
+        kw = dict(omega=float(m.omega), gain=m.loop_gain if m.form == "velocity-loop" else None,
+                  allowance=a.allowance, memory=a.memory, huber=a.huber, reject=a.reject, hold=a.hold,
+                  instrument=a.instrument, enabled=self.mode != "off",
+                  rebase_every=REBASE_EVERY if self.mode == "apply" else 0)
+        try:
+            return OnlineBeta(tracker, self.beta, names, float(m.Ts), beta_cov=_beta_cov(m), **kw)
+        except ValueError as exc:
+            if self.mode != "off":
+                self.notes.append(f"adaptation off: {exc}")
+                self.mode = "off"
+            # β is still needed by the loop's layout: a stand-in physical drive, never adapted nor reported
+            stand_in = self.beta.copy()
+            stand_in[0], stand_in[1] = 1.0, 0.5 - (1.0 if m.form == "velocity-loop" else 0.0)
+            return OnlineBeta(tracker, stand_in, names, float(m.Ts), **{**kw, "enabled": False, "rebase_every": 0})
+
+    def _notes(self) -> list[str]:
+        """Which values of the health reports are not given, and why (static per axis)."""
+        m = self.model
+        if self.mode == "off":
+            return [] if self.notes else ["not given: physical parameters (adaptation off)"]
+        notes = []
+        missing = [name for name, col in (("coulomb", "-sigma_p"), ("offset", "one")) if col not in m.beta_names]
+        if missing:
+            notes.append(f"not given: {', '.join(missing)} (the model has no such column)")
+        if m.form == "velocity-loop" and m.loop_gain is None:
+            notes.append("not given: absolute inertia, damping, Coulomb, offset (a velocity-loop model without the "
+                         "loop gain K determines them over K only; their drift is still tested)")
+        return notes
+
+    def _new_health(self) -> HealthMonitor:
+        """Health statistics with the model file's physical parameters (and standard errors when the model
+        file has them) as the drift reference."""
+        m = self.model
+        names = tuple(m.beta_names)
+        gain = m.loop_gain if m.form == "velocity-loop" else None
+        cov = _beta_cov(m)
+        P = np.zeros((len(names), len(names))) if cov is None else (np.diag(cov * cov) if cov.ndim == 1 else cov)
+        try:
+            th0, se0 = physical_of(self.beta, names, float(m.Ts), P, gain=gain)
+        except ValueError:
+            th0 = se0 = np.full(6, np.nan)
+        return HealthMonitor(float(m.Ts), physical_vector(th0), physical_vector(se0),
+                             physical_vector(self.online.prior_se), config=self.settings.health.config())
+
     @property
     def config(self) -> online.ConfigBuffers:
         """What the compiled loop reads of the model (read only; named by :func:`kernels.online.config_of`)."""
@@ -212,13 +293,14 @@ class AxisEstimator:
 
     # ------------------------------------------------------------------ main entry
     def process(self, block: SampleBlock) -> EstimateBlock | None:
-        """Estimates for the samples of ``block`` (None when every sample was dropped or refused)."""
+        """Estimates for the samples of ``block`` (None when every sample was dropped or refused);
+        the health reports it produced wait in :meth:`take_health`."""
         rows = self.process_rows(block)
         return None if rows is None else rows.block()
 
     def process_rows(self, block: SampleBlock) -> EstimateRows | None:
         """:meth:`process` returning the rows as columns (:class:`EstimateRows`): the schema object
-        and its JSON are made only when asked for."""
+        and its JSON are made only when asked for; the health reports wait in :meth:`take_health`."""
         n = len(block.t)
         exo = block.u if self.model.form == "force-input" else block.v_ref
         if exo is None:
@@ -240,39 +322,100 @@ class AxisEstimator:
         t = np.array(block.t, dtype=np.float64)
         e = _as_column(exo)
         v = _as_column(block.v_meas)
+        sp = self._no_spindle
+        if self.spindle is not None and (block.spindle_angle is not None or block.spindle_rpm is not None):
+            sp = np.full((2, n), np.nan)
+            if block.spindle_angle is not None:
+                sp[0] = _as_column(block.spindle_angle)
+            if block.spindle_rpm is not None:
+                sp[1] = _as_column(block.spindle_rpm)
         rows, irows, counts = online.new_rows(n)
-        first = online.track_block(*self.tracker.core_arrays(self._xbuf), *self._cfg, *self._state, seq0,
-                                   t, e, v, rows, irows, counts, self._xbuf, self._obuf)
+        ticks = online.new_ticks(n, self._tick_min, self._change_min)
+        first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
+                                   *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows, irows,
+                                   counts, ticks, self._scratch)
         self.block_counts = counts
         for name, k in zip(online.COUNTERS, counts.tolist()):
             if k:
                 c[name] += k
+        nt = int(counts[online.C_TICKS])
+        if nt:
+            self._health_out.extend(self._health(block.machine, block.axis, ticks[i]) for i in range(nt))
         if first == n:
             return None
         c["estimates_out"] += n - first
         if first:
             t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
-        # F = −f/b, var F = var f / b², F_next = −f_next/b (force-input form, or velocity loop with known K)
-        force = None if self._force_div is None else rows[online.R_F:online.R_FNEXT + 1] / self._force_div
-        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows, irows, force)
+        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
+                            self._force(rows))
+
+    def _force(self, rows: np.ndarray) -> np.ndarray | None:
+        """``force``, ``force_var``, ``force_next`` (N) of the rows: F = −f/b, var F = var f / b²,
+        F_next = −f_next/b with b = β1 (force-input) or β1/K (velocity loop with known K), the β1 the
+        row's disturbance goes with (β̂ per row in apply mode); None when the model cannot scale."""
+        if self._force_div is None:
+            return None
+        if self.mode != "apply":
+            return rows[online.R_F:online.R_FNEXT + 1] / self._force_div
+        b = rows[online.R_BETA1]
+        if self.model.form == "velocity-loop":
+            b = b / self.model.loop_gain
+        return np.stack((-rows[online.R_F] / b, rows[online.R_FVAR] / (b * b), -rows[online.R_FNEXT] / b))
+
+    def take_health(self) -> list[Health]:
+        """The health reports produced since the last call (oldest first), and forget them."""
+        out, self._health_out = self._health_out, []
+        return out
+
+    def _health(self, machine: str, axis: str, row: np.ndarray) -> Health:
+        """A :class:`Health` message from one report row of the compiled loop (:data:`kernels.online.TICK`)."""
+        k = online
+        level = row[k.K_LEVEL:k.K_LEVEL + 6].astype(np.int64)
+        reasons = describe(level, row[k.K_Z:k.K_Z + 5], row[k.K_REL:k.K_REL + 5], float(row[k.K_NU2]),
+                           float(row[k.K_EWMAX]))
+        if self.mode != "off":  # estimated, but the data do not determine it: flagged, not tested for drift
+            weak = [f"{name} (s.e. {row[k.K_SE + i]:.3g})" for i, name in
+                    ((0, "inertia"), (1, "damping"), (2, "coulomb_pos"), (3, "coulomb_neg"), (5, "offset"))
+                    if math.isfinite(row[k.K_THETA + i]) and row[k.K_DET + hl.PHYS_INDEX.index(i)] == 0.0]
+            if weak:
+                reasons.append("not determined by the data, not tested for drift: " + ", ".join(weak))
+        reasons += self.notes
+        vals: dict[str, float | None] = {}
+        absolute = self.mode != "off" and (self.model.form == "force-input" or self.model.loop_gain is not None)
+        for i, name in enumerate(("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offset")):
+            x, se = float(row[k.K_THETA + i]), float(row[k.K_SE + i])
+            ok = absolute and math.isfinite(x) and math.isfinite(se)
+            vals[name] = x if ok else None
+            vals[f"{name}_se"] = se if ok else None
+        nu2 = float(row[k.K_NU2])
+        reasons = [r[:REASON_CHARS_MAX] for r in reasons[:REASONS_MAX]]  # the schema's bounds
+        return Health(machine=machine, axis=axis, seq=int(row[k.K_SEQ]), t=float(row[k.K_T]),
+                      state=("ok", "warn", "alarm")[int(row[k.K_STATE])], reasons=reasons,
+                      nu2=nu2 if math.isfinite(nu2) else None, adaptation=self.mode, **vals)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:
-        """Tracker state plus the counters needed to resume (plain arrays, no pickle)."""
+        """Tracker state, online β (β̂, its covariance, the shadow means), the health state and the
+        counters needed to resume (plain arrays, no pickle)."""
         snap = {f"tracker.{k}": v for k, v in self.tracker.snapshot().items()}
+        snap.update(self.online.snapshot())
+        snap.update(self.health.snapshot())
         snap[_TRAINED] = np.array(self.trained, dtype=np.int64)
         return snap
 
     def snapshot_templates(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """What a valid snapshot of this model looks like: the snapshots of a fresh tracker with the
-        model's hyperparameters before any sample and after one step (keys, shapes, dtypes and the
-        hyperparameter values; they follow the core's layout, whatever it is). Made once per
-        estimator; treat them as read only."""
+        model's hyperparameters before any sample and after one step, the latter with the online β
+        and health entries (keys, shapes, dtypes and the hyperparameter values; they follow the
+        core's layout, whatever it is). Made once per estimator; treat them as read only."""
         if self._templates is None:
             tracker = self._new_tracker()
             before = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
-            tracker.learn_one(0.0, 0.0)
+            fresh = self._new_online(self._new_tracker())
+            tracker.learn_one(np.zeros(self._xdim), 0.0)
             after = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
+            after.update(fresh.snapshot())
+            after.update(self._new_health().snapshot())
             before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
             self._templates = (before, after)
         return self._templates
@@ -281,8 +424,10 @@ class AxisEstimator:
         """Continue from :meth:`snapshot` (the regressor chain restarts at the next sample).
 
         The snapshot is checked first (:func:`monitor.state_check.check_snapshot`: keys, shapes,
-        dtypes, finiteness, the model's hyperparameters, the tracker's invariants); a snapshot that
-        fails raises :class:`StateError` naming the reason and leaves this estimator as it was.
+        dtypes, finiteness, the model's hyperparameters, the tracker's invariants; then the online β
+        and health parts, :func:`kernels.beta_tracker.validate_beta_state`,
+        :func:`kernels.health.validate_health_state`); a snapshot that fails raises
+        :class:`StateError` naming the reason and leaves this estimator as it was.
         """
         before, after = self.snapshot_templates()
         check_snapshot(snap, before, after, counters=(_TRAINED,))
@@ -291,5 +436,31 @@ class AxisEstimator:
             restored = KRLST.restore(tracker_part)
         except ValueError as exc:
             raise StateError(str(exc)) from None
+        online_part = {k: v for k, v in snap.items() if k.startswith("beta.")}
+        health_part = {k: v for k, v in snap.items() if k.startswith("health.")}
+        ob, hm = self._new_online(self._new_tracker()), self._new_health()
+        if online_part or health_part:  # a snapshot made after a step holds both
+            try:
+                ob.restore(online_part, restored)
+                hm.restore(health_part)
+            except ValueError as exc:
+                raise StateError(str(exc)) from None
+        else:
+            ob = self._new_online(restored)
         self.tracker = restored
+        self.online = ob
+        self.health = hm
         self._state = online.new_state(trained=int(snap[_TRAINED]))
+
+
+def _beta_cov(model: AxisModel) -> np.ndarray | None:
+    """The model file's covariance (p×p) or standard errors (p,) of β when it has them (identification
+    writes them; older files do not), else None."""
+    for name in ("beta_cov", "beta_se", "beta_stderr"):
+        value = getattr(model, name, None)
+        if value is not None:
+            arr = np.asarray(value, dtype=np.float64)
+            p = len(model.beta)
+            if arr.shape in ((p,), (p, p)) and np.all(np.isfinite(arr)):
+                return arr
+    return None

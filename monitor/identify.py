@@ -1,66 +1,123 @@
-"""Offline identification of one axis: LS and PL-LSSVM on a recorded trial (method §2–4).
+"""Offline identification of one axis: candidate models, chosen by evidence among the valid ones
+(method §2–5; issue 10).
 
-:func:`identify` takes a :class:`feedio.mcapio.Trial` and returns an
-:class:`Identification` with β per method, physical parameters, prediction
-errors, the disturbance estimate and, for simulated trials, the error against
-the recorded truth. :meth:`Identification.to_json` is the machine-readable
-document of ``feedmon identify --json``; :meth:`Identification.to_model` the
-model file for ``feedmon run``.
+:func:`identify` takes a :class:`feedio.mcapio.Trial` and returns an :class:`Identification`.
+
+**Regression.** ``z(k)`` of method §2 with the constant column ``one`` in both input forms, and the
+friction columns in their identifiable form ``−τ(v), −|τ(v)|`` (the latter only when the trial has
+rest, :func:`kernels.feed_drive.rest_samples`; :func:`kernels.feed_drive.friction_transform`),
+mapped back to the spec's β for the model file.
+
+**Candidates** (every one on the same ``Z̃``, so their REML are comparable, eq. L2):
+
+* ``ls`` — least squares, ``A = I``;
+* ``pl_lssvm`` with a squared-exponential kernel in time (non-periodic disturbances: steps, drift);
+* ``pl_lssvm`` with the locally periodic kernel at each period in play (:func:`periods_in_play`), and
+  with its zero-mean form (:class:`kernels.covariance.ZeroMeanLocallyPeriodic`, tuned from the former's
+  optimum): the locally periodic kernel carries a slowly varying mean (most of its variance when σ2 is
+  large), right for a cutting force whose mean follows the feed, wrong for a zero-mean vibration,
+  where that mean competes with the velocity column; the evidence tells which one the data support.
+
+**Period.** In this order: ``period`` ("given"), the spindle speed ("spindle"), else found in the LS
+residual ("detected", :func:`kernels.period.detect_periods`: harmonic-sum periodogram, periods locked
+to the commanded motion left out, at least ``MIN_CYCLES`` periods in the record) — then the
+multiples 2ψ and 3ψ are tried on the likelihood (:func:`_harmonic_alternatives`: a line found at
+1/ψ may be a harmonic of a longer true period) — else none. A period found in the data counts as one
+more fitted hyperparameter. With a given (or spindle) period the detected one is tuned too; when it is
+valid and its evidence exceeds the best periodic candidate at the given period by ``SUGGEST_MARGIN``,
+the output says so and names it (``period_suggested``), but the given period is kept.
+
+Each kernel candidate is tuned by the REML (:func:`kernels.likelihood.tune`; ``tune=False`` keeps the
+given or thesis hyperparameters), then evaluated exactly: REML ``ℓ``, GLS covariance of β (eq. L3),
+physical parameters and their standard errors by the delta method, and the evidence
+``log E = ℓ − ½ k log(N − p)`` (eq. L4, ``k`` tuned hyperparameters, +1 for a period found in the data).
+
+**Validity.** A candidate is not a valid choice when
+
+1. :func:`kernels.feed_drive.validity_problems` finds a reason it cannot be right (pole outside
+   (0, 1), input gain ≤ 0, a Coulomb friction negative beyond ``COULOMB_Z`` standard errors); or
+2. (kernel candidates) it determines the inertia or the symmetric Coulomb friction
+   (``EFFICIENCY_KEYS``, or their ratios to the loop gain) *worse than least squares does*: its GLS
+   standard error exceeds the LS standard error. The GLS covariance ``ŝ²(Z̃ᵀA⁻¹Z̃)⁻¹`` grows where
+   the kernel can reproduce a regressor column — a flexible kernel in time can draw ``sign(v)`` or
+   the acceleration transients — and shrinks where it removes a disturbance that LS mistakes for
+   noise. A disturbance model that explains the residual but costs precision on these parameters
+   competes with them (on clean real data, where the equation error is coloured by filtering and
+   unmodelled dynamics, a kernel otherwise takes the Coulomb friction): the trial does not
+   determine them under that candidate. Damping is not part of the rule: its column, the velocity,
+   varies as slowly as any disturbance a time kernel admits (the squared exponential, and the
+   slowly drifting mean of the locally periodic kernel), so every disturbance model competes with
+   it to some degree — in milling the mean cutting force even follows the feed; this is reported
+   instead (below).
+
+**Choice.** The valid candidate with the highest evidence (``method="auto"``); ``method="ls"`` or
+``"pl-lssvm"`` restricts the choice to that family. No valid candidate: ``refusal`` says why (the
+command exits 1 and writes nothing unless ``--force``).
+
+**Uncertainty flags.** A physical parameter whose relative standard error exceeds
+``UNDETERMINED_RSE`` is reported as "not determined (± s.e.)", never as a fact. A parameter whose
+variance the disturbance model inflates by more than ``VIF_FLAG`` —
+``VIF = var_GLS(φ) / var_white(φ)``, the delta-method variance of φ under the candidate over its
+variance with the same noise level ``ŝ²/γ`` and no disturbance model, ``(ŝ²/γ)(Z̃ᵀZ̃)⁻¹`` — is
+flagged as *competing with the disturbance model*: it is determined only on the assumption that the
+disturbance has no component that follows that regressor (``1/VIF`` of the column's information
+is left to determine it).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from kernels import LocallyPeriodic
+from kernels import LocallyPeriodic, SquaredExponential
 from kernels.feed_drive import (
+    COULOMB_Z,
     beta_to_physical,
-    disturbance_to_force,
-    predict_one_step,
+    friction_transform,
+    physical_covariance,
+    physical_to_beta,
     regressors,
+    rest_samples,
     simulate_free_run,
+    validity_problems,
 )
-from kernels.least_squares import least_squares
-from kernels.likelihood import log_marginal_likelihood
+from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_terms
 from kernels.likelihood import tune as tune_hyperparameters
-from kernels.pl_lssvm import pl_lssvm
+from kernels.period import MIN_CYCLES, detect_periods, harmonically_related
+from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
 
+from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
 
-__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "Identification", "identify", "disturbance_period", "dead_band"]
+__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
+           "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify", "periods_in_play", "dead_band"]
 
 #: PL-LSSVM hyperparameters when neither given nor tuned (thesis Table 4.1, case study 1)
 THESIS_DEFAULTS = {"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}
-#: online KRLS-T defaults (thesis Table 4.5 in this project's σ2 convention, golden vectors)
-TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.996, "budget": 100, "jitter": 1e-6}
+#: online KRLS-T defaults (one definition: monitor.online_settings)
+TRACKER_DEFAULTS = OS.TRACKER_DEFAULTS
 #: samples needed beyond ±Ω on each side before the Coulomb columns are identifiable
 MIN_REVERSAL_SAMPLES = 20
+#: samples at rest needed before the Coulomb asymmetry is told from the offset
+MIN_REST_SAMPLES = 20
+#: relative standard error above which a physical parameter is "not determined"
+UNDETERMINED_RSE = 0.25
+#: parameters a kernel candidate must determine at least as well as LS (validity rule 2)
+EFFICIENCY_KEYS = ("inertia", "coulomb")
+#: variance inflation above which a parameter is flagged as competing with the disturbance model
+VIF_FLAG = 10.0
+#: log-evidence margin by which another period must beat a given one to be suggested
+SUGGEST_MARGIN = 10.0
+#: share of the samples a spindle speed must hold to put its period in play
+SPINDLE_SHARE = 0.1
+#: longest period relative to the record (the kernel needs σ1 ≥ 2ψ)
+MAX_PERIOD_FRACTION = 0.5
 
-
-def disturbance_period(meta, period: float | None = None, spindle_rpm: float | None = None) -> tuple[float, str]:
-    """ψ (s) and where it came from: ``--period``, then ``--spindle-rpm``, then the trial metadata.
-
-    With tool runout the cutting force repeats once per spindle revolution, so ψ = 60/rpm
-    (not the tooth period).
-    """
-    if period is not None:
-        if not (math.isfinite(period) and period > 0):
-            raise ValueError(f"--period must be a positive number of seconds, got {period!r}")
-        return float(period), "--period"
-    if spindle_rpm is not None:
-        if not (math.isfinite(spindle_rpm) and spindle_rpm > 0):
-            raise ValueError(f"--spindle-rpm must be positive, got {spindle_rpm!r}")
-        return 60.0 / spindle_rpm, "--spindle-rpm"
-    if meta.spindle_rpm:
-        return 60.0 / meta.spindle_rpm, "trial metadata (spindle_rpm)"
-    raise ValueError(
-        "no disturbance period: the trial has no spindle speed in its metadata; give --period S "
-        "(e.g. --period 0.018182 for a 55 Hz shaker) or --spindle-rpm R --teeth N"
-    )
+_METHOD_LABEL = {"ls": "LS", "pl_lssvm": "PL-LSSVM"}
 
 
 def dead_band(v_meas: np.ndarray) -> float:
@@ -79,26 +136,164 @@ def dead_band(v_meas: np.ndarray) -> float:
     return max(3.0 * 1.4826 * mad / math.sqrt(6.0), 0.005 * float(np.max(np.abs(v))))
 
 
+# ------------------------------------------------------------------------------------------------
+# periods
+# ------------------------------------------------------------------------------------------------
+def _check_period(psi: float, what: str, Ts: float, duration: float) -> float:
+    if not (math.isfinite(psi) and psi > 0):
+        raise ValueError(f"{what} must give a positive period in s, got {psi!r}")
+    if psi < 2.0 * Ts:
+        raise ValueError(f"{what}: period {psi:.6g} s is shorter than two samples (Ts = {Ts:.6g} s); "
+                         "a disturbance that fast cannot be seen at this sample rate")
+    if psi > MAX_PERIOD_FRACTION * duration:
+        raise ValueError(f"{what}: period {psi:.6g} s is longer than half the record ({duration:.6g} s); "
+                         "a periodic disturbance needs at least two periods in the trial")
+    return float(psi)
+
+
+def periods_in_play(trial, period: float | None = None, spindle_rpm: float | None = None) -> tuple[list[float], str]:
+    """The disturbance period(s) ψ (s) and their source, in this order: ``period`` ("given"), the
+    spindle speed ``spindle_rpm`` / trial metadata / the samples' ``spindle_rpm`` column
+    ("spindle": ψ = 60/rpm, the spindle period, right with tool runout; every speed holding at
+    least ``SPINDLE_SHARE`` of the samples), else ``([], "none")`` — the caller then looks for
+    one in the data ("detected").
+    """
+    if period is not None and spindle_rpm is not None:
+        raise ValueError("--period and --spindle-rpm both give the disturbance period; give one of them")
+    Ts = float(trial.meta.Ts)
+    duration = len(trial.t) * Ts
+    if period is not None:
+        return [_check_period(float(period), "--period", Ts, duration)], "given"
+    if spindle_rpm is not None:
+        if not (math.isfinite(spindle_rpm) and spindle_rpm > 0):
+            raise ValueError(f"--spindle-rpm must be positive, got {spindle_rpm!r}")
+        return [_check_period(60.0 / spindle_rpm, "--spindle-rpm", Ts, duration)], "spindle"
+    meta_rpm = trial.meta.spindle_rpm
+    if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0:
+        return [_check_period(60.0 / meta_rpm, "trial metadata spindle_rpm", Ts, duration)], "spindle"
+    col = getattr(trial, "spindle_rpm", None)
+    if col is not None:
+        rpm = np.asarray(col, dtype=np.float64)
+        rpm = rpm[np.isfinite(rpm) & (rpm > 0)]
+        if rpm.size >= SPINDLE_SHARE * len(trial.t):
+            levels, counts = np.unique(np.round(rpm, 0), return_counts=True)
+            keep = [float(lv) for lv, c in zip(levels, counts) if c >= SPINDLE_SHARE * len(trial.t)]
+            periods = []
+            for lv in sorted(keep, key=lambda x: -counts[np.searchsorted(levels, x)]):
+                psi = 60.0 / lv
+                if 2.0 * Ts <= psi <= MAX_PERIOD_FRACTION * duration and not any(
+                        abs(psi - q) <= 0.005 * q for q in periods):
+                    periods.append(psi)
+            if periods:
+                return periods, "spindle"
+    return [], "none"
+
+
+# ------------------------------------------------------------------------------------------------
+# candidates
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class Candidate:
+    """One candidate model, evaluated exactly on the whole record."""
+
+    method: str  # "ls" | "pl_lssvm"
+    kernel: str | None  # None | "squared_exponential" | "locally_periodic" | "locally_periodic_zero_mean"
+    period: float | None
+    hyperparameters: dict  # sigma1, sigma2 | lengthscale, gamma (+ tuned, evaluations, on_bound)
+    k: int  # hyperparameters fitted to the data (eq. L4)
+    log_likelihood: float
+    log_evidence: float
+    beta: np.ndarray  # spec β (model-file order)
+    beta_cov: np.ndarray
+    physical: dict
+    physical_se: dict
+    pole: float
+    valid: bool = True
+    why_not: str | None = None
+    notes: list[str] = field(default_factory=list)
+    kernel_object: object = None
+    gamma: float | None = None
+    vif: dict = field(default_factory=dict)  # variance inflation of each physical parameter by the kernel
+    eligible: bool = True  # False: evaluated for the period check only (the period was given)
+
+    @property
+    def label(self) -> str:
+        if self.method == "ls":
+            return "LS"
+        if self.kernel == "locally_periodic":
+            return f"PL-LSSVM, locally periodic ψ = {self.period:.6g} s"
+        if self.kernel == "locally_periodic_zero_mean":
+            return f"PL-LSSVM, zero-mean locally periodic ψ = {self.period:.6g} s"
+        return "PL-LSSVM, squared exponential"
+
+    @property
+    def beta_se(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.beta_cov), 0.0))
+
+    def summary(self) -> dict:
+        """The ``candidates`` entry of the JSON document."""
+        return {"method": self.method, "kernel": self.kernel, "period": self.period,
+                "hyperparameters": self.hyperparameters, "log_evidence": self.log_evidence,
+                "valid": self.valid, "why_not": self.why_not}
+
+
 @dataclass
 class MethodResult:
+    """A fitted candidate with its predictions (the ``ls`` / ``pl_lssvm`` sections)."""
+
     name: str
-    beta: np.ndarray
-    stderr: np.ndarray | None
-    physical: dict
+    candidate: Candidate
     rmse_linear: float  # y − Zβ (m/s)
     rmse: float  # one-step prediction error (m/s), with the disturbance for PL-LSSVM
     rmse_free_run: float  # free-run simulation error (m/s)
     prediction: np.ndarray  # one-step velocity prediction aligned with y
-    physical_error: str | None = None
+    f: np.ndarray | None = None  # disturbance estimate (m/s) aligned with y
+    f_force: np.ndarray | None = None  # the same in N when scalable
 
-    def to_json(self) -> dict:
-        out = {"beta": self.beta.tolist(), "physical": self.physical, "rmse": self.rmse,
-               "rmse_linear": self.rmse_linear, "rmse_free_run": self.rmse_free_run}
-        if self.stderr is not None:
-            out["stderr"] = self.stderr.tolist()
-        if self.physical_error:
-            out["physical_error"] = self.physical_error
-        return out
+    @property
+    def beta(self) -> np.ndarray:
+        return self.candidate.beta
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return self.candidate.beta_se
+
+    @property
+    def physical(self) -> dict:
+        return self.candidate.physical
+
+    @property
+    def physical_se(self) -> dict:
+        return self.candidate.physical_se
+
+    def undetermined(self) -> list[str]:
+        """Physical parameters whose relative standard error exceeds ``UNDETERMINED_RSE``."""
+        return undetermined(self.physical, self.physical_se)
+
+    def competing(self) -> list[str]:
+        """Physical parameters whose variance the disturbance model inflates by more than ``VIF_FLAG``."""
+        return [k for k, v in self.candidate.vif.items() if v > VIF_FLAG]
+
+    def to_json(self, names, notes) -> dict:
+        c = self.candidate
+        return {"method": c.method, "kernel": c.kernel, "period": c.period, "beta_names": list(names),
+                "beta": c.beta.tolist(), "beta_se": c.beta_se.tolist(), "physical": c.physical,
+                "physical_se": {k: v for k, v in c.physical_se.items() if not k.startswith("_")},
+                "undetermined": self.undetermined(), "competing": self.competing(), "vif": c.vif,
+                "pole": c.pole, "hyperparameters": c.hyperparameters,
+                "log_likelihood": c.log_likelihood, "log_evidence": c.log_evidence, "valid": c.valid,
+                "why_not": c.why_not, "rmse": self.rmse, "rmse_linear": self.rmse_linear,
+                "rmse_free_run": self.rmse_free_run, "notes": list(notes) + c.notes}
+
+
+def undetermined(physical: dict, physical_se: dict) -> list[str]:
+    """Keys of ``physical`` with ``s.e. > UNDETERMINED_RSE · |value|``."""
+    out = []
+    for k, v in physical.items():
+        s = physical_se.get(k)
+        if s is not None and not (s <= UNDETERMINED_RSE * abs(v)):
+            out.append(k)
+    return out
 
 
 @dataclass
@@ -110,94 +305,284 @@ class Identification:
     axis: str
     form: str
     Ts: float
-    period: float
-    period_source: str
+    period: float | None  # ψ of the periodic candidate(s) in play (the chosen one's when periodic)
+    period_source: str  # given | spindle | detected | none
+    period_suggested: float | None
     omega: float
     coulomb: bool
     coulomb_note: str
-    names: tuple[str, ...]
+    rest: bool
+    names: tuple[str, ...]  # spec β names (model file)
     loop_gain: float | None
-    hyperparameters: dict
+    candidates: list[Candidate]
+    chosen: Candidate | None
     ls: MethodResult
-    pl: MethodResult
+    pl: MethodResult | None
+    model_result: MethodResult | None
     y: np.ndarray  # v_m(k+1), m/s
     t: np.ndarray  # time of y (s)
-    f: np.ndarray  # PL-LSSVM disturbance estimate (m/s), aligned with y
-    f_force: np.ndarray | None  # the same in N when scalable
+    refusal: str | None = None
     truth: dict | None = None
     truth_force: np.ndarray | None = None  # true disturbance force (N) aligned with y
     truth_f: np.ndarray | None = None  # true disturbance (m/s) aligned with y
     measured_force: np.ndarray | None = None  # e.g. dynamometer (N) aligned with y
     notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def chosen_method(self) -> str | None:
+        return None if self.chosen is None else self.chosen.method
+
+    @property
+    def f(self) -> np.ndarray | None:
+        """Disturbance estimate of the PL-LSSVM result (m/s)."""
+        return None if self.pl is None else self.pl.f
+
+    @property
+    def f_force(self) -> np.ndarray | None:
+        return None if self.pl is None else self.pl.f_force
+
+    @property
+    def hyperparameters(self) -> dict:
+        return {} if self.pl is None else self.pl.candidate.hyperparameters
+    spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
 
     def to_json(self) -> dict:
-        doc = {
-            "trial": self.trial_path,
-            "machine": self.machine,
-            "axis": self.axis,
+        """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
+        ls, pl_lssvm, model, truth."""
+        model = None
+        if self.model_result is not None:
+            c = self.model_result.candidate
+            model = {"method": c.method, "beta": c.beta.tolist(), "beta_se": c.beta_se.tolist(),
+                     "physical": c.physical,
+                     "physical_se": {k: v for k, v in c.physical_se.items() if not k.startswith("_")}}
+        return {
             "form": self.form,
             "Ts": self.Ts,
-            "period": self.period,
-            "period_source": self.period_source,
-            "omega": self.omega,
-            "coulomb": self.coulomb,
-            "beta_names": list(self.names),
-            "loop_gain": self.loop_gain,
-            "hyperparameters": self.hyperparameters,
-            "ls": self.ls.to_json(),
-            "pl_lssvm": self.pl.to_json(),
-            "notes": self.notes,
+            "chosen": self.chosen_method,
+            "period": {"value": self.period, "source": self.period_source, "suggested": self.period_suggested},
+            "candidates": [c.summary() for c in self.candidates],
+            "ls": self.ls.to_json(self.names, self.notes),
+            "pl_lssvm": None if self.pl is None else self.pl.to_json(self.names, self.notes),
+            "model": model,
+            "truth": self.truth,
         }
-        if self.truth is not None:
-            doc["truth"] = self.truth
-        return doc
 
-    def to_model(self, *, method: str = "pl-lssvm", tracker: dict | None = None, feedmon_version: str = "") -> AxisModel:
-        """The axis model file for ``feedmon run`` (β of ``method``, tracker defaults with ψ = period)."""
-        chosen = self.pl if method == "pl-lssvm" else self.ls
-        cfg = dict(TRACKER_DEFAULTS)
-        cfg.update(tracker or {})
-        kernel = LocallyPeriodic(cfg["sigma1"], cfg["sigma2"], self.period).to_dict()
+    def _tracker_kernel(self, chosen, psi) -> tuple[str, dict | None]:
+        """The online tracker's kernel family and σ1, σ2, γ (issue 11: REML-tuned values track best).
+
+        The tracker follows the evidence: the chosen candidate's kernel when it is a locally periodic one
+        at the tracker's period ψ (its zero-mean form too — a disturbance without a slowly varying mean,
+        so the tracker leaves slow forces to β, online as offline); when the chosen model is LS or of
+        another kernel, the best tuned locally periodic candidate at ψ by evidence. ``("locally_periodic",
+        None)`` (thesis values) when none was tuned."""
+        families = ("locally_periodic", "locally_periodic_zero_mean")
+        if psi is not None:
+            others = sorted((x for x in self.candidates if x is not chosen),
+                            key=lambda x: -(x.log_evidence if x.log_evidence is not None else -math.inf))
+            for cand in [chosen, *others]:
+                hp = cand.hyperparameters
+                if (cand.kernel in families and cand.period is not None
+                        and abs(cand.period - psi) <= 1e-9 * psi and hp.get("tuned")
+                        and all(hp.get(k) is not None for k in ("sigma1", "sigma2", "gamma"))):
+                    return cand.kernel, hp
+        return "locally_periodic", None
+
+    def to_model(self, *, tracker: dict | None = None, feedmon_version: str = "", force: bool = False) -> AxisModel:
+        """The axis model file for ``feedmon run``: β of the chosen candidate (of the best one by
+        evidence when ``force`` and nothing is valid), the tracker defaults with ψ = the period."""
+        res = self.model_result
+        if res is None:
+            raise ValueError(self.refusal or "no model to write")
+        c = res.candidate
+        if not c.valid and not force:
+            raise ValueError(f"the {c.label} model is not valid: {c.why_not}")
+        # the tracker's period: the chosen model's, else one the user gave (a period found in the data
+        # whose candidates were not chosen is no reason to make the online kernel periodic)
+        psi = c.period if c.period is not None else (self.period if self.period_source in ("given", "spindle") else None)
+        family, tuned = self._tracker_kernel(c, psi)
+        # issue 11: λ, M from measurements, σ1, σ2, γ from REML when tuned, the spindle-phase kernel when
+        # the samples carry the spindle (monitor.online_settings.tracker_table, one definition)
+        cfg = OS.tracker_table(tuned=tuned, period=psi or 1.0, spindle=self.spindle)
+        if psi is None and not self.spindle:  # no periodic disturbance in play: a smooth, slowly varying one
+            cfg["kernel"] = SquaredExponential(cfg["kernel"]["sigma1"]).to_dict()
+        elif not self.spindle and family != "locally_periodic":
+            cfg["kernel"] = {**cfg["kernel"], "type": family}
+        for key, value in (tracker or {}).items():  # explicit settings: kernel hyperparameters go into the kernel
+            if key in cfg["kernel"] and key != "type":
+                cfg["kernel"] = {**cfg["kernel"], key: value}
+            else:
+                cfg[key] = value
+        kernel = cfg["kernel"]
+        ident = {"chosen": c.method, "kernel": c.kernel or "none", "period": c.period,
+                 "period_source": self.period_source, "log_evidence": c.log_evidence}
+        ident.update({k: v for k, v in c.hyperparameters.items() if isinstance(v, (int, float, bool))})
+        candidates = [{"method": x.method, "kernel": x.kernel or "none", "period": x.period,
+                       "log_evidence": x.log_evidence, "valid": x.valid, "why_not": x.why_not or ""}
+                      for x in self.candidates]
+        warning = None if c.valid else f"written with --force although invalid: {c.why_not}"
         return AxisModel(
             machine=self.machine,
             axis=self.axis,
             form=self.form,
             Ts=self.Ts,
-            beta=[float(b) for b in chosen.beta],
+            beta=[float(b) for b in c.beta],
+            beta_names=tuple(self.names),
+            beta_se=[float(s) for s in c.beta_se],
             omega=self.omega,
             coulomb=self.coulomb,
             loop_gain=self.loop_gain,
-            method=method,
+            method="ls" if c.method == "ls" else "pl-lssvm",
             tracker=TrackerConfig(kernel=kernel, gamma=cfg["gamma"], forgetting=cfg["forgetting"],
                                   budget=int(cfg["budget"]), jitter=cfg["jitter"]),
-            physical={k: v for k, v in chosen.physical.items() if isinstance(v, (int, float)) and k != "pole"},
-            identification={k: v for k, v in self.hyperparameters.items() if v is not None},
+            physical=dict(c.physical),
+            physical_se={k: v for k, v in c.physical_se.items() if not k.startswith("_")},
+            identification=ident,
+            candidates=candidates,
+            validity_warning=warning,
             provenance={
                 "source": self.trial_path,
                 "sha256": file_sha256(self.trial_path),
-                "method": method,
+                "method": "ls" if c.method == "ls" else "pl-lssvm",
                 "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                 "feedmon_version": feedmon_version,
             },
         )
 
 
-def _physical(form, beta, Ts, gain, coulomb) -> tuple[dict, str | None]:
-    try:
-        return beta_to_physical(form, beta, Ts, gain=gain, coulomb=coulomb).to_dict(), None
-    except ValueError as exc:
-        return {}, str(exc)
-
-
 def _rmse(a: np.ndarray) -> float:
     return float(math.sqrt(np.mean(a * a)))
 
 
-def _free_run(form, beta, v_meas, exo, omega, coulomb, f=None) -> float:
-    sim = simulate_free_run(form, beta, v_meas[0], exo, omega=omega, coulomb=coulomb,
-                            disturbance=None if f is None else np.append(f, 0.0))
-    err = sim - v_meas
-    return _rmse(err) if np.all(np.isfinite(err)) else math.inf
+_BOUND_MEANING = {
+    ("sigma1", "lower"): "the periodic pattern changes from one period to the next (barely periodic at this ψ)",
+    ("sigma1", "upper"): "the periodic pattern keeps its shape over the whole tuning window (a stationary "
+                         "periodic disturbance); longer correlation cannot be told apart",
+    ("sigma2", "lower"): "the pattern has sharper features (edges, impacts) than the kernel can follow; "
+                         "finer detail is smoothed",
+    ("sigma2", "upper"): "the pattern is close to a pure sine at 1/ψ",
+    ("lengthscale", "lower"): "the disturbance varies as fast as the kernel allows (it may be modelling "
+                              "coloured noise rather than a disturbance)",
+    ("lengthscale", "upper"): "the disturbance is nearly constant over the tuning window (a slow drift or offset)",
+    ("gamma", "lower"): "the disturbance is weaker than the noise: this model adds next to nothing",
+    ("gamma", "upper"): "the kernel explains nearly all of the residual (noise at its floor); it may be "
+                        "absorbing model error as well as a disturbance",
+}
+
+
+class _Problem:
+    """The regression of one trial shared by all candidates."""
+
+    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb):
+        self.form, self.Ts, self.gain, self.names, self.T = form, Ts, gain, names, T
+        self.Z, self.id_names, self.y, self.exo, self.v = Z_id, id_names, y, exo, v
+        self.omega, self.coulomb = omega, coulomb
+        self.prepared = prepare_regression(Z_id, y, id_names)
+        self.n, self.p = Z_id.shape
+
+    def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None) -> Candidate:
+        if terms is None:
+            terms = reml_terms(None, None, kernel, gamma, self.Ts, _prepared=self.prepared)
+        beta = self.T @ terms.beta
+        cov = self.T @ terms.beta_cov @ self.T.T
+        try:
+            phys, se = physical_covariance(self.form, beta, cov, self.Ts, gain=self.gain, names=self.names)
+            pole = beta_to_physical(self.form, beta, self.Ts, gain=self.gain, names=self.names).pole
+        except ValueError:
+            phys, se = {}, {}
+            pole = float(beta[0] + beta[1]) if self.form == "velocity-loop" else float(beta[1])
+        problems = validity_problems(self.form, beta, self.Ts, names=self.names, gain=self.gain,
+                                     physical_se={k_: v for k_, v in se.items() if not k_.startswith("_")})
+        vif = {}
+        if kernel is not None and phys:
+            Zt = self.prepared[3]
+            white = self.T @ ((terms.s2 / gamma) * np.linalg.pinv(Zt.T @ Zt)) @ self.T.T
+            _, se_white = physical_covariance(self.form, beta, white, self.Ts, gain=self.gain, names=self.names)
+            vif = {k_: (se[k_] / se_white[k_]) ** 2 for k_ in phys if se_white.get(k_, 0.0) > 0.0}
+        cand = Candidate(method=method, kernel=kernel_kind, period=getattr(kernel, "period", None),
+                         hyperparameters=hyper, k=k, log_likelihood=terms.log_likelihood,
+                         log_evidence=log_evidence(terms.log_likelihood, k, self.n, self.p), beta=beta,
+                         beta_cov=cov, physical=phys, physical_se=se, pole=pole, notes=list(notes),
+                         kernel_object=kernel, gamma=gamma, vif=vif)
+        if problems:
+            cand.valid, cand.why_not = False, "; ".join(problems)
+        return cand
+
+    def tuned(self, kind, period, init, tune, k_extra, progress, label, refine: bool = False) -> Candidate:
+        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated exactly.
+        ``refine``: ``init`` is a good start (the optimum of a related family): no start design, fewer
+        evaluations."""
+        notes = []
+        if tune:
+            res = tune_hyperparameters(None, None, self.Ts, period, kind=kind, init=init, _prepared=self.prepared,
+                                       progress=None if progress is None else (lambda *a: progress(label, *a)),
+                                       design=not refine, max_evaluations=20 if refine else 30)
+            hyper = dict(res.hyper, gamma=res.gamma, tuned=True, evaluations=res.evaluations,
+                         tune_seconds=round(res.seconds, 3))
+            if res.on_bound:
+                hyper["on_bound"] = dict(res.on_bound)
+            for name, side in res.on_bound.items():
+                lo, hi = res.bounds[name]
+                notes.append(f"{label}: {name} ended on its {side} bound ({lo if side == 'lower' else hi:.4g}): "
+                             f"{_BOUND_MEANING[(name, side)]}")
+            kernel, gamma, terms = res.kernel(), res.gamma, res.terms
+            k = len(res.hyper) + 1 + k_extra
+        else:
+            if kind in PERIODIC_KINDS:
+                values = {"sigma1": init["sigma1"], "sigma2": init["sigma2"]}
+            else:
+                values = {"lengthscale": init["lengthscale"]}
+            kernel = _make_kernel(kind, values, period)
+            hyper = dict(values, gamma=init["gamma"], tuned=False)
+            gamma, terms = init["gamma"], None
+            k = k_extra
+        if kind == "locally_periodic_zero_mean":
+            notes.append(f"{label}: the disturbance is taken to have zero mean, so the offset also holds the "
+                         "disturbance's mean force (the two cannot be told apart)")
+        return self.candidate("pl_lssvm", kind, kernel, gamma, hyper, k, notes, terms)
+
+    def fit(self, cand: Candidate, trial_exo_name) -> MethodResult:
+        """Predictions (and, for PL-LSSVM, the disturbance estimate) of a candidate."""
+        theta = np.linalg.lstsq(self.T, cand.beta, rcond=None)[0]
+        linear = self.Z @ theta
+        f = None
+        if cand.method == "pl_lssvm":
+            solver = "levinson" if self.n <= LEVINSON_LIMIT else "auto"
+            res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
+                           solver=solver)
+            f = res.f
+            linear = self.Z @ res.beta
+        pred = linear + (f if f is not None else 0.0)
+        with np.errstate(over="ignore", invalid="ignore"):  # an invalid (unstable) model diverges
+            sim = simulate_free_run(self.form, cand.beta, self.v[0], self.exo, omega=self.omega,
+                                    coulomb=self.coulomb, disturbance=None if f is None else np.append(f, 0.0),
+                                    intercept=True)
+            err = sim - self.v
+            free = _rmse(err) if np.all(np.isfinite(err)) else math.inf
+        f_force = None
+        scalable = self.form == "force-input" or self.gain is not None
+        if f is not None and scalable and cand.beta[0] > 0:
+            b = cand.beta[0] if self.form == "force-input" else cand.beta[0] / self.gain
+            f_force = -f / b
+        return MethodResult(name=_METHOD_LABEL[cand.method], candidate=cand, rmse_linear=_rmse(self.y - linear),
+                            rmse=_rmse(self.y - pred), rmse_free_run=free, prediction=pred, f=f, f_force=f_force)
+
+
+def _efficiency_check(cand: Candidate, ls: Candidate) -> str | None:
+    """Validity rule 2 (module docstring): None, or why the candidate determines β worse than LS."""
+    worse = []
+    for key in EFFICIENCY_KEYS:
+        for name in (key, f"{key}_over_gain"):
+            a, b = cand.physical_se.get(name), ls.physical_se.get(name)
+            if a is None or b is None:
+                continue
+            if a > b:
+                worse.append(f"{name} ± {a:.3g} vs ± {b:.3g}")
+    if not worse:
+        return None
+    return ("the disturbance model competes with the drive's regressors: it determines "
+            + ", ".join(worse) + " (LS) — worse than least squares, so this trial does not separate its "
+            "disturbance from the drive's parameters")
 
 
 def identify(
@@ -209,25 +594,27 @@ def identify(
     sigma1: float | None = None,
     sigma2: float | None = None,
     gamma: float | None = None,
-    tune: bool = False,
+    tune: bool = True,
+    method: str = "auto",
     coulomb: bool | None = None,
     omega: float | None = None,
     loop_gain: float | None = None,
     progress=None,
 ) -> Identification:
-    """Identify β of one axis by LS and PL-LSSVM (method §3–4).
+    """Identify one axis: candidates, evidence, validity, choice (module docstring).
 
-    ``coulomb=None`` keeps the Coulomb columns when the trial reverses direction
-    (at least :data:`MIN_REVERSAL_SAMPLES` samples beyond ±Ω each way) and drops
-    them otherwise, with a note; ``coulomb=True`` insists (and fails on a trial
-    without reversal with the kernels' rank error). ``omega=None`` estimates the
-    dead band with :func:`dead_band`. ``progress(evaluations, params, ll, best)``
-    is called during ``tune``.
+    ``coulomb=None`` keeps the Coulomb columns when the trial reverses direction (at least
+    :data:`MIN_REVERSAL_SAMPLES` samples beyond ±Ω each way) and drops them otherwise, with a
+    note; ``coulomb=True`` insists (and fails on a trial without reversal with the kernels' rank
+    error). ``omega=None`` estimates the dead band with :func:`dead_band`. ``method``: "auto",
+    "ls" or "pl-lssvm". ``progress(label, evaluations, values, ll, best)`` is called while tuning.
     """
+    started = time.perf_counter()
+    if method not in ("auto", "ls", "pl-lssvm"):
+        raise ValueError(f"--method must be auto, ls or pl-lssvm, got {method!r}")
     meta = trial.meta
     form = form or meta.form
     Ts = float(meta.Ts)
-    psi, psi_source = disturbance_period(meta, period, spindle_rpm)
     if form == "force-input":
         if trial.u is None:
             raise ValueError(f"{trial.path}: the force-input form needs a force command 'u', which the trial lacks; "
@@ -244,67 +631,212 @@ def identify(
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
         raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    psis, psi_source = periods_in_play(trial, period, spindle_rpm)
+    for name, value in (("--sigma1", sigma1), ("--sigma2", sigma2), ("--gamma", gamma)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
 
     gain = loop_gain if loop_gain is not None else meta.loop_gain
     if form == "force-input":
         gain = None
     omega_used = dead_band(v) if omega is None else float(omega)
-    notes = []
+    if not (math.isfinite(omega_used) and omega_used >= 0):
+        raise ValueError(f"--omega must be a finite number ≥ 0 (m/s), got {omega!r}")
+    notes: list[str] = []
     n_pos = int(np.sum(v[:-1] > omega_used))
     n_neg = int(np.sum(v[:-1] < -omega_used))
     reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES
     if coulomb is None:
         coulomb_used = reversal
         coulomb_note = ("Coulomb columns kept (trial reverses direction)" if reversal else
-                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω)")
+                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω); "
+                        "the constant column holds the friction of the direction of motion")
     else:
         coulomb_used = bool(coulomb)
         coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
+        if coulomb_used and not reversal:
+            empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
+            raise ValueError(f"--coulomb: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω), "
+                             f"so the Coulomb column {empty!r} cannot be identified; use --no-coulomb (or leave the "
+                             "choice to identify) or record a trial with reversals")
     if not coulomb_used and coulomb is None:
         notes.append(coulomb_note)
+    rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES
+    if coulomb_used and not rest:
+        notes.append("the trial has no rest (only passes through ±Ω during reversals): the Coulomb asymmetry "
+                     "cannot be told from the force offset — coulomb_pos = coulomb_neg = the symmetric Coulomb "
+                     "friction, and offset holds asymmetry + offset")
 
     reg = regressors(form, v, v_ref=trial.v_ref if form == "velocity-loop" else None,
-                     u=trial.u if form == "force-input" else None, omega=omega_used, coulomb=coulomb_used)
-    Z, y = reg.Z, reg.y
+                     u=trial.u if form == "force-input" else None, omega=omega_used, coulomb=coulomb_used,
+                     intercept=True)
+    T, id_names = friction_transform(reg.names, rest)
+    prob = _Problem(form, Ts, gain, reg.names, T, reg.Z @ T, id_names, reg.y, exo, v, omega_used, coulomb_used)
+    n = prob.n
+    duration = n * Ts
 
-    ls = least_squares(Z, y, reg.names)
-    hp = {"sigma1": sigma1, "sigma2": sigma2, "gamma": gamma, "period": psi, "tuned": bool(tune)}
+    ls_c = prob.candidate("ls", None, None, None, {}, 0)
+    candidates = [ls_c]
+    init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
+            "gamma": gamma or THESIS_DEFAULTS["gamma"]}
+
+    # periods: given / spindle, else detected in the LS residual; for a given period, a check
+    ls_resid = reg.y - reg.Z @ ls_c.beta
+    ref = trial.v_ref[:-1] if trial.v_ref is not None and np.all(np.isfinite(trial.v_ref)) else None
+    try:
+        detected, motion = detect_periods(ls_resid, Ts, reference=ref)
+    except ValueError:
+        detected, motion = [], None
+    detected = [d for d in detected if 2.0 * Ts <= d.period <= min(duration / MIN_CYCLES, MAX_PERIOD_FRACTION * duration)]
+    suggested = None
+    k_period = 0
+    if not psis and detected:
+        psis, psi_source, k_period = [detected[0].period], "detected", 1
+        notes.append(f"period ψ = {detected[0].period:.6g} s found in the LS residual (harmonic-sum score "
+                     f"{detected[0].score:.0f} over {detected[0].harmonics} harmonics)")
+    elif not psis:
+        notes.append("no periodic disturbance found in the LS residual" +
+                     (f" (the motion itself repeats every {motion:.4g} s)" if motion else "") +
+                     "; give --period or --spindle-rpm if there is one")
+    if motion is not None and psi_source in ("given", "spindle"):
+        for psi in psis:
+            if harmonically_related(psi, motion, max_ratio=4):
+                notes.append(f"ψ = {psi:.6g} s is locked to the motion, which repeats every {motion:.4g} s: a "
+                             "disturbance with that period cannot be told from the drive's response to the motion")
+
+    tuned_kw = dict(tune=tune, progress=progress)
     if tune:
-        init = (sigma1 or THESIS_DEFAULTS["sigma1"], sigma2 or THESIS_DEFAULTS["sigma2"], gamma or THESIS_DEFAULTS["gamma"])
-        tr = tune_hyperparameters(Z, y, Ts, psi, init=init, progress=progress, names=reg.names)
-        hp.update(sigma1=tr.sigma1, sigma2=tr.sigma2, gamma=tr.gamma, log_likelihood=tr.log_likelihood,
-                  evaluations=tr.evaluations, tune_seconds=tr.seconds)
+        se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
+        candidates.append(prob.tuned("squared_exponential", None, se_init, k_extra=0, label="squared exponential",
+                                     **tuned_kw))
     else:
-        for key in ("sigma1", "sigma2", "gamma"):
-            if hp[key] is None:
-                hp[key] = THESIS_DEFAULTS[key]
-        hp["log_likelihood"] = log_marginal_likelihood(Z, y, LocallyPeriodic(hp["sigma1"], hp["sigma2"], psi),
-                                                       hp["gamma"], Ts, names=reg.names)
-    kernel = LocallyPeriodic(hp["sigma1"], hp["sigma2"], psi)
-    pl = pl_lssvm(Z, y, kernel, hp["gamma"], Ts=Ts, names=reg.names)
+        notes.append("--no-tune: the squared-exponential candidate has no given or thesis hyperparameters "
+                     "and is left out")
+    final_psis = []
+    for psi in psis:
+        cand = prob.tuned("locally_periodic", psi, init, k_extra=k_period, label=f"locally periodic ψ = {psi:.6g} s",
+                          **tuned_kw)
+        if psi_source == "detected" and tune:
+            cand = _harmonic_alternatives(prob, cand, psi, duration, progress)
+        candidates.append(cand)
+        zero_init = dict(cand.hyperparameters) if tune else init
+        candidates.append(prob.tuned("locally_periodic_zero_mean", cand.period, zero_init, k_extra=cand.k - 3 if tune
+                                     else k_period, label=f"zero-mean locally periodic ψ = {cand.period:.6g} s",
+                                     refine=True, **tuned_kw))
+        final_psis.append(cand.period)
+    psis = final_psis
+    unused = []
+    if psi_source in ("given", "spindle") and detected:
+        found = detected[0]
+        if not any(abs(psi - found.period) <= 0.02 * found.period for psi in psis):
+            alt = prob.tuned("locally_periodic", found.period, init, k_extra=1,
+                             label=f"locally periodic ψ = {found.period:.6g} s", **tuned_kw)
+            given_best = max((c for c in candidates if c.kernel in PERIODIC_KINDS), key=lambda c: c.log_evidence)
+            why = _efficiency_check(alt, ls_c)
+            if why:
+                alt.valid, alt.why_not = False, why if alt.why_not is None else f"{alt.why_not}; {why}"
+            if alt.valid and alt.log_evidence > given_best.log_evidence + SUGGEST_MARGIN:
+                suggested = found.period
+                notes.append(f"the data prefer ψ = {found.period:.6g} s to the {psi_source} ψ = {given_best.period:.6g} s "
+                             f"(log evidence {alt.log_evidence - given_best.log_evidence:+.1f}); check the period "
+                             f"(--period {found.period:.6g})")
+            source = "--period" if psi_source == "given" else "the spindle speed"
+            alt.notes.append(f"ψ = {found.period:.6g} s was found in the data; not a choice, the period comes from {source}")
+            alt.eligible = False
+            unused.append(alt)
 
-    ls_phys, ls_err = _physical(form, ls.beta, Ts, gain, coulomb_used)
-    pl_phys, pl_err = _physical(form, pl.beta, Ts, gain, coulomb_used)
-    ls_pred = predict_one_step(ls.beta, reg)
-    pl_lin = predict_one_step(pl.beta, reg)
-    ls_res = MethodResult("LS", ls.beta, ls.stderr, ls_phys, _rmse(y - ls_pred), _rmse(y - ls_pred),
-                          _free_run(form, ls.beta, v, exo, omega_used, coulomb_used), ls_pred, ls_err)
-    pl_res = MethodResult("PL-LSSVM", pl.beta, None, pl_phys, _rmse(y - pl_lin), _rmse(y - pl_lin - pl.f),
-                          _free_run(form, pl.beta, v, exo, omega_used, coulomb_used, pl.f), pl_lin + pl.f, pl_err)
+    # validity rule 2: determined at least as well as LS
+    for c in candidates[1:]:
+        why = _efficiency_check(c, ls_c)
+        if why:
+            c.valid = False
+            c.why_not = why if c.why_not is None else f"{c.why_not}; {why}"
 
-    scalable = form == "force-input" or gain is not None
-    f_force = disturbance_to_force(form, pl.beta, pl.f, gain=gain) if scalable and pl.beta[0] > 0 else None
+    pool = {"auto": candidates, "ls": [ls_c], "pl-lssvm": candidates[1:]}[method]
+    valid = [c for c in pool if c.valid]
+    chosen = max(valid, key=lambda c: c.log_evidence) if valid else None
+    refusal = None
+    if chosen is None:
+        best = max(pool, key=lambda c: c.log_evidence) if pool else None
+        what = {"auto": "no candidate", "ls": "the LS model", "pl-lssvm": "no PL-LSSVM candidate"}[method]
+        refusal = f"{what} is a valid model of this drive" + (f": {best.label}: {best.why_not}" if best else "")
+    pl_pool = [c for c in candidates if c.method == "pl_lssvm"]
+    pl_best = None
+    if pl_pool:
+        pl_valid = [c for c in pl_pool if c.valid]
+        pl_best = max(pl_valid or pl_pool, key=lambda c: c.log_evidence)
+    written = chosen if chosen is not None else (max(pool, key=lambda c: c.log_evidence) if pool else None)
 
+    ls_res = prob.fit(ls_c, exo_name)
+    pl_res = prob.fit(pl_best, exo_name) if pl_best is not None else None
+    model_res = None
+    if written is ls_c:
+        model_res = ls_res
+    elif written is pl_best:
+        model_res = pl_res
+    elif written is not None:
+        model_res = prob.fit(written, exo_name)
+
+    periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
+    psi_report = periodic.period if periodic is not None else (psis[0] if psis else None)
+    if gain is None and form == "velocity-loop":
+        notes.append("loop gain K unknown: only J/K, B/K and the friction over K are identifiable "
+                     "(give --loop-gain to get J and B)")
     ident = Identification(
-        trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts, period=psi,
-        period_source=psi_source, omega=omega_used, coulomb=coulomb_used, coulomb_note=coulomb_note,
-        names=reg.names, loop_gain=gain, hyperparameters=hp, ls=ls_res, pl=pl_res, y=y,
-        t=trial.t[1:], f=pl.f, f_force=f_force, notes=notes,
+        trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts, period=psi_report,
+        period_source=psi_source, period_suggested=suggested, omega=omega_used, coulomb=coulomb_used,
+        coulomb_note=coulomb_note, rest=rest, names=reg.names, loop_gain=gain, candidates=candidates + unused,
+        chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y, t=trial.t[1:], refusal=refusal,
+        notes=notes,
     )
+    ident.spindle = _spindle(trial)
     _attach_truth(ident, trial)
-    if not scalable and form == "velocity-loop":
-        notes.append("loop gain K unknown: only J/K and B/K are identifiable (give --loop-gain to get J and B)")
+    ident.seconds = time.perf_counter() - started
     return ident
+
+
+def _harmonic_alternatives(prob: _Problem, cand: Candidate, psi: float, duration: float, progress) -> Candidate:
+    """Harmonics considered: a line found at 1/ψ may be a harmonic of a longer true period (e.g. the
+    tooth-passing line of a tool with runout). Each multiple ``m ψ`` (m = 2, 3, within the record) is
+    evaluated with the hyperparameters carried over (σ1 kept, σ2/m so that the within-period
+    smoothness stays the same in seconds); if one beats the tuned ψ it is tuned and evaluated in
+    full, and the candidate with the higher evidence is kept."""
+    if cand.hyperparameters.get("sigma1") is None:
+        return cand
+    best = cand
+    for m in (2, 3):
+        q = m * psi
+        if q > min(duration / MIN_CYCLES, MAX_PERIOD_FRACTION * duration):
+            break
+        s1 = max(cand.hyperparameters["sigma1"], 2.0 * q)
+        s2 = max(cand.hyperparameters["sigma2"] / m, 1e-3)
+        try:
+            ll = reml_terms(None, None, LocallyPeriodic(s1, s2, q), cand.gamma, prob.Ts,
+                            _prepared=prob.prepared).log_likelihood
+        except ValueError:
+            continue
+        if ll > cand.log_likelihood:
+            alt = prob.tuned("locally_periodic", q, {"sigma1": s1, "sigma2": s2, "gamma": cand.gamma}, tune=True,
+                             k_extra=1, progress=progress, label=f"locally periodic ψ = {q:.6g} s")
+            alt.notes.append(f"ψ = {q:.6g} s ({m}× the line found at {psi:.6g} s) explains the residual better")
+            if alt.log_evidence > best.log_evidence:
+                best = alt
+    return best
+
+
+# ------------------------------------------------------------------------------------------------
+# truth
+# ------------------------------------------------------------------------------------------------
+def _spindle(trial) -> dict | None:
+    """``{"teeth", "spindle_rpm"}`` (median speed, rpm) when the samples carry the spindle (then the
+    model gets the spindle-phase tracker kernel), else None."""
+    rpm = trial.spindle_rpm
+    if rpm is None and trial.spindle_angle is not None:
+        rpm = np.diff(trial.spindle_angle) / np.diff(trial.t) * 60.0 / (2.0 * math.pi)
+    rpm = None if rpm is None else rpm[np.isfinite(rpm)]
+    if rpm is None or rpm.size == 0 or not 0.0 < float(np.median(np.abs(rpm))) <= OS.SPINDLE_RPM_MAX:
+        return None
+    return {"teeth": trial.meta.teeth or 1, "spindle_rpm": float(np.median(np.abs(rpm)))}
 
 
 def _aligned(truth, seq: np.ndarray, name: str) -> np.ndarray | None:
@@ -319,15 +851,41 @@ def _aligned(truth, seq: np.ndarray, name: str) -> np.ndarray | None:
     return out
 
 
-def _corr(a: np.ndarray, b: np.ndarray) -> float | None:
+def _corr(a, b) -> float | None:
+    if a is None or b is None:
+        return None
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 3 or np.std(a[ok]) == 0 or np.std(b[ok]) == 0:
         return None
     return float(np.corrcoef(a[ok], b[ok])[0, 1])
 
 
+def _true_physical(ident: Identification, truth_meta) -> dict:
+    """The truth in the keys of :meth:`kernels.feed_drive.Physical.to_dict` (offset 0 in a simulation)."""
+    p = dict(truth_meta.physical)
+    out = {}
+    scale = 1.0
+    suffix = ""
+    if ident.form == "velocity-loop" and ident.loop_gain is None:
+        K = p.get("loop_gain")
+        if not K:
+            return {}
+        scale, suffix = 1.0 / K, "_over_gain"
+    for k in ("inertia", "damping"):
+        if k in p:
+            out[k + suffix] = p[k] * scale
+    if ident.coulomb and "coulomb_pos" in p and "coulomb_neg" in p:
+        out["coulomb_pos" + suffix] = p["coulomb_pos"] * scale
+        out["coulomb_neg" + suffix] = p["coulomb_neg"] * scale
+        out["coulomb" + suffix] = 0.5 * (p["coulomb_pos"] + p["coulomb_neg"]) * scale
+        out["offset" + suffix] = 0.0
+    return out
+
+
 def _attach_truth(ident: Identification, trial) -> None:
-    """Errors against the recorded truth (simulated trials, instrumented real ones)."""
+    """Errors against the recorded truth (simulated trials, instrumented real ones) and against a
+    published reference when the trial's provenance carries one (``reference_M``, ``reference_Fv``,
+    ``reference_Fc``, ``reference_offset``)."""
     truth_meta = trial.meta.truth
     seq_k = trial.seq[:-1]  # z(k) rows: the disturbance of step k
     if trial.truth is not None:
@@ -335,32 +893,59 @@ def _attach_truth(ident: Identification, trial) -> None:
         ident.truth_f = _aligned(trial.truth, seq_k, "f")
         ident.measured_force = _aligned(trial.truth, seq_k, "dynamometer")
     doc: dict = {}
+    results = {"ls": ident.ls, "pl_lssvm": ident.pl, "model": ident.model_result}
     if truth_meta is not None:
-        true_beta = np.asarray(truth_meta.beta, dtype=np.float64)
-        doc["beta"] = true_beta.tolist()
-        doc["physical"] = dict(truth_meta.physical)
+        phys_true = _true_physical(ident, truth_meta)
+        doc["physical"] = phys_true
         doc["coulomb"] = truth_meta.coulomb
-        if true_beta.size == ident.ls.beta.size:
-            for key, res in (("ls", ident.ls), ("pl_lssvm", ident.pl)):
-                rel = np.abs(res.beta - true_beta) / np.maximum(np.abs(true_beta), 1e-300)
+        p = truth_meta.physical
+        try:
+            true_beta = physical_to_beta(ident.form, ident.Ts, p["inertia"], p["damping"], gain=p.get("loop_gain"),
+                                         coulomb_pos=p.get("coulomb_pos", 0.0), coulomb_neg=p.get("coulomb_neg", 0.0),
+                                         coulomb=ident.coulomb, intercept=True)
+        except (KeyError, ValueError):
+            true_beta = None
+        if true_beta is not None:
+            doc["beta"] = true_beta.tolist()
+        for key, res in results.items():
+            if res is None:
+                continue
+            if true_beta is not None:
+                n_cmp = 2 if not (ident.coulomb and truth_meta.coulomb) else true_beta.size - 1
+                rel = np.abs(res.beta[:n_cmp] - true_beta[:n_cmp]) / np.abs(true_beta[:n_cmp])
                 doc[f"{key}_beta_rel_error"] = rel.tolist()
-        else:
-            doc["note"] = (f"true β has {true_beta.size} entries, the identified model {ident.ls.beta.size} "
-                           "(Coulomb columns differ); compare the first two")
-            for key, res in (("ls", ident.ls), ("pl_lssvm", ident.pl)):
-                rel = np.abs(res.beta[:2] - true_beta[:2]) / np.abs(true_beta[:2])
-                doc[f"{key}_beta_rel_error"] = rel.tolist()
-        for key, res in (("ls", ident.ls), ("pl_lssvm", ident.pl)):
             errs = {}
             for name, value in res.physical.items():
-                ref = truth_meta.physical.get(name)
-                if isinstance(ref, (int, float)) and ref and isinstance(value, (int, float)):
-                    errs[name] = abs(value - ref) / abs(ref)
-            doc[f"{key}_physical_rel_error"] = errs
-    if ident.truth_f is not None:
-        doc["disturbance_correlation"] = _corr(ident.f, ident.truth_f)
-    elif ident.truth_force is not None and ident.f_force is not None:
-        doc["disturbance_correlation"] = _corr(ident.f_force, ident.truth_force)
-    if ident.truth_force is not None and ident.f_force is not None:
-        doc["force_correlation"] = _corr(ident.f_force, ident.truth_force)
+                ref = phys_true.get(name)
+                if ref is None:
+                    continue
+                errs[name] = abs(value - ref) / abs(ref) if ref else abs(value - ref)
+            doc[f"{key}_physical_error"] = errs
+    details = getattr(trial.meta.provenance, "details", {}) or {}
+    ref_map = {"inertia": "reference_M", "damping": "reference_Fv", "coulomb": "reference_Fc", "offset": "reference_offset"}
+    reference = {k: float(details[v]) for k, v in ref_map.items() if isinstance(details.get(v), (int, float))}
+    if reference:
+        doc["reference"] = reference
+        for key, res in results.items():
+            if res is None:
+                continue
+            doc[f"{key}_reference_error"] = {
+                k: (res.physical[k] - r) / abs(r) if k != "offset" else res.physical[k] - r
+                for k, r in reference.items() if k in res.physical}
+    for key, res in results.items():
+        if res is None or res.f is None:
+            continue
+        corr = _corr(res.f, ident.truth_f) if ident.truth_f is not None else _corr(res.f_force, ident.truth_force)
+        if corr is not None:
+            doc[f"{key}_disturbance_correlation"] = corr
+        fc = _corr(res.f_force, ident.truth_force)
+        if fc is not None:
+            doc[f"{key}_force_correlation"] = fc
+    model = ident.model_result
+    if model is not None and model.f is not None:
+        if "model_disturbance_correlation" in doc:
+            doc["disturbance_correlation"] = doc["model_disturbance_correlation"]
+        if "model_force_correlation" in doc:
+            doc["force_correlation"] = doc["model_force_correlation"]
     ident.truth = doc or None
+

@@ -1,69 +1,313 @@
 """The axis model file: what ``feedmon identify`` writes and ``feedmon run`` reads.
 
-TOML, human-readable, versioned (``format_version``), never pickled. One file per
-axis. Layout (version 1)::
+TOML, human-readable, versioned (``format_version``), never pickled. One file per axis.
+Layout (version 2; version 1 files — without the uncertainty tables — are still read)::
 
-    format_version = 1
+    format_version = 2
 
     [axis]            machine, axis
-    [model]           form, Ts (s), beta, beta_names, omega (m/s), coulomb,
+    [model]           form, Ts (s), beta, beta_se, beta_names, omega (m/s), coulomb,
                       loop_gain (N·s/m, optional), method
-    [physical]        inertia (kg), damping (N·s/m), coulomb_pos/neg (N), offset (N),
-                      or inertia_over_gain (s), damping_over_gain when K is unknown
-    [tracker]         kernel, sigma1 (s), sigma2, period (s), gamma, forgetting,
-                      budget, jitter — the online KRLS-T (method §6)
-    [identification]  sigma1, sigma2, period, gamma used by PL-LSSVM, tuned, log_likelihood
+    [physical]        inertia (kg), damping (N·s/m), coulomb (symmetric), coulomb_pos/neg (N),
+                      offset (N) — or the ``…_over_gain`` ratios when K is unknown
+    [physical_se]     their standard errors (same keys)
+    [tracker]         kernel, sigma1 (s), sigma2, period (s) | lengthscale (s), gamma, forgetting,
+                      budget, jitter — the online KRLS-T (method §6); kernel = "spindle" with
+                      per, teeth, spindle_rpm instead of period: the spindle-phase kernel
+                      (:mod:`monitor.online_settings`)
+    [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
+    [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
+    [identification]  chosen method, kernel, period, period_source, log_evidence and the
+                      hyperparameters of the chosen model
+    [[identification.candidates]]   method, kernel, period, log_evidence, valid, why_not — every
+                      candidate ``feedmon identify`` weighed
+    [validity]        warning — only in a file written with ``identify --force`` although the model
+                      is not valid; ``feedmon run`` refuses such a file (the reason is the warning)
     [provenance]      source, sha256, method, created, feedmon_version
 
-:func:`load_model` validates every key and raises :class:`ModelFileError`
-naming the key and the file; :func:`save_model` writes the same layout.
+Validation (:func:`load_model`) is one mechanism: the file is decoded into :class:`ModelFileV2`,
+a tree of ``msgspec`` Structs whose every number carries its documented range
+(``msgspec.Meta``); a wrong type, a value out of range, ``nan``/``inf`` (outside every range), an
+unknown key or a missing one is a :class:`ModelFileError` naming the file, the key and the allowed
+range. ``format_version`` must be the integer 1 or 2 (``true`` or ``1.0`` are refused). Then the
+model itself must be one that can be right (:func:`kernels.feed_drive.validity_problems`: stable
+pole, positive input gain, no Coulomb friction negative beyond its uncertainty), and ``beta`` must
+match ``beta_names`` and the form. The ranges (generated from the Structs by :func:`ranges_table`)
+admit every real drive — sample periods from 1 µs to 10 s, inertias from grams to hundreds of
+tonnes, dictionaries up to 4096 elements (the KRLS-T state takes about 24·M² bytes, 0.4 GB at the
+limit) — and refuse the absurd:
+
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
 
 from kernels.covariance import Kernel
-from kernels.feed_drive import FORMS, beta_names
+from kernels.feed_drive import FORMS, beta_names, validity_problems
+
+from . import online_settings as OS
 
 __all__ = [
     "FORMAT_VERSION",
+    "READABLE_VERSIONS",
     "ModelFileError",
     "TrackerConfig",
     "AxisModel",
+    "ModelFileV2",
     "load_model",
     "save_model",
     "file_sha256",
+    "ranges_table",
 ]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 class ModelFileError(ValueError):
     """A model file that cannot be used; the message names the file and the key."""
 
 
+# ---------------------------------------------------------------------------------------------
+# the schema: every number with its range (one mechanism: msgspec.Meta)
+# ---------------------------------------------------------------------------------------------
+def _num(lo: float, hi: float, unit: str = "", *, open_low: bool = False):
+    """A float in ``[lo, hi]`` (``(lo, hi]`` when ``open_low``); NaN and ±inf are outside."""
+    kw = {"gt": lo} if open_low else {"ge": lo}
+    return Annotated[float, msgspec.Meta(le=hi, description=unit, **kw)]
+
+
+def _int(lo: int, hi: int, unit: str = ""):
+    return Annotated[int, msgspec.Meta(ge=lo, le=hi, description=unit)]
+
+
+_Name = Annotated[str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[^/*$?#\s]+$",
+                                    description="no whitespace or / * $ ? # (Zenoh key characters)")]
+_Text = Annotated[str, msgspec.Meta(max_length=4096)]
+_Short = Annotated[str, msgspec.Meta(max_length=64)]
+_Coef = _num(-1e12, 1e12)
+_Se = _num(0.0, 1e12)
+_Value = _num(-1e12, 1e12)
+_Hyper = _num(1e-9, 1e9)
+_Opts = {"forbid_unknown_fields": True, "kw_only": True}
+
+
+class _AxisT(msgspec.Struct, **_Opts):
+    machine: _Name
+    axis: _Name
+
+
+class _ModelT(msgspec.Struct, **_Opts):
+    form: Literal["velocity-loop", "force-input"]
+    Ts: _num(1e-6, 10.0, "s")
+    beta: Annotated[list[_Coef], msgspec.Meta(min_length=2, max_length=6)]
+    omega: _num(0.0, 10.0, "m/s")
+    coulomb: bool
+    beta_se: Annotated[list[_Se], msgspec.Meta(min_length=2, max_length=6)] | None = None
+    beta_names: Annotated[list[_Short], msgspec.Meta(min_length=2, max_length=6)] | None = None
+    loop_gain: _num(0.0, 1e10, "N·s/m", open_low=True) | None = None
+    method: _Short = "pl-lssvm"
+
+
+class _PhysicalT(msgspec.Struct, **_Opts):
+    inertia: _num(0.0, 1e9, "kg", open_low=True) | None = None
+    damping: _num(0.0, 1e12, "N·s/m", open_low=True) | None = None
+    coulomb: _num(-1e9, 1e9, "N") | None = None
+    coulomb_pos: _num(-1e9, 1e9, "N") | None = None
+    coulomb_neg: _num(-1e9, 1e9, "N") | None = None
+    offset: _num(-1e9, 1e9, "N") | None = None
+    gain: _num(0.0, 1e10, "N·s/m", open_low=True) | None = None  # version 1 files
+    inertia_over_gain: _num(0.0, 1e6, "s", open_low=True) | None = None
+    damping_over_gain: _num(0.0, 1e6, open_low=True) | None = None
+    coulomb_over_gain: _num(-1e6, 1e6, "m/s") | None = None
+    coulomb_pos_over_gain: _num(-1e6, 1e6, "m/s") | None = None
+    coulomb_neg_over_gain: _num(-1e6, 1e6, "m/s") | None = None
+    offset_over_gain: _num(-1e6, 1e6, "m/s") | None = None
+
+
+class _PhysicalSeT(msgspec.Struct, **_Opts):
+    inertia: _Se | None = None
+    damping: _Se | None = None
+    coulomb: _Se | None = None
+    coulomb_pos: _Se | None = None
+    coulomb_neg: _Se | None = None
+    offset: _Se | None = None
+    inertia_over_gain: _Se | None = None
+    damping_over_gain: _Se | None = None
+    coulomb_over_gain: _Se | None = None
+    coulomb_pos_over_gain: _Se | None = None
+    coulomb_neg_over_gain: _Se | None = None
+    offset_over_gain: _Se | None = None
+
+
+class _TrackerT(msgspec.Struct, **_Opts):
+    kernel: Literal["locally_periodic", "locally_periodic_zero_mean", "periodic", "squared_exponential", "spindle"]
+    gamma: _num(1e-4, 1e8)
+    sigma1: _num(1e-6, 1e6, "s") | None = None
+    sigma2: _num(1e-3, 1e3) | None = None
+    period: _num(1e-6, 1e6, "s") | None = None
+    lengthscale: _num(1e-6, 1e6, "s") | None = None
+    per: Literal["revolution", "tooth"] | None = None  # spindle kernel
+    teeth: _int(1, 1000, "cutting edges (spindle kernel)") | None = None
+    spindle_rpm: _num(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
+    forgetting: _num(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: _int(1, 4096, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
+    jitter: _num(0.0, 0.1) = OS.TRACKER_DEFAULTS["jitter"]
+
+
+class _CandidateT(msgspec.Struct, **_Opts):
+    method: Literal["ls", "pl_lssvm"]
+    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean"] = "none"
+    period: _num(1e-6, 1e6, "s") | None = None
+    log_evidence: _num(-1e15, 1e15) | None = None
+    valid: bool = True
+    why_not: _Text = ""
+
+
+class _IdentificationT(msgspec.Struct, **_Opts):
+    chosen: Literal["ls", "pl_lssvm"] | None = None
+    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean"] | None = None
+    period: _num(1e-6, 1e6, "s") | None = None
+    period_source: Literal["given", "spindle", "detected", "none"] | None = None
+    log_evidence: _num(-1e15, 1e15) | None = None
+    log_likelihood: _num(-1e15, 1e15) | None = None
+    sigma1: _Hyper | None = None
+    sigma2: _Hyper | None = None
+    lengthscale: _Hyper | None = None
+    gamma: _Hyper | None = None
+    tuned: bool | None = None
+    evaluations: _int(0, 10**9) | None = None
+    tune_seconds: _num(0.0, 1e7, "s") | None = None
+    segment: _int(0, 10**9, "samples") | None = None
+    candidates: Annotated[list[_CandidateT], msgspec.Meta(max_length=64)] = []
+
+
+class _ValidityT(msgspec.Struct, **_Opts):
+    warning: _Text
+
+
+class _ProvenanceT(msgspec.Struct, **_Opts):
+    source: _Text = ""
+    sha256: _Short = ""
+    method: _Short = ""
+    created: _Short = ""
+    feedmon_version: _Short = ""
+
+
+class ModelFileV2(msgspec.Struct, **_Opts):
+    """The whole model file (versions 1 and 2)."""
+
+    format_version: Literal[1, 2]
+    axis: _AxisT
+    model: _ModelT
+    tracker: _TrackerT
+    physical: _PhysicalT = msgspec.field(default_factory=_PhysicalT)
+    physical_se: _PhysicalSeT = msgspec.field(default_factory=_PhysicalSeT)
+    identification: _IdentificationT = msgspec.field(default_factory=_IdentificationT)
+    validity: _ValidityT | None = None
+    adaptation: OS.Adaptation = msgspec.field(default_factory=OS.Adaptation)
+    health: OS.Health = msgspec.field(default_factory=OS.Health)
+    provenance: _ProvenanceT = msgspec.field(default_factory=_ProvenanceT)
+
+
+def _describe(t) -> str:
+    """Allowed values of a msgspec type (for the ranges table and error messages)."""
+    from msgspec import inspect as mi
+
+    unit = ""
+    if isinstance(t, mi.Metadata):
+        unit = (t.extra_json_schema or {}).get("description", "")
+        t = t.type
+    if isinstance(t, mi.UnionType):
+        parts = [_describe(x) for x in t.types if not isinstance(x, mi.NoneType)]
+        return " or ".join(parts) + (" (optional)" if any(isinstance(x, mi.NoneType) for x in t.types) else "")
+    if isinstance(t, (mi.FloatType, mi.IntType)):
+        kind = "number" if isinstance(t, mi.FloatType) else "integer"
+        lo = f"> {t.gt:g}" if t.gt is not None else (f"≥ {t.ge:g}" if t.ge is not None else "")
+        hi = f"≤ {t.le:g}" if t.le is not None else ""
+        return f"{kind} {lo}, {hi}".strip(", ") + (f" {unit}" if unit and unit != kind else "")
+    if isinstance(t, mi.ListType):
+        return f"list of {t.min_length}…{t.max_length} × {_describe(t.item_type)}"
+    if isinstance(t, mi.LiteralType):
+        return " / ".join(repr(v) if isinstance(v, str) else str(v) for v in t.values)
+    if isinstance(t, mi.StrType):
+        return f"text ≤ {t.max_length} characters" + (f", {unit}" if unit else "")
+    if isinstance(t, mi.BoolType):
+        return "true / false"
+    if isinstance(t, mi.StructType):
+        return "table"
+    return type(t).__name__
+
+
+def _fields(prefix: str, struct_type) -> list[tuple[str, str]]:
+    from msgspec import inspect as mi
+
+    info = mi.type_info(struct_type)
+    rows = []
+    for f in info.fields:
+        key = f"{prefix}{f.name}"
+        t = f.type
+        inner = t.types[0] if isinstance(t, mi.UnionType) and isinstance(t.types[0], mi.StructType) else t
+        if isinstance(inner, mi.StructType):
+            rows += _fields(f"{key}.", inner.cls)
+        elif isinstance(inner, mi.ListType) and isinstance(inner.item_type, mi.StructType):
+            rows += _fields(f"{key}[].", inner.item_type.cls)
+        else:
+            rows.append((key, _describe(t)))
+    return rows
+
+
+def ranges_table() -> str:
+    """Markdown table of every key and its allowed values, generated from :class:`ModelFileV2`."""
+    rows = _fields("", ModelFileV2)
+    return "\n".join(["| key | allowed |", "|---|---|"] + [f"| `{k}` | {v} |" for k, v in rows])
+
+
+_RANGES = dict(_fields("", ModelFileV2))
+__doc__ = (__doc__ or "") + ranges_table() + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# the model seen by the monitor (CONTRACTS.md)
+# ---------------------------------------------------------------------------------------------
 @dataclass
 class TrackerConfig:
     """KRLS-T hyperparameters for the online tracker (method §6), defaults after thesis Table 4.5."""
 
-    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55})
-    gamma: float = 5.85
-    forgetting: float = 0.996
-    budget: int = 100
-    jitter: float = 1e-6
+    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": OS.TRACKER_DEFAULTS["sigma1"],
+                                                  "sigma2": OS.TRACKER_DEFAULTS["sigma2"], "period": 1 / 55})
+    gamma: float = OS.TRACKER_DEFAULTS["gamma"]
+    forgetting: float = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: int = OS.TRACKER_DEFAULTS["budget"]
+    jitter: float = OS.TRACKER_DEFAULTS["jitter"]
 
     def build_kernel(self) -> Kernel:
-        return Kernel.from_dict(self.kernel)
+        return OS.build_tracker_kernel(self.kernel)
+
+
+def _layouts(form: str, coulomb: bool) -> list[tuple[str, ...]]:
+    """The β layouts a model file may have: with the constant ``one`` (always for force-input)."""
+    with_one = beta_names(form, coulomb, intercept=True)
+    return [with_one] if form == "force-input" else [beta_names(form, coulomb, intercept=False), with_one]
 
 
 @dataclass
 class AxisModel:
-    """Everything the monitor needs for one axis."""
+    """Everything the monitor needs for one axis (attributes of CONTRACTS.md).
+
+    ``beta_names`` defaults to the form's layout matching ``len(beta)``: the velocity-loop form may
+    end with the constant column ``one`` (:attr:`intercept`), whose coefficient the online residual
+    ``v(k) = v_m(k+1) − βᵀz(k)`` includes.
+    """
 
     machine: str
     axis: str
@@ -78,10 +322,37 @@ class AxisModel:
     physical: dict = field(default_factory=dict)
     identification: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    beta_names: tuple[str, ...] | None = None
+    beta_se: list[float] | None = None
+    physical_se: dict = field(default_factory=dict)
+    candidates: list[dict] = field(default_factory=list)
+    validity_warning: str | None = None
+    online: OS.OnlineSettings = field(default_factory=OS.OnlineSettings)  # [adaptation], [health]
+
+    def __post_init__(self) -> None:
+        if self.form not in FORMS:
+            raise ValueError(f"input form {self.form!r} is not known; use one of {', '.join(FORMS)}")
+        layouts = _layouts(self.form, self.coulomb)
+        if self.beta_names is None:
+            match = [names for names in layouts if len(names) == len(self.beta)]
+            if not match:
+                raise ValueError(f"β has {len(self.beta)} entries; the {self.form} form with "
+                                 f"coulomb={str(self.coulomb).lower()} needs {' or '.join(str(len(x)) for x in layouts)}")
+            self.beta_names = match[0]
+        else:
+            self.beta_names = tuple(self.beta_names)
+            if self.beta_names not in layouts:
+                raise ValueError(f"beta_names {list(self.beta_names)} do not match the {self.form} form with "
+                                 f"coulomb={str(self.coulomb).lower()} (expected {' or '.join(str(list(x)) for x in layouts)})")
+            if len(self.beta) != len(self.beta_names):
+                raise ValueError(f"β has {len(self.beta)} entries; the {self.form} form with "
+                                 f"coulomb={str(self.coulomb).lower()} needs {' or '.join(str(len(x)) for x in layouts)} "
+                                 f"(beta_names lists {len(self.beta_names)})")
 
     @property
-    def beta_names(self) -> tuple[str, ...]:
-        return beta_names(self.form, self.coulomb)
+    def intercept(self) -> bool:
+        """True when β ends with the constant column ``one`` (force offset)."""
+        return bool(self.beta_names) and self.beta_names[-1] == "one"
 
     @property
     def force_scalable(self) -> bool:
@@ -97,148 +368,129 @@ class AxisModel:
             return self.beta[0] / self.loop_gain
         return None
 
-
-# ---------------------------------------------------------------------------
-# loading with validation
-# ---------------------------------------------------------------------------
-
-
-class _Reader:
-    def __init__(self, path: Path, doc: dict):
-        self.path = path
-        self.doc = doc
-
-    def fail(self, key: str, problem: str) -> ModelFileError:
-        return ModelFileError(f"{self.path}: key '{key}': {problem}")
-
-    def table(self, name: str, required: bool = True) -> dict:
-        value = self.doc.get(name)
-        if value is None:
-            if required:
-                raise self.fail(name, f"missing table [{name}]; re-create the file with 'feedmon identify'")
-            return {}
-        if not isinstance(value, dict):
-            raise self.fail(name, f"must be a table [{name}], got {type(value).__name__}")
-        return value
-
-    def get(self, table: str, key: str, kind, *, required: bool = True, default=None):
-        t = self.table(table, required=required)
-        full = f"{table}.{key}"
-        if key not in t:
-            if required:
-                raise self.fail(full, "missing")
-            return default
-        value = t[key]
-        if kind is float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise self.fail(full, f"must be a number, got {type(value).__name__} {value!r}")
-            value = float(value)
-            if not math.isfinite(value):
-                raise self.fail(full, f"must be finite, got {value!r}")
-            return value
-        if kind is int:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise self.fail(full, f"must be an integer, got {type(value).__name__} {value!r}")
-            return value
-        if not isinstance(value, kind):
-            raise self.fail(full, f"must be of type {kind.__name__}, got {type(value).__name__} {value!r}")
-        return value
-
-    def positive(self, table: str, key: str, *, required: bool = True, default=None, allow_zero: bool = False):
-        value = self.get(table, key, float, required=required, default=default)
-        if value is None:
-            return None
-        if value < 0 or (value == 0 and not allow_zero):
-            raise self.fail(f"{table}.{key}", f"must be {'≥' if allow_zero else '>'} 0, got {value!r}")
-        return value
-
-    def finite_table(self, name: str) -> dict:
-        out = {}
-        for key, value in self.table(name, required=False).items():
-            if isinstance(value, float) and not math.isfinite(value):
-                raise self.fail(f"{name}.{key}", f"must be finite, got {value!r}")
-            out[key] = value
-        return out
+    def validity_problems(self) -> list[str]:
+        """Why this model cannot be right (:func:`kernels.feed_drive.validity_problems`)."""
+        return validity_problems(self.form, self.beta, self.Ts, names=self.beta_names, gain=self.loop_gain,
+                                 physical_se=self.physical_se)
 
 
-def load_model(path) -> AxisModel:
-    """Read and validate a model file; errors name the file and the key (never executes anything)."""
+# ---------------------------------------------------------------------------------------------
+# loading
+# ---------------------------------------------------------------------------------------------
+_PATH = re.compile(r"\$\.?(.*)$")
+
+
+def _key_of(message: str) -> tuple[str, str]:
+    """``("tracker.gamma", "Expected …")`` from a msgspec validation message."""
+    text, _, where = message.rpartition(" - at `")
+    if not text:
+        text, where = message, ""
+    key = _PATH.sub(r"\1", where.rstrip("`"))
+    return key, text
+
+
+def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
+    """Read and validate a model file; errors name the file and the key (never executes anything).
+
+    A model that cannot be right (:func:`kernels.feed_drive.validity_problems`) is refused unless
+    ``allow_invalid`` (for inspection tools; ``feedmon run`` never sets it).
+    """
     path = Path(path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise ModelFileError(f"{path}: model file not found; create one with 'feedmon identify TRIAL.mcap -o {path}'") from None
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the model file ({exc.strerror or exc})") from None
+    if len(raw) > 1_000_000:
+        raise ModelFileError(f"{path}: {len(raw)} bytes is not a model file (limit 1 MB)")
     try:
         doc = tomllib.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ModelFileError(f"{path}: not a valid TOML model file ({exc})") from None
-    r = _Reader(path, doc)
     version = doc.get("format_version")
     if version is None:
-        raise r.fail("format_version", "missing; is this a feedmon model file?")
-    if version != FORMAT_VERSION:
-        raise r.fail("format_version", f"unknown version {version!r}; this feedmon reads version {FORMAT_VERSION}")
-
-    form = r.get("model", "form", str)
-    if form not in FORMS:
-        raise r.fail("model.form", f"unknown input form {form!r}; use one of {', '.join(FORMS)}")
-    coulomb = r.get("model", "coulomb", bool)
-    beta = r.get("model", "beta", list)
-    expected = len(beta_names(form, coulomb))
-    if len(beta) != expected:
-        raise r.fail("model.beta", f"has {len(beta)} entries; the {form} form with coulomb={str(coulomb).lower()} needs {expected}")
-    for i, b in enumerate(beta):
-        if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b):
-            raise r.fail(f"model.beta[{i}]", f"must be a finite number, got {b!r}")
-    names = r.get("model", "beta_names", list, required=False)
-    if names is not None and tuple(names) != beta_names(form, coulomb):
-        raise r.fail("model.beta_names", f"{names} do not match the {form} form (expected {list(beta_names(form, coulomb))})")
-
-    tracker_table = r.table("tracker")
-    kernel_desc = {k: v for k, v in tracker_table.items() if k in ("sigma1", "sigma2", "period", "lengthscale")}
-    kernel_desc["type"] = r.get("tracker", "kernel", str)
-    for k, v in kernel_desc.items():
-        if k != "type" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
-            raise r.fail(f"tracker.{k}", f"must be a positive finite number, got {v!r}")
+        raise ModelFileError(f"{path}: key 'format_version': missing; is this a feedmon model file?")
+    if isinstance(version, bool) or not isinstance(version, int) or version not in READABLE_VERSIONS:
+        raise ModelFileError(f"{path}: key 'format_version': unknown version {version!r}; this feedmon reads "
+                             f"the integers {', '.join(map(str, READABLE_VERSIONS))}")
     try:
-        Kernel.from_dict(kernel_desc)
+        f = msgspec.convert(doc, ModelFileV2, strict=True)
+    except msgspec.ValidationError as exc:
+        key, text = _key_of(str(exc))
+        if text.startswith("Object contains unknown field"):
+            name = text.split("`")[1] if "`" in text else "?"
+            full = f"{key}.{name}" if key else name
+            raise ModelFileError(f"{path}: key '{full}': unknown key (misspelt?); see the model-file keys in the "
+                                 "README") from None
+        if text.startswith("Object missing required field"):
+            name = text.split("`")[1] if "`" in text else "?"
+            full = f"{key}.{name}" if key else name
+            raise ModelFileError(f"{path}: key '{full}': missing; re-create the file with 'feedmon identify'") from None
+        allowed = _RANGES.get(re.sub(r"\[\d+\]", "[]", key)) or _RANGES.get(re.sub(r"\[\d+\]$", "", key))
+        hint = f" (allowed: {allowed})" if allowed else ""
+        raise ModelFileError(f"{path}: key '{key}': {text}{hint}") from None
+    return _to_model(path, f, allow_invalid)
+
+
+def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
+    m, t = f.model, f.tracker
+    kernel = {"type": t.kernel}
+    need = {"locally_periodic": ("sigma1", "sigma2", "period"), "locally_periodic_zero_mean": ("sigma1", "sigma2", "period"),
+            "periodic": ("sigma2", "period"),
+            "squared_exponential": ("lengthscale",), "spindle": ("sigma1", "sigma2", "spindle_rpm")}[t.kernel]
+    for key in need:
+        if getattr(t, key) is None:
+            raise ModelFileError(f"{path}: key 'tracker.{key}': missing; the {t.kernel} kernel needs "
+                                 f"{', '.join(need)} (allowed: {_RANGES['tracker.' + key]})")
+        kernel[key] = getattr(t, key)
+    if t.kernel == OS.SPINDLE:
+        kernel.update({k: getattr(t, k) for k in ("per", "teeth") if getattr(t, k) is not None})
+        try:
+            OS.check_kernel_desc(kernel)
+        except ValueError as exc:
+            raise ModelFileError(f"{path}: key 'tracker.kernel': {exc}") from None
+    for key in ("sigma1", "sigma2", "period", "lengthscale", "per", "teeth", "spindle_rpm"):
+        if key not in need and key not in kernel and getattr(t, key) is not None:
+            raise ModelFileError(f"{path}: key 'tracker.{key}': not a parameter of the {t.kernel} kernel "
+                                 f"(it takes {', '.join(need)})")
+    physical = {k: v for k, v in msgspec.structs.asdict(f.physical).items() if v is not None}
+    physical_se = {k: v for k, v in msgspec.structs.asdict(f.physical_se).items() if v is not None}
+    ident = {k: v for k, v in msgspec.structs.asdict(f.identification).items()
+             if v is not None and k != "candidates"}
+    try:
+        model = AxisModel(
+            machine=f.axis.machine, axis=f.axis.axis, form=m.form, Ts=m.Ts, beta=list(m.beta), omega=m.omega,
+            coulomb=m.coulomb, loop_gain=m.loop_gain, method=m.method,
+            tracker=TrackerConfig(kernel=kernel, gamma=t.gamma, forgetting=t.forgetting, budget=t.budget,
+                                  jitter=t.jitter),
+            physical=physical, identification=ident,
+            provenance={k: v for k, v in msgspec.structs.asdict(f.provenance).items() if v},
+            beta_names=None if m.beta_names is None else tuple(m.beta_names), beta_se=m.beta_se,
+            physical_se=physical_se,
+            candidates=[msgspec.structs.asdict(c) for c in f.identification.candidates],
+            validity_warning=None if f.validity is None else f.validity.warning,
+            online=OS.OnlineSettings(adaptation=f.adaptation, health=f.health),
+        )
     except ValueError as exc:
-        raise r.fail("tracker.kernel", str(exc)) from None
-    forgetting = r.positive("tracker", "forgetting", required=False, default=0.996)
-    if forgetting > 1:
-        raise r.fail("tracker.forgetting", f"must be in (0, 1], got {forgetting!r}")
-    budget = r.get("tracker", "budget", int, required=False, default=100)
-    if budget < 1:
-        raise r.fail("tracker.budget", f"must be ≥ 1, got {budget!r}")
-    tracker = TrackerConfig(
-        kernel=kernel_desc,
-        gamma=r.positive("tracker", "gamma"),
-        forgetting=forgetting,
-        budget=budget,
-        jitter=r.positive("tracker", "jitter", required=False, default=1e-6, allow_zero=True),
-    )
-    return AxisModel(
-        machine=r.get("axis", "machine", str),
-        axis=r.get("axis", "axis", str),
-        form=form,
-        Ts=r.positive("model", "Ts"),
-        beta=[float(b) for b in beta],
-        omega=r.positive("model", "omega", allow_zero=True),
-        coulomb=coulomb,
-        loop_gain=r.positive("model", "loop_gain", required=False),
-        method=r.get("model", "method", str, required=False, default="pl-lssvm"),
-        tracker=tracker,
-        physical=r.finite_table("physical"),
-        identification=r.finite_table("identification"),
-        provenance=dict(r.table("provenance", required=False)),
-    )
+        key = "model.beta_names" if str(exc).startswith("beta_names") else "model.beta"
+        raise ModelFileError(f"{path}: key '{key}': {exc}") from None
+    if m.beta_se is not None and len(m.beta_se) != len(m.beta):
+        raise ModelFileError(f"{path}: key 'model.beta_se': has {len(m.beta_se)} entries, beta has {len(m.beta)}")
+    if not allow_invalid:
+        problems = model.validity_problems()
+        if problems:
+            forced = " (the file was written with 'identify --force')" if model.validity_warning else ""
+            raise ModelFileError(f"{path}: key 'model.beta': the model cannot be right{forced}: " + "; ".join(problems))
+        if model.validity_warning:
+            raise ModelFileError(f"{path}: key 'validity.warning': {model.validity_warning}. Identify the axis again, "
+                                 "or remove the [validity] table once you have checked the model by hand")
+    return model
 
 
-# ---------------------------------------------------------------------------
+# ---------------------------------------------------------------------------------------------
 # writing
-# ---------------------------------------------------------------------------
-
-
+# ---------------------------------------------------------------------------------------------
 def _toml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -261,7 +513,7 @@ def _toml_value(value) -> str:
 def _table(name: str, items: dict, comments: dict | None = None) -> list[str]:
     lines = [f"[{name}]"]
     for key, value in items.items():
-        if value is None:
+        if value is None or isinstance(value, dict):
             continue
         note = (comments or {}).get(key)
         lines.append(f"{key} = {_toml_value(value)}" + (f"  # {note}" if note else ""))
@@ -274,22 +526,38 @@ _UNITS = {
     "loop_gain": "N·s/m, velocity-loop gain K",
     "inertia": "kg",
     "damping": "N·s/m",
+    "coulomb": "N, symmetric Coulomb friction (coulomb_pos + coulomb_neg)/2",
     "coulomb_pos": "N",
     "coulomb_neg": "N",
     "offset": "N",
     "inertia_over_gain": "s (J/K)",
     "damping_over_gain": "1 (B/K)",
+    "coulomb_over_gain": "m/s",
+    "coulomb_pos_over_gain": "m/s",
+    "coulomb_neg_over_gain": "m/s",
+    "offset_over_gain": "m/s",
     "sigma1": "s",
+    "lengthscale": "s",
     "period": "s (ψ)",
+    "budget": "KRLS-T dictionary size M",
+    "spindle_rpm": "rpm, nominal: used without spindle data",
+    "per": "revolution (2π: runout) | tooth (2π/teeth)",
 }
+
+_IDENT_KEYS = [k for k in _IdentificationT.__struct_fields__ if k != "candidates"]
+_PHYS_KEYS = set(_PhysicalT.__struct_fields__)
 
 
 def save_model(model: AxisModel, path) -> Path:
-    """Write ``model`` as a version-1 TOML model file (atomic replace)."""
+    """Write ``model`` as a version-2 TOML model file (atomic replace). The file is read back through
+    the validator before it replaces ``path`` (nothing that :func:`load_model` would refuse for its
+    format is ever written)."""
     path = Path(path)
     tracker = {"kernel": model.tracker.kernel["type"]}
     tracker.update({k: v for k, v in model.tracker.kernel.items() if k not in ("type", "dims")})
-    tracker.update(gamma=model.tracker.gamma, forgetting=model.tracker.forgetting, budget=model.tracker.budget, jitter=model.tracker.jitter)
+    tracker.update(gamma=model.tracker.gamma, forgetting=model.tracker.forgetting, budget=model.tracker.budget,
+                   jitter=model.tracker.jitter)
+    ident = {k: model.identification.get(k) for k in _IDENT_KEYS}
     lines = [
         "# feedmon axis model (written by 'feedmon identify'; units SI)",
         f"format_version = {FORMAT_VERSION}",
@@ -301,22 +569,35 @@ def save_model(model: AxisModel, path) -> Path:
                 "form": model.form,
                 "Ts": float(model.Ts),
                 "beta": [float(b) for b in model.beta],
+                "beta_se": None if model.beta_se is None else [float(s) for s in model.beta_se],
                 "beta_names": list(model.beta_names),
                 "omega": float(model.omega),
                 "coulomb": bool(model.coulomb),
                 "loop_gain": None if model.loop_gain is None else float(model.loop_gain),
                 "method": model.method,
             },
-            _UNITS,
+            {k: v for k, v in _UNITS.items() if k != "coulomb"} | {"coulomb": "Coulomb friction columns in β"},
         ),
-        *_table("physical", {k: v for k, v in model.physical.items()}, _UNITS),
+        *_table("physical", {k: v for k, v in model.physical.items() if k in _PHYS_KEYS}, _UNITS),
+        *_table("physical_se", {k: v for k, v in model.physical_se.items() if k in _PHYS_KEYS}),
         *_table("tracker", tracker, _UNITS),
-        *_table("identification", model.identification, _UNITS),
-        *_table("provenance", model.provenance),
+        *_table("identification", ident, _UNITS),
     ]
+    for cand in model.candidates:
+        lines += [line.replace("[identification.candidates]", "[[identification.candidates]]")
+                  for line in _table("identification.candidates", cand)]
+    if model.validity_warning:
+        lines += _table("validity", {"warning": model.validity_warning})
+    lines += [line for name, items, notes in OS.model_tables(model.online) for line in _table(name, items, notes)]
+    lines += _table("provenance", model.provenance)
     text = "\n".join(lines)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text, encoding="utf-8")
+    try:
+        load_model(tmp, allow_invalid=True)
+    except ModelFileError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ValueError(str(exc).replace(str(tmp), str(path))) from None
     tmp.replace(path)
     return path
 

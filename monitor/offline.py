@@ -27,9 +27,10 @@ Per input item the work is the same in both cases (:class:`_Encoder`): a truth b
 and paired with the rows it belongs to; a samples block is copied, estimated, its estimates
 written, and the scalars that became complete written (:class:`~feedio.scalars.ScalarsPairer`);
 at the end the scalars still waiting are written, axis by axis in the order the axes first
-reached the pairer. :attr:`~monitor.pipeline.Estimated.extra` messages (issue 11: health) are
-written as ``/<machine>/<axis>/<kind>`` right after the estimates of their block — in
-:meth:`_Encoder.samples`, the one place both paths go through.
+reached the pairer. The health reports of a block (:attr:`~monitor.pipeline.Estimated.health`)
+are written on ``/<machine>/<axis>/health`` right after the estimates and scalars of their block,
+each stamped at its sample (the block's log time minus the controller time from the report to the
+block's last sample) — in :meth:`_Encoder.samples`, the one place both paths go through.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class OfflineResult:
     axes: list[str]
     skipped_axes: list[str]
     jobs: int = 1
+    health_reports: int = 0
 
     @property
     def rate(self) -> float:
@@ -101,8 +103,9 @@ _KINDS = ("samples", "truth", "disturbance")
 
 class _Encoder:
     """What one input item puts into the output, encoded: block messages ``("B", kind, machine, axis,
-    data, seq, n, t0, t1, log_time)`` and per-sample scalars ``("C", machine, axis, records, sizes,
-    log_ns, t, seq)`` (:meth:`feedio.scalars.ScalarsBatch.records`, channel id set by the writer)."""
+    data, seq, n, t0, t1, log_time)``, per-sample scalars ``("C", machine, axis, records, sizes,
+    log_ns, t, seq)`` (:meth:`feedio.scalars.ScalarsBatch.records`, channel id set by the writer) and
+    health reports ``("H", machine, axis, data, log_time)`` (the JSON of a :class:`~feedio.schema.Health`)."""
 
     def __init__(self, has_truth: set[tuple[str, str]]) -> None:
         from feedio.scalars import ScalarsPairer
@@ -138,8 +141,9 @@ class _Encoder:
                         float(est.t[-1]), lt))
             self.touched.setdefault(f"{m}/{a}", key)
             out += self._scalars(self.pairer.add_rows(m, a, est.seq, est.t, lt, **est.scalar_columns()))
-        for kind, body in res.extra:  # issue 11: a channel and schema per kind come with it (TrialWriter.KINDS)
-            out.append(("X", kind, m, a, body, lt))
+        t_end = float(block.t[-1])
+        for h in res.health:  # stamped at its sample: the block's log time minus the time to its end
+            out.append(("H", m, a, S.encode(h), max(0, lt - round((t_end - h.t) * 1e9))))
         return out
 
     def drain(self) -> dict[str, list[tuple]]:
@@ -158,8 +162,8 @@ def _write(w, entries: list[tuple]) -> None:
         elif e[0] == "C":
             _, m, a, records, sizes, log_ns, t, seq = e
             w.write_scalar_records(m, a, records, sizes, log_ns, t, seq)
-        else:
-            raise NotImplementedError(f"no channel for {e[1]!r} messages in trial files yet (issue 11)")
+        else:  # "H": the report is checked again by the writer (bounds of seq and t)
+            w.write_health(S.decode_health(e[3]), log_time=e[4])
 
 
 # ---- the entry point ------------------------------------------------------------------------------
@@ -174,9 +178,10 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     truth blocks are copied through, each with the log time its input block had (the
     estimates of a block get the log time of its samples), and so do the per-sample
     ``disturbance/scalars`` (:class:`~feedio.scalars.ScalarsPairer`, stamped from those
-    log times). The trial's own metadata (with its truth and start time) is kept, with the
-    model file and hash added to the provenance details. Chunks follow controller time
-    only, so the same input gives the same bytes — whatever ``jobs`` is.
+    log times) and the health reports (``/<machine>/<axis>/health``, stamped at their sample).
+    The trial's own metadata (with its truth and start time) is kept, with the model file and
+    hash added to the provenance details. Chunks follow controller time only, so the same input
+    gives the same bytes — whatever ``jobs`` is.
 
     ``jobs``: processes for a trial with several modelled axes (None: one per core, at most one
     per axis; 1: this process only). See the module docstring.
@@ -222,14 +227,14 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
             counts = _run_here(trial, w, names, axes, has_truth, limits)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
-                         jobs)
+                         jobs, counts["health"])
 
 
 def _run_here(trial: str, w, names: list[str], axes, has_truth, limits) -> dict[str, int]:
     """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
     pipe = Pipeline(axes, limits=limits)
     enc = _Encoder(has_truth)
-    counts = {"samples": 0, "estimates": 0, "truth": 0}
+    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
     with _WriterThread() as out:
         for key, name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
             if kind == "truth":
@@ -242,6 +247,7 @@ def _run_here(trial: str, w, names: list[str], axes, has_truth, limits) -> dict[
                 continue
             if res.est is not None:
                 counts["estimates"] += len(res.est)
+            counts["health"] += len(res.health)
             out.put(lambda k=key, b=block, t=lt, r=res: _write(w, enc.samples(k, b, t, r)))
         out.put(lambda: _write_drain(w, enc.drain(), {n: enc.touched.get(n) for n in names}))
     return counts
@@ -254,13 +260,21 @@ def _write_drain(w, per_axis: dict[str, list[tuple]], touched: dict[str, tuple |
 
 
 def _fresh(ax: AxisRuntime) -> bool:
-    """The estimator is what a child process builds from the model file: fresh, default options."""
+    """The estimator is what a spawned child process builds from the model file: fresh, default
+    options, the model as the file has it (no ``--config`` override of its settings)."""
     from kernels import online
 
+    from .model_file import load_model
+
     e = ax.estimator
-    return (e.trained == 0 and e.tracker.size == 0 and not e.counters and e.warmup == ax.model.tracker.budget
+    if not (e.trained == 0 and e.tracker.size == 0 and not e.counters and e.warmup == ax.model.tracker.budget
             and e.stale_detection and e.reorder_window == online.REORDER_WINDOW and ax.status.state == "fresh"
-            and os.path.isfile(ax.status.model_path))
+            and os.path.isfile(ax.status.model_path)):
+        return False
+    try:
+        return load_model(ax.status.model_path) == ax.model
+    except (OSError, ValueError):
+        return False
 
 
 def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
@@ -348,9 +362,11 @@ class _WriterThread:
 #   b"E" error: JSON {"type", "message"}
 # entries: b"B" kind u1, seq i8, n i8, t0 f8, t1 f8, log_time i8, data length u4, data
 #          b"C" count u4, records length u8, sizes i8[count], log_ns i8[count], t f8[count], seq i8[count], records
+#          b"H" log_time i8, data length u4, data (the JSON of a Health report)
 _KEY = struct.Struct("<dqi")
 _B = struct.Struct("<BqqddqI")
 _C = struct.Struct("<IQ")
+_H = struct.Struct("<qI")
 _SEND_BYTES = 1 << 18
 
 
@@ -366,7 +382,8 @@ def _pack_entries(entries: list[tuple], buf: list[bytes]) -> None:
                     log_ns.astype("<i8").tobytes(), t.astype("<f8").tobytes(), seq.astype("<i8").tobytes(),
                     records.tobytes())
         else:
-            raise NotImplementedError(f"no channel for {e[1]!r} messages in trial files yet (issue 11)")
+            _, _m, _a, data, lt = e
+            buf += (b"H", _H.pack(lt, len(data)), data)
 
 
 def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple], int]:
@@ -381,6 +398,11 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
             kind, seq, n, t0, t1, lt, size = _B.unpack_from(view, pos)
             pos += _B.size
             out.append(("B", _KINDS[kind], m, a, view[pos:pos + size].tobytes(), seq, n, t0, t1, lt))
+            pos += size
+        elif tag == b"H":
+            lt, size = _H.unpack_from(view, pos)
+            pos += _H.size
+            out.append(("H", m, a, view[pos:pos + size].tobytes(), lt))
             pos += size
         else:
             k, size = _C.unpack_from(view, pos)
@@ -463,7 +485,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                 p.kill()
                 p.join(5)
             conn.close()
-    return {k: sum(r[k] for r in results) for k in ("samples", "estimates", "truth")}
+    return {k: sum(r[k] for r in results) for k in ("samples", "estimates", "truth", "health")}
 
 
 #: pipe messages of one worker read ahead (each up to ~_SEND_BYTES): a worker whose axes run ahead in
@@ -534,6 +556,7 @@ def _read_final(view: memoryview, pos: int, axes: dict[str, AxisRuntime]) -> dic
         ax.status.counters.update(a["status"])
         ax.status.blocks = a["blocks"]
         ax.status.last_seq, ax.status.last_t = a["last_seq"], a["last_t"]
+        ax.status.health, ax.status.health_changes = a["health"], a["health_changes"]
     return doc
 
 
@@ -577,7 +600,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
     pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits))
     enc = _Encoder({tuple(k) for k in spec["has_truth"]})
     index = spec["index"]
-    counts = {"samples": 0, "estimates": 0, "truth": 0}
+    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
     buf: list[bytes] = []
     size = [0]
 
@@ -606,6 +629,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
                 continue
             if res.est is not None:
                 counts["estimates"] += len(res.est)
+            counts["health"] += len(res.health)
             out.put(lambda k=key, b=block, t=lt, r=res: item(k, enc.samples(k, b, t, r)))
 
         def finish() -> None:
@@ -623,7 +647,8 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
                 ax = by_name[name]
                 doc["axes"][name] = {"estimator": dict(ax.estimator.counters), "status": dict(ax.status.counters),
                                      "blocks": ax.status.blocks, "last_seq": ax.status.last_seq,
-                                     "last_t": ax.status.last_t}
+                                     "last_t": ax.status.last_t, "health": ax.status.health,
+                                     "health_changes": ax.status.health_changes}
                 z = io.BytesIO()
                 np.savez(z, **ax.estimator.snapshot())
                 snaps.append(z.getvalue())

@@ -18,11 +18,11 @@ monitor-wide counters.
 What :meth:`Pipeline.estimate` returns (:class:`Estimated`) is what the live daemon publishes
 and both paths log: the axis, its estimate rows of the block (:class:`~monitor.estimator.EstimateRows`,
 columns; the schema object and its JSON are made once, by whoever needs them first) and
-``extra``: further messages of that axis, each ``(kind, JSON bytes)``, that the daemon publishes
-on ``<prefix>/<machine>/<axis>/<kind>`` and hands to the sinks (``offer_extra``), and that the
-offline runner writes on ``/<machine>/<axis>/<kind>``. It is empty today; it is the place for
-the per-axis health reports of issue 11 (about one a second per axis), produced here, next to
-the estimator whose state they describe, so that live and offline give the same messages.
+``health``: the :class:`~feedio.schema.Health` reports the block produced (about one per second
+of data per axis; also in :attr:`Pipeline.last_health`), which the daemon publishes on
+``<prefix>/<machine>/<axis>/health`` and hands to the sinks (``offer_health``), and the offline
+runner writes on ``/<machine>/<axis>/health`` — produced here, next to the estimator whose state
+they describe, so that live and offline give the same messages.
 """
 
 from __future__ import annotations
@@ -56,6 +56,8 @@ _LOGGED_REASONS = (
     ("seq_resets", "with sequence numbers restarted (new bridge session, or seq jumped inconsistently with time): "
                    "chain restarted"),
     ("rejected_seq_range", "refused: sequence numbers beyond int64"),
+    ("spindle_fallback", "without usable spindle data (spindle_angle / spindle_rpm): the spindle-phase kernel runs on "
+                         "the model's nominal speed, i.e. the time kernel with a fixed period"),
 )
 
 
@@ -64,10 +66,11 @@ class Estimated(NamedTuple):
 
     ax: AxisRuntime | None  #: the axis the block was routed to (None: refused, no model or too long)
     est: EstimateRows | None = None  #: its estimate rows (None: no row, every sample dropped)
-    extra: tuple[tuple[str, bytes], ...] = ()  #: further messages of the axis: (kind, JSON)
+    health: list[S.Health] | tuple = ()  #: the health reports the block produced (oldest first)
 
 
 _REFUSED = Estimated(None)
+_NO_HEALTH = ()
 
 
 class Pipeline:
@@ -88,6 +91,8 @@ class Pipeline:
         # positions of the logged reasons in the estimator's per-block counts (all of them are counted there)
         self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS]) \
             if all(k in COUNTERS for k, _ in _LOGGED_REASONS) else None
+        #: the health reports of the block :meth:`estimate` handled last (for Zenoh and the sinks)
+        self.last_health: list[S.Health] = []
 
     def axis_of_key(self, key: str) -> AxisRuntime | None:
         """The modelled axis a ``<prefix>/<machine>/<axis>/samples|truth`` key names (None: no model)."""
@@ -133,6 +138,7 @@ class Pipeline:
         the estimator could not use the block)."""
         ax = self.axes.get((block.machine, block.axis))
         n = len(block.t)
+        self.last_health = []
         if ax is None:
             name = f"{block.machine}/{block.axis}"
             self.counters["no_model_blocks"] += 1
@@ -177,4 +183,20 @@ class Pipeline:
         if est is not None:
             st.last_seq = est.seq + len(est) - 1
             st.last_t = float(est.t[-1])
-        return Estimated(ax, est)
+        return Estimated(ax, est, self._health(ax))
+
+    def _health(self, ax: AxisRuntime) -> list[S.Health] | tuple:
+        """Collect the axis' health reports into :attr:`last_health` (and return them), update its
+        status and log every change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
+        reports = ax.estimator.take_health()
+        if not reports:
+            return _NO_HEALTH
+        self.last_health = reports
+        st = ax.status
+        for h in reports:
+            was = st.note_health(h)
+            if was is not None:
+                why = "; ".join(h.reasons) or "no reason given"
+                log.log(logging.INFO if h.state == "ok" else logging.WARNING,
+                        "axis %s: health %s → %s at t = %.3f s (seq %d): %s", st.name, was, h.state, h.t, h.seq, why)
+        return reports

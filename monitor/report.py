@@ -1,10 +1,16 @@
-"""Thesis-style identification report: PNG figures (thesis Figures 4.1–4.7) and a markdown summary.
+"""Identification report: PNG figure (thesis Figures 4.1–4.7) and a markdown summary (issue 10 item 7).
 
-Figure layout, one PNG per trial axis (``<axis>-identification.png``):
-(a) measured vs predicted velocity (PL-LSSVM, ``Zβ + f``), (b) prediction error,
-(c) identified disturbance vs the measured or true force (in N when the model
-scales, else normalised), (d) power spectral density of the prediction error,
-LS vs PL-LSSVM (``scipy.signal.welch``).
+Figure, one PNG per trial axis (``<machine>-<axis>-identification.png``):
+(a) measured vs predicted velocity of the written model, (b) its prediction error,
+(c) identified disturbance vs the measured or true force — estimate and reference both with their
+mean removed (a disturbance's mean cannot be told from the force offset, so only the variation is
+compared), in N when the model scales and is valid, otherwise both normalised (an invalid model's
+force scale means nothing), (d) power spectral density of the prediction error, LS vs PL-LSSVM
+(``scipy.signal.welch``) with the harmonics ``h/ψ`` of the period marked and labelled.
+
+The markdown names the chosen model, lists every candidate with its evidence and validity, the
+parameters with their standard errors (undetermined ones flagged), the errors against the truth or a
+published reference when known, and the disturbance correlation.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_report", "summary_table"]
+__all__ = ["write_report", "summary_table", "candidate_rows", "format_value"]
 
 
 def _fmt(x, digits=6) -> str:
@@ -27,51 +33,107 @@ def _fmt(x, digits=6) -> str:
     return str(x)
 
 
+def format_value(value, se, *, vif=None, digits: int = 5) -> str:
+    """``value ± se``; ``not determined (value ± se)`` when the relative s.e. is above
+    :data:`monitor.identify.UNDETERMINED_RSE`; ``(competes, VIF v)`` appended when the disturbance model
+    inflates its variance more than :data:`monitor.identify.VIF_FLAG`."""
+    from .identify import UNDETERMINED_RSE, VIF_FLAG
+
+    if value is None:
+        return "—"
+    if se is None:
+        return _fmt(value, digits)
+    text = f"{value:.{digits}g} ± {se:.2g}"
+    if not (se <= UNDETERMINED_RSE * abs(value)):
+        text = f"not determined ({text})"
+    if vif is not None and vif > VIF_FLAG:
+        text += f" (competes with the disturbance, VIF {vif:.0f})"
+    return text
+
+
 _PHYS_ROWS = [
     ("inertia", "J (kg)"),
     ("damping", "B (N·s/m)"),
+    ("coulomb", "Coulomb, symmetric (N)"),
     ("coulomb_pos", "Coulomb + (N)"),
     ("coulomb_neg", "Coulomb − (N)"),
     ("offset", "offset (N)"),
     ("inertia_over_gain", "J/K (s)"),
     ("damping_over_gain", "B/K"),
+    ("coulomb_over_gain", "Coulomb/K, symmetric (m/s)"),
     ("coulomb_pos_over_gain", "Coulomb +/K (m/s)"),
     ("coulomb_neg_over_gain", "Coulomb −/K (m/s)"),
+    ("offset_over_gain", "offset/K (m/s)"),
 ]
 
 
 def summary_table(ident) -> list[list[str]]:
-    """Rows of the thesis Table 4.2-shaped summary: parameter, LS (± s.e.), PL-LSSVM, truth."""
-    truth_beta = (ident.truth or {}).get("beta")
-    truth_phys = (ident.truth or {}).get("physical", {})
+    """Rows: parameter, LS (± s.e.), PL-LSSVM (± s.e.), truth."""
+    truth = ident.truth or {}
+    truth_beta = truth.get("beta")
+    truth_phys = dict(truth.get("reference", {}))
+    truth_phys.update(truth.get("physical", {}))
+    pl = ident.pl
     rows = []
     for i, name in enumerate(ident.names):
-        ls = f"{ident.ls.beta[i]:.6g} ± {ident.ls.stderr[i]:.2g}"
-        tb = truth_beta[i] if truth_beta is not None and i < len(truth_beta) and len(truth_beta) == len(ident.names) else None
-        rows.append([f"β{i + 1} ({name})", ls, f"{ident.pl.beta[i]:.6g}", _fmt(tb)])
+        tb = truth_beta[i] if truth_beta is not None and len(truth_beta) == len(ident.names) else None
+        rows.append([f"β{i + 1} ({name})", format_value(ident.ls.beta[i], ident.ls.stderr[i]),
+                     "—" if pl is None else format_value(pl.beta[i], pl.stderr[i]), _fmt(tb)])
     for key, label in _PHYS_ROWS:
-        a, b = ident.ls.physical.get(key), ident.pl.physical.get(key)
+        a = ident.ls.physical.get(key)
+        b = None if pl is None else pl.physical.get(key)
         if a is None and b is None:
             continue
-        rows.append([label, _fmt(a), _fmt(b), _fmt(truth_phys.get(key))])
-    rows.append(["one-step RMSE (m/s)", _fmt(ident.ls.rmse, 4), _fmt(ident.pl.rmse, 4), ""])
-    rows.append(["free-run RMSE (m/s)", _fmt(ident.ls.rmse_free_run, 4), _fmt(ident.pl.rmse_free_run, 4), ""])
-    if ident.truth and "ls_beta_rel_error" in ident.truth:
-        ls_err = max(ident.truth["ls_beta_rel_error"][:2])
-        pl_err = max(ident.truth["pl_lssvm_beta_rel_error"][:2])
-        rows.append(["max rel. error β1, β2 vs truth", f"{ls_err:.3%}", f"{pl_err:.3%}", ""])
+        rows.append([label, format_value(a, ident.ls.physical_se.get(key)),
+                     "—" if pl is None else format_value(b, pl.physical_se.get(key), vif=pl.candidate.vif.get(key)),
+                     _fmt(truth_phys.get(key))])
+    rows.append(["log evidence", _fmt(ident.ls.candidate.log_evidence, 8),
+                 "—" if pl is None else _fmt(pl.candidate.log_evidence, 8), ""])
+    rows.append(["one-step RMSE (m/s)", _fmt(ident.ls.rmse, 4), "—" if pl is None else _fmt(pl.rmse, 4), ""])
+    rows.append(["free-run RMSE (m/s)", _fmt(ident.ls.rmse_free_run, 4),
+                 "—" if pl is None else _fmt(pl.rmse_free_run, 4), ""])
+    return rows
+
+
+def _hyper_text(c) -> str:
+    h = c.hyperparameters
+    parts = []
+    for key, sym in (("sigma1", "σ1"), ("sigma2", "σ2"), ("lengthscale", "ℓ"), ("gamma", "γ")):
+        if h.get(key) is not None:
+            parts.append(f"{sym} = {h[key]:.3g}")
+    if h.get("on_bound"):
+        parts.append("on bound: " + ", ".join(f"{k} ({v})" for k, v in h["on_bound"].items()))
+    if c.method != "ls" and not h.get("tuned", False):
+        parts.append("not tuned")
+    return ", ".join(parts) or "—"
+
+
+def candidate_rows(ident) -> list[list[str]]:
+    """Rows: candidate, hyperparameters, log evidence, valid, chosen / why not."""
+    rows = []
+    for c in ident.candidates:
+        mark = "◀ chosen" if c is ident.chosen else (c.why_not or ("" if c.eligible else "not a choice: " + c.notes[-1]))
+        rows.append([c.label, _hyper_text(c), f"{c.log_evidence:.6g}", "yes" if c.valid else "no", mark])
     return rows
 
 
 def _psd(x: np.ndarray, fs: float):
     from scipy.signal import welch
 
-    nperseg = int(min(1024, max(16, x.size // 8)))
+    nperseg = int(min(4096, max(16, x.size // 8)))
     return welch(x, fs=fs, nperseg=nperseg)
 
 
+def _reference(ident):
+    if ident.measured_force is not None and np.isfinite(ident.measured_force).any():
+        return -ident.measured_force, "measured force (dynamometer, reaction sign)"
+    if ident.truth_force is not None and np.isfinite(ident.truth_force).any():
+        return ident.truth_force, "true disturbance force"
+    return None, None
+
+
 def write_report(ident, out_dir) -> list[Path]:
-    """Write the figure and ``<axis>-identification.md`` into ``out_dir``; returns the paths."""
+    """Write the figure and ``<machine>-<axis>-identification.md`` into ``out_dir``; returns the paths."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -82,76 +144,121 @@ def write_report(ident, out_dir) -> list[Path]:
     stem = f"{ident.machine}-{ident.axis}-identification"
     t = ident.t - ident.t[0]
     fs = 1.0 / ident.Ts
+    model = ident.model_result if ident.model_result is not None else ident.ls
+    chosen = model.candidate
+    model_label = chosen.label + ("" if chosen.valid else " — NOT VALID")
 
-    fig, ax = plt.subplots(4, 1, figsize=(10, 12), constrained_layout=True)
+    fig, ax = plt.subplots(4, 1, figsize=(11, 13), constrained_layout=True)
     ax[0].plot(t, ident.y, lw=0.8, label="measured $v_m$")
-    ax[0].plot(t, ident.pl.prediction, lw=0.8, ls="--", label="PL-LSSVM $\\beta^T z + f$")
-    ax[0].set(ylabel="velocity (m/s)", title="(a) measured vs predicted velocity")
+    ax[0].plot(t, model.prediction, lw=0.8, ls="--", label=f"{model.name}: one-step prediction")
+    ax[0].set(ylabel="velocity (m/s)", title=f"(a) measured vs predicted velocity — {model_label}")
     ax[0].legend(loc="upper right")
 
-    ax[1].plot(t, ident.y - ident.pl.prediction, lw=0.6, color="C3")
-    ax[1].set(ylabel="error (m/s)", title="(b) PL-LSSVM prediction error $y - \\hat y$")
+    ax[1].plot(t, ident.y - model.prediction, lw=0.6, color="C3")
+    ax[1].set(ylabel="error (m/s)", title=f"(b) prediction error $y - \\hat y$ ({model.name})")
 
-    ref, ref_label = None, None
-    if ident.measured_force is not None and np.isfinite(ident.measured_force).any():
-        ref, ref_label = ident.measured_force, "measured force (dynamometer)"
-    elif ident.truth_force is not None and np.isfinite(ident.truth_force).any():
-        ref, ref_label = ident.truth_force, "true disturbance force"
-    if ident.f_force is not None:
-        est, unit = ident.f_force, "N"
-        if ref is not None and ref is ident.measured_force:
-            ref = -ref  # a dynamometer measures the reaction: T_c = −F_dyn
-        ax[2].set_ylabel("force (N)")
+    dist = model if model.f is not None else ident.pl
+    ref, ref_label = _reference(ident)
+    if dist is None or dist.f is None:
+        ax[2].text(0.5, 0.5, "no disturbance model (LS)", ha="center", va="center", transform=ax[2].transAxes)
+        ax[2].set(title="(c) identified disturbance")
     else:
-        est, unit = ident.f, "m/s"
-        ax[2].set_ylabel("disturbance (normalised)")
-    if ref is not None:
-        ref_c = ref - np.nanmean(ref)
-        if ident.f_force is None:  # no scale: normalise both
+        newtons = dist.f_force is not None and dist.candidate.valid
+        est = dist.f_force if newtons else dist.f
+        est = est - np.nanmean(est)
+        ref_c = None if ref is None else ref - np.nanmean(ref)
+        if newtons:
+            ax[2].set_ylabel("force (N), mean removed")
+        else:
             est = est / (np.nanstd(est) or 1.0)
-            ref_c = ref_c / (np.nanstd(ref_c) or 1.0)
-        ax[2].plot(t, ref_c, lw=0.8, color="0.4", label=ref_label + " (mean removed)")
-    ax[2].plot(t, est, lw=0.8, color="C2", label=f"PL-LSSVM disturbance ({unit})")
-    ax[2].set(title="(c) identified disturbance")
-    ax[2].legend(loc="upper right")
+            if ref_c is not None:
+                ref_c = ref_c / (np.nanstd(ref_c) or 1.0)
+            why = "model not valid" if not dist.candidate.valid else "no force scale (loop gain unknown)"
+            ax[2].set_ylabel(f"normalised ({why})")
+        if ref_c is not None:
+            ax[2].plot(t, ref_c, lw=2.0, color="0.6", label=ref_label + " (mean removed)")
+        ax[2].plot(t, est, lw=0.7, color="C2", alpha=0.9, label=f"{dist.candidate.label} (mean removed)")
+        corr = (ident.truth or {}).get("pl_lssvm_disturbance_correlation" if dist is ident.pl else "disturbance_correlation")
+        whose = "" if dist is model else " of the best PL-LSSVM candidate (not the written model)"
+        ax[2].set(title="(c) identified disturbance" + whose
+                  + (f" — correlation with the reference {corr:.4f}" if corr else ""))
+        ax[2].legend(loc="upper right")
 
-    for res, color in ((ident.ls, "C0"), (ident.pl, "C1")):
+    results = [ident.ls] + ([ident.pl] if ident.pl is not None else [])
+    for res, color in zip(results, ("C0", "C1")):
         f, p = _psd(ident.y - res.prediction, fs)
-        ax[3].semilogy(f, p, lw=0.9, color=color, label=res.name)
-    for k in (1, 2):
-        fk = k / ident.period
-        if fk < fs / 2:
-            ax[3].axvline(fk, color="0.7", lw=0.6, ls=":")
+        ax[3].semilogy(f, p, lw=0.9, color=color, label=res.candidate.label)
+    psi = ident.period
+    if psi is not None:
+        harmonics = [h / psi for h in range(1, 6) if h / psi < fs / 2]
+        for h, fk in enumerate(harmonics, start=1):
+            ax[3].axvline(fk, color="k", lw=1.0, ls="--", alpha=0.6, zorder=0)
+            ax[3].annotate(f"{h}/ψ" if h > 1 else "1/ψ", (fk, 1.0), xycoords=("data", "axes fraction"),
+                           xytext=(3, -12), textcoords="offset points", fontsize=8)
+        if harmonics and harmonics[-1] < fs / 20:
+            ax[3].set_xscale("log")
     ax[3].set(xlabel="frequency (Hz)", ylabel="PSD ((m/s)²/Hz)", title="(d) PSD of the prediction error")
-    ax[3].legend(loc="upper right")
+    ax[3].legend(loc="lower left")
     for a in ax[:3]:
         a.set_xlabel("time (s)")
-    fig.suptitle(f"{ident.machine}/{ident.axis}: {Path(ident.trial_path).name} — {ident.form}, ψ = {ident.period:.5g} s")
+    psi_text = "none" if psi is None else f"{psi:.5g} s ({ident.period_source})"
+    fig.suptitle(f"{ident.machine}/{ident.axis}: {Path(ident.trial_path).name} — {ident.form}, ψ = {psi_text}; "
+                 f"written: {model_label}")
     png = out / f"{stem}.png"
-    fig.savefig(png, dpi=110)
+    fig.savefig(png, dpi=100)
     plt.close(fig)
 
-    rows = summary_table(ident)
-    hp = ident.hyperparameters
-    md = [
+    md_path = out / f"{stem}.md"
+    md_path.write_text(_markdown(ident, png.name), encoding="utf-8")
+    return [png, md_path]
+
+
+def _markdown(ident, png_name: str) -> str:
+    truth = ident.truth or {}
+    psi_text = "none" if ident.period is None else f"{ident.period:.6g} s ({ident.period_source})"
+    if ident.period_suggested is not None:
+        psi_text += f"; the data prefer ψ = {ident.period_suggested:.6g} s"
+    chosen = ident.chosen
+    lines = [
         f"# Identification of {ident.machine}/{ident.axis}",
         "",
-        f"Trial `{ident.trial_path}`, form **{ident.form}**, Ts = {ident.Ts:.6g} s, ψ = {ident.period:.6g} s "
-        f"({ident.period_source}), Ω = {ident.omega:.3g} m/s. {ident.coulomb_note}.",
+        f"Trial `{ident.trial_path}`, form **{ident.form}**, Ts = {ident.Ts:.6g} s, ψ = {psi_text}, "
+        f"Ω = {ident.omega:.3g} m/s. {ident.coulomb_note}.",
         "",
-        f"PL-LSSVM hyperparameters: σ1 = {hp['sigma1']:.4g} s, σ2 = {hp['sigma2']:.4g}, γ = {hp['gamma']:.4g}"
-        + (" (tuned by maximum likelihood" if hp.get("tuned") else " (given")
-        + (f", log-likelihood {hp['log_likelihood']:.6g})" if hp.get("log_likelihood") is not None else ")"),
+        (f"**Chosen model: {chosen.label}** (log evidence {chosen.log_evidence:.6g})." if chosen is not None else
+         f"**No valid model**: {ident.refusal}."),
         "",
-        "| parameter | LS (± s.e.) | PL-LSSVM | truth |",
+        "## Candidates",
+        "",
+        "Evidence: restricted marginal likelihood at the tuned hyperparameters minus ½ k log(N − p) for the "
+        "k hyperparameters fitted to the data.",
+        "",
+        "| candidate | hyperparameters | log evidence | valid | |",
+        "|---|---|---|---|---|",
+        *["| " + " | ".join(r) + " |" for r in candidate_rows(ident)],
+        "",
+        "## Parameters (± standard error)",
+        "",
+        "| parameter | LS | PL-LSSVM | truth / reference |",
         "|---|---|---|---|",
-        *["| " + " | ".join(r) + " |" for r in rows],
-        "",
-        *[f"* {n}" for n in ident.notes],
-        "",
-        f"![identification]({png.name})",
+        *["| " + " | ".join(r) + " |" for r in summary_table(ident)],
         "",
     ]
-    md_path = out / f"{stem}.md"
-    md_path.write_text("\n".join(md), encoding="utf-8")
-    return [png, md_path]
+    errs = []
+    for key, label in (("ls", "LS"), ("pl_lssvm", "PL-LSSVM"), ("model", "written model")):
+        for kind, what in (("physical_error", "truth"), ("reference_error", "published reference")):
+            e = truth.get(f"{key}_{kind}")
+            if e:
+                parts = [f"{k} {v:+.2f} N" if k == "offset" and kind == "reference_error" else
+                         (f"{k} {v:.2%}" if kind == "physical_error" else f"{k} {v:+.2%}") for k, v in e.items()]
+                errs.append(f"* {label} vs {what}: " + ", ".join(parts))
+    for key, label in (("disturbance_correlation", "written model"), ("pl_lssvm_disturbance_correlation", "PL-LSSVM")):
+        if truth.get(key) is not None:
+            errs.append(f"* disturbance correlation with the truth ({label}): {truth[key]:.4f}")
+    if errs:
+        lines += ["## Against the truth", "", *errs, ""]
+    notes = ident.notes + [n for c in ident.candidates for n in c.notes]
+    if notes:
+        lines += ["## Notes", "", *[f"* {n}" for n in notes], ""]
+    lines += [f"![identification]({png_name})", ""]
+    return "\n".join(lines)

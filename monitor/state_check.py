@@ -14,8 +14,8 @@ shape and dtype and the hyperparameter values, so nothing here hard-codes the co
 * every entry that is not tracker state (hyperparameters, kernel, input dimension) equals the
   template's value: the model's hyperparameters;
 * counters are integers in ``0 … COUNT_MAX``;
-* the KRLS-T state is consistent (:func:`_check_krlst_state`): the invariants of the slot
-  layout documented in :mod:`kernels._krlst_core`.
+* the KRLS-T state is consistent (:func:`_check_krlst_state`): the invariants of the core's
+  layout, checked by :func:`kernels._krlst_core.validate_state` (one definition, next to the layout).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from kernels import _krlst_core as core
+from kernels.krlst import KRLST
 
 __all__ = ["StateError", "COUNT_MAX", "check_snapshot"]
 
@@ -41,10 +42,13 @@ def _same_kind(arr: np.ndarray, like: np.ndarray) -> bool:
 
 
 def check_snapshot(snap: dict[str, np.ndarray], before: dict[str, np.ndarray],
-                   after: dict[str, np.ndarray], *, counters: tuple[str, ...] = ()) -> None:
+                   after: dict[str, np.ndarray], *, counters: tuple[str, ...] = (),
+                   tracker_prefix: str = "tracker.") -> None:
     """Raise :class:`StateError` unless ``snap`` is a valid snapshot like ``before`` (nothing learned)
     or ``after`` (after a step). ``counters`` name the 0-d integer entries that count something
-    (checked to lie in ``0 … COUNT_MAX``, not compared with the template)."""
+    (checked to lie in ``0 … COUNT_MAX``, not compared with the template); the KRLS-T state is the
+    entries under ``tracker_prefix`` (other state entries, e.g. the online β, are checked by their
+    owners when restored)."""
     keys = set(snap)
     if keys == set(after):
         template = after
@@ -71,60 +75,59 @@ def check_snapshot(snap: dict[str, np.ndarray], before: dict[str, np.ndarray],
             raise StateError(f"{key!r} is {arr.tolist()!r} but this model's is {like.tolist()!r} "
                              "(a state of other hyperparameters)")
     if template is after:
-        prefix = _common_prefix(state_keys)
-        _check_krlst_state({k[len(prefix):]: np.asarray(snap[k]) for k in state_keys},
-                           {k[len(prefix):]: after[k] for k in state_keys}, budget=int(snap[prefix + "budget"]))
+        prefix = tracker_prefix
+        _check_krlst_state({k[len(prefix):]: np.asarray(snap[k]) for k in snap if k.startswith(prefix)},
+                           after[prefix + "fst"], budget=int(snap[prefix + "budget"]))
 
 
-def _common_prefix(keys) -> str:
-    """``"tracker."`` for ``{"tracker.X", "tracker.Q", …}``."""
-    first = next(iter(keys))
-    return first[: first.rfind(".") + 1]
-
-
-def _check_krlst_state(s: dict[str, np.ndarray], like: dict[str, np.ndarray], budget: int) -> None:
-    """Invariants of the KRLS-T slot layout (:mod:`kernels._krlst_core`, "Slots" and "Layout").
-
-    Shapes are already those of the template ``like``; this checks the hyperparameters the core
-    keeps in its state (``M``, λ, ``sn2``, ``ε_j``, ``1/Ts``: equal to the template's), the values it indexes with
-    (dictionary size ``n ≤ M``, high-water mark ``hw``, the slot permutation ``order``),
-    the pending/armed modes, that free slots are empty in ``Q``, ``Σ``, ``K`` (the core
-    sums over ``[0, hw)`` relying on it) and that those matrices are symmetric (the core keeps
-    them bitwise symmetric), and the signal-power accumulators.
-    """
-    ist, fst, order = s["ist"], s["fst"], s["order"]
-    Q, Sig, K = s["Q"], s["Sigma"], s["K"]
-    cap = order.shape[0]
-    n, hw = int(ist[core.I_N]), int(ist[core.I_HW])
-    if int(ist[core.I_M]) != budget or cap != budget + 1:
-        raise StateError(f"tracker budget {int(ist[core.I_M])} (slots {cap}) does not match the model's {budget}")
-    if not 0 <= n <= budget:
-        raise StateError(f"tracker dictionary size {n} is outside 0…{budget}")
-    if not n <= hw <= cap:
-        raise StateError(f"tracker high-water mark {hw} is outside {n}…{cap}")
-    if not np.array_equal(np.sort(order), np.arange(cap)):
-        raise StateError(f"tracker slot order is not a permutation of 0…{cap - 1}")
-    if n and int(order[:n].max()) >= hw:
-        raise StateError("tracker dictionary uses a slot beyond its high-water mark")
-    for name, slot, allowed in (("pending Q update", core.I_QPEND, (0, 1, 2)),
-                                ("pending Σ update", core.I_SPEND, (0, 1)),
-                                ("armed flag", core.I_ARMED, (0, 1))):
-        if int(ist[slot]) not in allowed:
-            raise StateError(f"tracker {name} is {int(ist[slot])}, expected one of {allowed}")
-    if not 0 <= int(ist[core.I_STEPS]) <= COUNT_MAX:
-        raise StateError(f"tracker step count {int(ist[core.I_STEPS])} is outside 0…{COUNT_MAX}")
+def _check_krlst_state(tracker: dict[str, np.ndarray], like_fst: np.ndarray, budget: int) -> None:
+    """The KRLS-T part of a snapshot (its keys without the ``tracker.`` prefix): rebuilt by
+    :meth:`kernels.krlst.KRLST.restore`, which checks shapes against the core's ``new_state`` and the
+    state's own invariants (:func:`kernels._krlst_core.validate_state`: the indices the compiled core
+    uses without bounds checks, free slots, triangles, modes, accumulators) — one definition, next
+    to the layout — then the hyperparameters the state keeps inside (``M``, λ, ``sn2``, ``ε_j``,
+    ``1/Ts``) against the template's."""
+    try:
+        restored = KRLST.restore(tracker)
+    except ValueError as exc:
+        raise StateError(f"tracker {exc}") from None
+    st = restored.core_state(np.zeros(int(tracker["dim"])))
+    if int(st.ist[core.I_M]) != budget:
+        raise StateError(f"tracker budget {int(st.ist[core.I_M])} does not match the model's {budget}")
+    if not 0 <= int(st.ist[core.I_STEPS]) <= COUNT_MAX:
+        raise StateError(f"tracker step count {int(st.ist[core.I_STEPS])} is outside 0…{COUNT_MAX}")
     for name, slot in (("forgetting λ", core.F_LAM), ("noise ratio sn2", core.F_SN2), ("jitter ε_j", core.F_JIT),
                        ("1/Ts", core.F_INVTS)):
-        if fst[slot] != like["fst"][slot]:
-            raise StateError(f"tracker {name} is {float(fst[slot])!r} but this model's is {float(like['fst'][slot])!r}")
-    free = order[n:]
-    for name, m in (("Q", Q), ("Sigma", Sig), ("K", K)):
-        if not np.array_equal(m, m.T):
-            raise StateError(f"tracker matrix {name} is not symmetric")
-        if free.size and (np.any(m[free, :] != 0.0) or np.any(m[:, free] != 0.0)):
-            raise StateError(f"tracker matrix {name} has entries in free slots")
-    if n and not np.all(np.diag(K)[order[:n]] > 0.0):
-        raise StateError("tracker kernel matrix K has a non-positive diagonal")
-    num, den, s02 = float(fst[core.F_NUM]), float(fst[core.F_DEN]), float(fst[core.F_S02])
-    if num < 0.0 or s02 < 0.0 or den < (1.0 if n else 0.0):
-        raise StateError(f"tracker signal-power accumulators are impossible (num {num}, den {den}, s0² {s02})")
+        if st.fst[slot] != like_fst[slot]:
+            raise StateError(f"tracker {name} is {float(st.fst[slot])!r} but this model's is {float(like_fst[slot])!r}")
+    _check_posterior(restored)
+
+
+#: how far a restored state may be from the identities that hold for every state the tracker writes
+#: (generous: the refined recursion keeps ‖Q K_D − I‖ ~1e-8; a damaged or crafted state is far off)
+K_TOL, INVERSE_TOL, SIGMA_TOL, MU_MAX = 1e-9, 1e-3, 1e-6, 1e6
+
+
+def _check_posterior(tr: KRLST) -> None:
+    """The numbers of the state against what they must be: ``K_D`` is the kernel of the dictionary
+    (+ ``ε_j I``), ``Q`` its inverse, ``Σ`` a covariance between 0 and the prior ``K_D``
+    (back-to-the-prior forgetting never leaves that range) and ``μ`` of a plausible size (m/s).
+    A state that passes the layout checks but holds other numbers would feed NaN/inf through
+    every later step; it is refused instead."""
+    if tr.size == 0:
+        return
+    K = tr.K
+    ref = tr.kernel(tr.dictionary) + tr.jitter * np.eye(tr.size)
+    if not np.max(np.abs(K - ref)) <= K_TOL:
+        raise StateError("tracker kernel matrix K_D is not the kernel of its dictionary")
+    if not tr.inverse_error() <= INVERSE_TOL:
+        raise StateError(f"tracker Q is not the inverse of K_D (max |Q K_D − I| = {tr.inverse_error():.3g})")
+    S = tr.Sigma
+    if not np.max(np.abs(S - S.T)) <= SIGMA_TOL:
+        raise StateError("tracker posterior covariance Σ is not symmetric")
+    lo = np.linalg.eigvalsh(0.5 * (S + S.T))
+    hi = np.linalg.eigvalsh(0.5 * ((K - S) + (K - S).T))
+    if not (lo.min() >= -SIGMA_TOL and hi.min() >= -SIGMA_TOL):
+        raise StateError("tracker posterior covariance Σ is not between 0 and the prior K_D")
+    if not np.max(np.abs(tr.mu)) <= MU_MAX:
+        raise StateError(f"tracker posterior mean μ is implausibly large (|μ| up to {np.max(np.abs(tr.mu)):.3g} m/s)")

@@ -241,10 +241,33 @@ class AxisStatus:
     last_seq: int | None = None
     last_t: float | None = None
     blocks: int = 0
+    health: dict | None = None  # the last health report (state, reasons, values) and since when its state holds
+    health_changes: int = 0  # changes of the health state since start
 
     @property
     def name(self) -> str:
         return f"{self.machine}/{self.axis}"
+
+    def note_health(self, report) -> str | None:
+        """Take a :class:`~feedio.schema.Health` report; returns the previous state when the state changed
+        (``"ok"`` before the first report), else None. The first report in state ok is no change."""
+        import msgspec
+
+        doc = msgspec.to_builtins(report)
+        prev = self.health
+        was = prev["state"] if prev else "ok"
+        changed = doc["state"] != was
+        if changed or prev is None:
+            since = {"since_t": doc["t"], "since_seq": doc["seq"], "since_unix": time.time()}
+        else:
+            since = {k: prev[k] for k in ("since_t", "since_seq", "since_unix")}
+        doc.pop("machine", None)
+        doc.pop("axis", None)
+        self.health = {**doc, **since}
+        if changed:
+            self.health_changes += 1
+            return was
+        return None
 
     def report(self, estimator_counters: Counter, dict_size: int,
                refused: dict[str, int] | None = None) -> dict[str, Any]:
@@ -276,6 +299,7 @@ class AxisStatus:
             "last_t": self.last_t,
             "model": {"path": self.model_path, "sha256": self.model_sha256},
             "state": {"origin": self.state, "path": self.state_path},
+            "health": None if self.health is None else {**self.health, "changes": self.health_changes},
         }
 
 
@@ -297,6 +321,23 @@ def _dict(value: Any) -> dict:
 
 def _counts(value: Any) -> str:
     return ", ".join(f"{k}={v}" for k, v in _dict(value).items())
+
+
+def _num(v: Any) -> str:
+    return f"{v:.3f}" if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else "–"
+
+
+def _health_values(h: dict) -> str:
+    """``inertia 300.1 ± 0.5 kg, …`` of a health report (values not given are left out)."""
+    parts = []
+    for key, unit in (("inertia", "kg"), ("damping", "N·s/m"), ("coulomb", "N"), ("offset", "N")):
+        v, se = h.get(key), h.get(f"{key}_se")
+        if isinstance(v, int | float) and not isinstance(v, bool) and isinstance(se, int | float):
+            parts.append(f"{key} {v:.4g} ± {se:.2g} {unit}")
+    nu2 = h.get("nu2")
+    if isinstance(nu2, int | float) and not isinstance(nu2, bool):
+        parts.append(f"mean ν² {nu2:.2f}")
+    return ", ".join(parts) + f"; β adaptation {h.get('adaptation')}"
 
 
 def format_status(status: dict[str, Any], console=None) -> None:
@@ -323,15 +364,16 @@ def format_status(status: dict[str, Any], console=None) -> None:
         f"malformed {inp.get('malformed', 0)}, key_mismatch {inp.get('key_mismatch_total', 0)}", limit=2000))
     console.print(head)
     t = Table(title="axes")
-    for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state"):
-        t.add_column(col, justify="left" if col in ("axis", "dropped", "state") else "right")
+    for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state", "health"):
+        t.add_column(col, justify="left" if col in ("axis", "dropped", "state", "health") else "right")
     axes = _dict(status.get("axes"))
     for name, a in axes.items():
         a = _dict(a)
         lat = _dict(a.get("latency_us"))
         t.add_row(_cell(name), _cell(a.get("samples_in")), _cell(a.get("estimates_out")),
                   _cell(_counts(a.get("drops")) or "0"), _cell(a.get("gaps")), _fmt_us(lat.get("p50")),
-                  _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")))
+                  _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")),
+                  _cell(_dict(a.get("health")).get("state", "–")))
     console.print(t)
     if any(_dict(_dict(a).get("stages_us")) for a in axes.values()):
         st = Table(title="latency by stage, µs (p50 / p99): queue, decode, estimate, encode, publish, then sinks")
@@ -346,6 +388,14 @@ def format_status(status: dict[str, Any], console=None) -> None:
     for name, a in axes.items():
         m = _dict(_dict(a).get("model"))
         console.print(_cell(f"  {name}: model {m.get('path')} sha256 {m.get('sha256')}", 1000))
+    for name, a in axes.items():
+        h = _dict(_dict(a).get("health"))
+        if h:
+            console.print(_cell(f"  {name}: health {str(h.get('state', '?')).upper()} since t = {_num(h.get('since_t'))} s "
+                                f"(seq {h.get('since_seq')}); last report t = {_num(h.get('t'))} s; "
+                                + _health_values(h), 2000))
+            for r in h.get("reasons") or []:
+                console.print(_cell(f"    - {r}", 1000))
     for key, what in (("no_model", "samples of axes without a model (dropped)"),
                       ("key_mismatch", "messages whose payload names another axis than their key (refused)")):
         table = _dict(inp.get(key))

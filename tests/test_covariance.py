@@ -167,3 +167,41 @@ def test_pd_product(s1, s2, period, ell, seed, n):
     X = np.random.default_rng(seed).uniform(-3, 3, (n, 3))
     k = LocallyPeriodic(s1, s2, period, dims=0) * SquaredExponential(ell, dims=slice(1, 3))
     _assert_pd(k(X))
+
+
+def test_zero_mean_locally_periodic_is_one_factor_for_batch_lag_and_compiled_paths():
+    """The zero-mean locally periodic kernel: k(0) = 1, its mean over a period removed (the batch matrix
+    is positive semi-definite and a long window of it averages to ~0 per period), the same numbers from
+    the batch matrix, the Toeplitz lag, the compiled value and the compiled phased row, and c0 = e^−a I0(a)."""
+    from scipy.special import i0e
+
+    from kernels.covariance import (
+        ZeroMeanLocallyPeriodic,
+        kernel_phases,
+        kernel_row_phased,
+        kernel_value,
+    )
+
+    k = ZeroMeanLocallyPeriodic(0.4, 0.6, 0.05)
+    assert k.c0 == pytest.approx(i0e(1.0 / (4 * 0.6**2)), rel=1e-14)
+    t = np.linspace(0.0, 1.0, 301)
+    K = k(t)
+    assert K[0, 0] == 1.0 and np.linalg.eigvalsh(K).min() > -1e-10
+    np.testing.assert_allclose(K[0], k.lag(t), rtol=1e-13, atol=1e-15)
+    # a sharp SE window sees whole periods: the periodic factor's mean is gone
+    flat = ZeroMeanLocallyPeriodic(1e6, 0.6, 0.05)
+    assert abs(np.mean(flat.lag(np.linspace(0.0, 0.05, 2001)[:-1]))) < 1e-12
+    kinds, params, cols = k.spec()
+    X = t[::10].reshape(-1, 1)
+    x = np.array([0.123])
+    ref = k(X, x)[:, 0]
+    got = np.array([kernel_value(kinds, params, cols, X[i], x) for i in range(X.shape[0])])
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+    Ph = np.zeros((X.shape[0], 2))
+    for i in range(X.shape[0]):
+        kernel_phases(kinds, params, cols, X[i], Ph[i])
+    xph = np.zeros(2)
+    kernel_phases(kinds, params, cols, x, xph)
+    row = np.zeros(X.shape[0])
+    kernel_row_phased(kinds, params, cols, X, Ph, np.ones(X.shape[0]), 0, X.shape[0], x, xph, row)
+    np.testing.assert_allclose(row, ref, rtol=1e-12, atol=1e-14)

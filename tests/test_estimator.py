@@ -24,7 +24,7 @@ OMEGA = 5e-4
 def _model(form="velocity-loop", beta=BETA, **kw) -> AxisModel:
     return AxisModel(machine="m", axis="x", form=form, Ts=TS, beta=list(map(float, beta)), omega=OMEGA,
                      coulomb=True, loop_gain=83300.0 if form == "velocity-loop" else None,
-                     tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict(), budget=40), **kw)
+                     tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict(), budget=40, forgetting=0.996), **kw)
 
 
 def _stream(n=1500, seed=0):
@@ -244,10 +244,10 @@ def test_compiled_loop_refuses_any_int64_that_does_not_fit(seq0):
     """Defence in depth: the ``@njit`` loop itself, handed an int64 the Python layer would refuse."""
     t, v_ref, v, _ = _stream(10)
     est = AxisEstimator(_model())
-    xbuf, obuf = online.new_scratch()
     rows, irows, counts = online.new_rows(10)
-    first = online.track_block(*est.tracker.core_arrays(xbuf), *est.config, *online.new_state(), np.int64(seq0), t,
-                               v_ref, v, rows, irows, counts, xbuf, obuf)
+    first = online.track_block(*est.tracker.core_buffers(np.zeros(1)), *est.online.buffers, *est.health.buffers,
+                               *est.config, *online.new_state(), np.int64(seq0), t, v_ref, v, np.zeros((2, 0)), rows,
+                               irows, counts, online.new_ticks(10, 1), online.new_scratch(len(est.beta)))
     assert first == 10 and counts[online.COUNTERS.index("rejected_seq_range")] == 10
 
 

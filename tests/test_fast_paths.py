@@ -351,9 +351,41 @@ def test_offline_over_processes_writes_the_one_process_file_byte_for_byte(two_ax
     assert r1.jobs == 1 and r2.jobs == 2
     assert (d / "one.mcap").read_bytes() == (d / "two-procs.mcap").read_bytes()
     assert (r1.samples, r1.estimates, r1.truth_blocks) == (r2.samples, r2.estimates, r2.truth_blocks)
+    assert r1.health_reports == r2.health_reports > 0
+    health = {a: [b for _, b in iter_blocks(d / "one.mcap", axis=a, kinds=("health",))] for a in "XY"}
+    assert sum(map(len, health.values())) == r1.health_reports and all(health.values())
     assert _summary(one) == _summary(two)
+    for key, ax in one.items():  # the health the workers' status ended with came back
+        assert ax.status.health is not None
+        assert {k: v for k, v in ax.status.health.items() if k != "since_unix"} == \
+            {k: v for k, v in two[key].status.health.items() if k != "since_unix"}
     s = _summary(one)["linear-drive/Y"][0]
     assert s["gaps"] > 0 and s["duplicate"] > 0 and s["rejected_non_finite"] > 0  # the hard cases were there
+
+
+def test_offline_with_config_overrides_is_not_spread_over_spawned_workers(two_axes, tmp_path):
+    """Axes loaded with --config tracker overrides differ from their model files: a spawned worker would
+    build them from the files, so the run stays in this process (jobs 1) and uses the overrides."""
+    from types import SimpleNamespace
+
+    from monitor.online_settings import TrackerOverride
+
+    d = two_axes
+    models = [d / "X.model.toml", d / "Y.model.toml"]
+    cfg = SimpleNamespace(tracker=TrackerOverride(forgetting=0.99), adaptation=None, health=None)
+    stop = threading.Event()
+    th = threading.Thread(target=stop.wait, daemon=True)  # a thread alive: spawn, not fork
+    th.start()
+    try:
+        r = run_offline(d / "two.mcap", tmp_path / "over.mcap", load_axes(models, cfg), jobs=2)
+    finally:
+        stop.set()
+    plain = tmp_path / "plain.mcap"
+    run_offline(d / "two.mcap", plain, load_axes(models), jobs=1)
+    again = tmp_path / "again.mcap"
+    run_offline(d / "two.mcap", again, load_axes(models, cfg), jobs=1)
+    assert r.jobs == 1
+    assert (tmp_path / "over.mcap").read_bytes() == again.read_bytes() != plain.read_bytes()
 
 
 def test_offline_cli_forks_workers_and_writes_the_same_file(two_axes):

@@ -315,8 +315,8 @@ def test_slow_disk_mcap_sink_never_stalls_estimation(work, trial, monkeypatch):
 
 @pytest.mark.parametrize("name,edit,needle", [
     ("garbage", lambda s: "this is [not toml", "not a valid TOML model file"),
-    ("noversion", lambda s: s.replace("format_version = 1", ""), "format_version"),
-    ("version99", lambda s: s.replace("format_version = 1", "format_version = 99"), "format_version"),
+    ("noversion", lambda s: s.replace("format_version = 2", ""), "format_version"),
+    ("version99", lambda s: s.replace("format_version = 2", "format_version = 99"), "format_version"),
     ("nanbeta", lambda s: _set_beta(s, "[nan, 0.1]"), "model.beta"),
     ("shortbeta", lambda s: _set_beta(s, "[0.5]"), "model.beta"),
     ("badform", lambda s: s.replace('form = "velocity-loop"', 'form = "hydraulic"'), "model.form"),

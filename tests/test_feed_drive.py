@@ -6,11 +6,17 @@ import pytest
 from kernels.feed_drive import (
     beta_names,
     beta_to_physical,
+    check_validity,
+    coulomb_indicators,
     disturbance_to_force,
     force_to_disturbance,
+    friction_transform,
+    physical_covariance,
     physical_to_beta,
     regressors,
+    rest_samples,
     simulate_free_run,
+    validity_problems,
 )
 
 try:
@@ -150,3 +156,82 @@ def test_velocity_loop_force_needs_gain():
     beta = physical_to_beta("velocity-loop", TS, gain=GAIN, **PHYS)
     with pytest.raises(ValueError, match="loop gain"):
         disturbance_to_force("velocity-loop", beta, np.zeros(3))
+
+
+@pytest.mark.parametrize("form,gain", [("velocity-loop", GAIN), ("force-input", None)])
+def test_intercept_round_trip_in_both_forms(form, gain):
+    beta = physical_to_beta(form, TS, gain=gain, offset=-3.0, intercept=True, **PHYS)
+    names = beta_names(form, True, intercept=True)
+    assert names[-1] == "one" and beta.size == len(names)
+    phys = beta_to_physical(form, beta, TS, gain=gain, names=names)
+    assert phys.offset == pytest.approx(-3.0, rel=1e-10)
+    assert phys.coulomb == pytest.approx(0.5 * (PHYS["coulomb_pos"] + PHYS["coulomb_neg"]), rel=1e-10)
+    assert set(phys.to_dict()) == {"inertia", "damping", "coulomb", "coulomb_pos", "coulomb_neg", "offset"}
+    if form == "velocity-loop":
+        ratios = beta_to_physical(form, beta, TS, names=names).to_dict()  # K unknown: only /K forms
+        assert set(ratios) == {f"{k}_over_gain" for k in phys.to_dict()}
+        assert ratios["offset_over_gain"] == pytest.approx(-3.0 / GAIN, rel=1e-10)
+
+
+@pytest.mark.parametrize("rest", [True, False])
+def test_friction_transform_is_a_reparametrisation(rest):
+    """Z_id = Z T spans −τ (and −|τ| with rest) instead of −σ_p, −σ_n; β = T θ maps back."""
+    names = beta_names("force-input", True)
+    T, id_names = friction_transform(names, rest)
+    assert id_names == ("u", "v_meas", "-tau") + (("-abs_tau",) if rest else ()) + ("one",)
+    v = np.array([0.5, -0.5, 0.0, 0.2])
+    sp, sn = coulomb_indicators(v, 0.1)
+    Z = np.column_stack([np.ones(4), v, -sp, -sn, np.ones(4)])
+    Zid = Z @ T
+    tau = sp - sn
+    np.testing.assert_array_equal(Zid[:, 2], -tau)
+    if rest:
+        np.testing.assert_array_equal(Zid[:, 3], -np.abs(tau))
+    # Fc = 20 N symmetric, asymmetry a = −2 N (coulomb_pos 18, coulomb_neg 22), b = 1e-4
+    b = 1e-4
+    theta = np.array([b, 0.99, b * 20.0] + ([b * -2.0] if rest else []) + [b * 3.0])
+    beta = T @ theta
+    phys = beta_to_physical("force-input", beta, TS)
+    assert phys.coulomb == pytest.approx(20.0)
+    assert phys.coulomb_pos == pytest.approx(18.0 if rest else 20.0)
+    assert phys.coulomb_neg == pytest.approx(22.0 if rest else 20.0)
+    assert phys.offset == pytest.approx(-3.0)
+
+
+def test_rest_is_a_long_stay_in_the_dead_band_not_a_reversal():
+    v = np.concatenate([np.full(50, 0.1), np.linspace(0.1, -0.1, 5), np.full(50, -0.1)])  # 1 sample near 0
+    assert rest_samples(v, 0.01, 0.003) == 0
+    v = np.concatenate([np.full(50, 0.1), np.zeros(40), np.full(50, -0.1)])  # 40 samples = 0.12 s at rest
+    assert rest_samples(v, 0.01, 0.003) == 40
+
+
+def test_delta_method_matches_monte_carlo():
+    beta = physical_to_beta("force-input", TS, 95.0, 200.0, coulomb_pos=20.0, coulomb_neg=20.0, offset=-3.0)
+    rng = np.random.default_rng(0)
+    G = rng.normal(size=(5, 5))
+    cov = (G @ G.T) * (1e-4 * np.abs(beta))[:, None] * (1e-4 * np.abs(beta))[None, :]
+    phys, se = physical_covariance("force-input", beta, cov, TS)
+    draws = rng.multivariate_normal(beta, cov, size=4000)
+    mc = np.array([[beta_to_physical("force-input", d, TS).to_dict()[k] for k in phys] for d in draws])
+    np.testing.assert_allclose([se[k] for k in phys], mc.std(axis=0), rtol=0.08)
+
+
+def test_validity_problems_name_the_cause_and_what_to_try():
+    good = physical_to_beta("velocity-loop", TS, 100.0, 100.0, gain=GAIN, coulomb_pos=5.0, coulomb_neg=5.0)
+    assert validity_problems("velocity-loop", good, TS, gain=GAIN) == []
+    unstable = good.copy()
+    unstable[1] += 0.01  # p_d = β1 + β2 > 1
+    (msg,) = validity_problems("velocity-loop", unstable, TS, gain=GAIN)
+    assert "pole" in msg and "≥ 1" in msg and "--period" in msg and "--method ls" in msg
+    negative_gain = good.copy()
+    negative_gain[0] = -negative_gain[0]
+    assert any("input gain" in m and "sign of the command" in m
+               for m in validity_problems("velocity-loop", negative_gain, TS, gain=GAIN))
+    negative = physical_to_beta("velocity-loop", TS, 100.0, 100.0, gain=GAIN, coulomb_pos=-5.0, coulomb_neg=-5.0)
+    (msg,) = validity_problems("velocity-loop", negative, TS, gain=GAIN)
+    assert "Coulomb friction negative beyond its uncertainty" in msg
+    # within its uncertainty a slightly negative friction is not a fault
+    assert validity_problems("velocity-loop", negative, TS, gain=GAIN,
+                             physical_se={"coulomb": 4.0, "coulomb_pos": 4.0, "coulomb_neg": 4.0}) == []
+    with pytest.raises(ValueError, match="cannot be right.*pole"):
+        check_validity("velocity-loop", unstable, TS, gain=GAIN)

@@ -152,7 +152,7 @@ def messages(c, count: int, seq0: int = 0) -> list[tuple[str, bytes, bool]]:
     for _ in range(count):
         d = _valid(c, seq, t0)
         n = len(d["t"])
-        seq, t0 = seq + n + c.pick([0, 0, 0, 1, -2 * n]), t0 + 0.003 * n
+        seq, t0 = max(0, seq + n + c.pick([0, 0, 0, 1, -2 * n])), t0 + 0.003 * n  # a jump back, never below 0
         if c.integer(0, 2) == 0:
             out.append((T.samples_key(PREFIX, d["machine"], d["axis"]), _encode(d), True))
         else:

@@ -109,16 +109,41 @@ def test_message_size_limits_in_feedmon_run(work, trial):
                 pub.put(S.encode(b))
             pub.put(pad(limit))  # exactly the limit: accepted (samples 100..104)
             pub.put(pad(limit + 1))  # over it: refused in the callback, counted
-            pub.put(pad(3 * limit))  # over 2x + 64 KiB: dropped by Zenoh, never reassembled
             for b in blocks_of(trial, 105, 200):
                 pub.put(S.encode(b))
             st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 199)
+            a = st["axes"][AXIS]
+            assert a["drops"] == {"too_large": 1} and st["input"]["too_large"] == 1
+            assert a["samples_in"] == 200 and a["gaps"] == 0 and st["limits"]["max_message_bytes"] == limit
+
+            # Well over 2x + 64 KiB, the transport limit (transport/link/rx/max_message_size). Messages of
+            # that peer may be lost around it (Zenoh clears its reassembly state): that costs the offending
+            # peer its own data, never the monitor. Publish fresh blocks until one lands.
+            pub.put(pad(4 * limit))
+            landed = None
+            for b in blocks_of(trial, 200, trial.t.size):
+                pub.put(S.encode(b))
+                st = query_last(s, mon.proc.pid)
+                if st is not None and st["axes"][AXIS]["last_seq"] >= 200:
+                    landed = st
+                    break
+            assert landed is not None, "no block landed after the oversized message"
+        assert mon.proc.poll() is None, "the monitor died of an oversized message"
     finally:
         rc = mon.stop()
     assert rc == 0, mon.stderr
-    a = st["axes"][AXIS]
-    assert a["drops"] == {"too_large": 1} and st["input"]["too_large"] == 1
-    assert a["samples_in"] == 200 and a["gaps"] == 0 and st["limits"]["max_message_bytes"] == limit
+    # Dropped by Zenoh (not counted) or refused by the callback (counted): never parsed, never accepted.
+    # Zenoh 1.10 enforces its receive limit only on some oversized messages of a link (measured), so the
+    # callback's exact limit is what the monitor relies on.
+    a = landed["axes"][AXIS]
+    assert set(a["drops"]) == {"too_large"} and a["drops"]["too_large"] in (1, 2)
+    assert landed["input"]["too_large"] == a["drops"]["too_large"]
+
+
+def query_last(session, pid):
+    """This monitor's status reply, or None if it did not answer within 2 s."""
+    replies = [r for r in T.query_status(session, PREFIX, timeout=2.0) if r.get("monitor", {}).get("pid") == pid]
+    return replies[0] if replies else None
 
 
 # ---- names: bounded tables, no log flood, no forged lines, tables that print -------------------

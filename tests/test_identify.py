@@ -1,21 +1,40 @@
-"""`feedmon identify`: LS vs PL-LSSVM on simulated trials with known truth and on the real EMPS drive."""
+"""`feedmon identify`: candidates chosen by evidence among the valid ones, on simulated trials with known
+truth and on the real EMPS drive (issue 10). Every identification runs once per session (cached)."""
 
+import contextlib
+import io
 import json
+import math
 
 import numpy as np
 import pytest
 
+from feedio.mcapio import read_trial
 from feedmon.cli import main
+from monitor.identify import identify
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
+from replay.scenarios import load_scenario
+from replay.simulator import simulate, write_trial
 
 SHAKER_PERIOD = 1 / 55
+JSON_KEYS = {"form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth"}
+PHYSICAL_KEYS = {"inertia", "damping", "coulomb", "coulomb_pos", "coulomb_neg", "offset"}
+
+_RUNS: dict = {}
 
 
-def identify_json(capsys, *argv) -> dict:
-    capsys.readouterr()
-    assert main(["identify", *map(str, argv), "--json"]) == 0
-    return json.loads(capsys.readouterr().out)
+def run_identify(trial, *args, output=None) -> tuple[int, dict | None, str]:
+    """``feedmon identify TRIAL ARGS --json [-o output]`` → (exit code, JSON document, stderr); cached."""
+    key = (str(trial), args, str(output))
+    if key not in _RUNS:
+        argv = ["identify", str(trial), *map(str, args), "--json"] + (["-o", str(output)] if output else [])
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(argv)
+        text = out.getvalue()
+        _RUNS[key] = (code, json.loads(text) if text.strip() else None, err.getvalue())
+    return _RUNS[key]
 
 
 def _rel(est, true):
@@ -23,111 +42,228 @@ def _rel(est, true):
     return np.abs(est - true) / np.abs(true)
 
 
-@pytest.mark.parametrize("scenario", ["shaker-constant", "shaker-sweep"])
-def test_shaker_pl_lssvm_unbiased_ls_biased(simulated, capsys, scenario):
-    doc = identify_json(capsys, simulated(scenario), "--period", SHAKER_PERIOD)
-    truth = doc["truth"]["beta"]
-    pl_err = _rel(doc["pl_lssvm"]["beta"], truth)
-    ls_err = _rel(doc["ls"]["beta"], truth)
-    assert np.all(pl_err < 0.005), pl_err
-    assert ls_err.max() >= 5 * pl_err.max(), (ls_err, pl_err)
-    # the disturbance estimate follows the true shaker force
-    assert doc["truth"]["disturbance_correlation"] > 0.95
-    assert doc["coulomb"] is True and len(doc["pl_lssvm"]["beta"]) == 4
-
-
-def test_milling_incdec_pl_lssvm_within_2_percent(simulated, capsys):
-    doc = identify_json(capsys, simulated("milling-incdec"))
-    assert doc["period"] == pytest.approx(0.02)  # from the spindle speed in the metadata (runout)
-    assert doc["coulomb"] is False  # no speed reversal: columns dropped, and said so
-    assert any("no speed reversal" in n for n in doc["notes"])
-    truth = doc["truth"]["beta"]
-    assert np.all(_rel(doc["pl_lssvm"]["beta"], truth) < 0.02)
-    assert _rel(doc["ls"]["beta"], truth)[0] > 0.2  # LS badly biased by the cutting force
-
-
-def test_json_document_has_the_documented_keys(simulated, capsys):
-    doc = identify_json(capsys, simulated("shaker-control"), "--period", SHAKER_PERIOD)
-    for key in ("form", "Ts", "period", "hyperparameters", "ls", "pl_lssvm", "truth"):
-        assert key in doc
-    assert {"beta", "stderr", "physical", "rmse"} <= set(doc["ls"])
-    assert {"beta", "physical", "rmse"} <= set(doc["pl_lssvm"])
-    phys = doc["pl_lssvm"]["physical"]
-    assert {"inertia", "damping", "coulomb_pos", "coulomb_neg"} <= set(phys)  # loop gain in the metadata
-    assert phys["inertia"] == pytest.approx(doc["truth"]["physical"]["inertia"], rel=0.02)
-    assert all(s > 0 for s in doc["ls"]["stderr"])
-
-
-def test_without_loop_gain_only_ratios(simulated, tmp_path, capsys):
-    # a CSV export carries no loop gain: the report must say only J/K and B/K are identifiable
-    from feedio.mcapio import read_trial
-    from monitor.identify import identify
-
-    trial = read_trial(simulated("shaker-control"))
-    trial.meta.loop_gain = None
-    ident = identify(trial, period=SHAKER_PERIOD)
-    assert "inertia" not in ident.pl.physical and "inertia_over_gain" in ident.pl.physical
-    assert any("only J/K and B/K" in n for n in ident.notes)
-
-
-def test_model_file_and_report(simulated, tmp_path, capsys):
-    model_path = tmp_path / "axis.model.toml"
-    report = tmp_path / "report"
-    assert main(["identify", str(simulated("shaker-constant")), "--period", str(SHAKER_PERIOD),
-                 "-o", str(model_path), "--report", str(report)]) == 0
-    out = capsys.readouterr().out
-    assert "PL-LSSVM" in out and "β1" in out
-    model = load_model(model_path)
-    assert model.form == "velocity-loop" and model.coulomb and len(model.beta) == 4
-    assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD)
-    assert len(model.provenance["sha256"]) == 64
-    pngs = list(report.glob("*.png"))
-    assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and pngs[0].stat().st_size > 50_000
-    md = next(report.glob("*.md")).read_text()
-    assert "| β1 (v_ref) |" in md and "PL-LSSVM" in md
-
-
-def test_no_period_is_a_clear_error(simulated, capsys):
-    assert main(["identify", str(simulated("shaker-control"))]) == 2
-    err = capsys.readouterr().err
-    assert "no disturbance period" in err and "--period" in err
-
-
-def test_coulomb_forced_without_reversal_fails_clearly(simulated, capsys):
-    assert main(["identify", str(simulated("milling-inc")), "--coulomb"]) == 2
-    err = capsys.readouterr().err
-    assert "-sigma_n" in err and "--no-coulomb" in err
-
-
 def _emps_errors(phys):
     fc = (phys["coulomb_pos"] + phys["coulomb_neg"]) / 2  # published Fc is symmetric
+    assert fc == pytest.approx(phys["coulomb"], rel=1e-12)
     return (phys["inertia"] / EMPS_REFERENCE["M"] - 1, phys["damping"] / EMPS_REFERENCE["Fv"] - 1,
-            fc / EMPS_REFERENCE["Fc"] - 1)
+            fc / EMPS_REFERENCE["Fc"] - 1, phys["offset"] - EMPS_REFERENCE["offset"])
 
 
 @pytest.fixture(scope="module")
 def emps_trials(tmp_path_factory, emps_file):
     out = {}
     folder = tmp_path_factory.mktemp("emps")
-    for name, mat in (("plain", "DATA_EMPS.mat"), ("pulses", "DATA_EMPS_PULSES.mat")):
+    for name, mat, rate in (("plain", "DATA_EMPS.mat", 333), ("plain1000", "DATA_EMPS.mat", 1000),
+                            ("pulses", "DATA_EMPS_PULSES.mat", 333)):
         out[name] = folder / f"{name}.mcap"
-        assert main(["import", "emps", str(emps_file(mat)), "-o", str(out[name])]) == 0
+        assert main(["import", "emps", str(emps_file(mat)), "-o", str(out[name]), "--rate", str(rate)]) == 0
     return out
 
 
-def test_emps_real_drive_least_squares(emps_trials, capsys):
-    doc = identify_json(capsys, emps_trials["plain"], "--period", 1.0)
-    m, fv, fc = _emps_errors(doc["ls"]["physical"])
-    assert abs(m) < 0.01 and abs(fv) < 0.03 and abs(fc) < 0.03, (m, fv, fc)
+# ------------------------------------------------------------------------------------------------
+# the real drive
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("trial", ["plain", "plain1000"])
+def test_emps_clean_data_chooses_ls_and_writes_the_published_model(emps_trials, tmp_path_factory, trial):
+    """No disturbance: a kernel in time would take the Coulomb friction (it competes with sign(v));
+    the choice must not fall for it — the model written is as good as LS."""
+    model_path = tmp_path_factory.mktemp("m") / "emps.model.toml"
+    code, doc, _ = run_identify(emps_trials[trial], output=model_path)
+    assert code == 0 and set(doc) == JSON_KEYS
+    assert doc["chosen"] == "ls" and doc["model"]["method"] == "ls"
+    model = load_model(model_path)
+    m, fv, fc, offset = _emps_errors(model.physical)
+    assert abs(m) < 0.01 and abs(fv) < 0.03 and abs(fc) < 0.03 and abs(offset) < 1.0, (m, fv, fc, offset)
+    assert model.beta_names[-1] == "one" and model.beta_se is not None
+    assert set(model.physical) == PHYSICAL_KEYS and set(model.physical_se) == PHYSICAL_KEYS
+    kernels = [c for c in doc["candidates"] if c["method"] == "pl_lssvm"]
+    assert kernels and all(not c["valid"] and "competes" in c["why_not"] for c in kernels)
+    assert any(c["kernel"] == "squared_exponential" and c["log_evidence"] > doc["candidates"][0]["log_evidence"]
+               for c in kernels)  # the kernel "explains" more, yet is no valid choice
+    assert any("no rest" in n for n in doc["ls"]["notes"])  # asymmetry and offset not separable: said so
 
 
 @pytest.mark.slow
-def test_emps_pulses_tuned_pl_lssvm(emps_trials, capsys):
-    doc = identify_json(capsys, emps_trials["pulses"], "--period", 1.0, "--tune")
-    m_ls, _, _ = _emps_errors(doc["ls"]["physical"])
+def test_emps_pulses_period_found_and_disturbance_recovered(emps_trials):
+    code, doc, _ = run_identify(emps_trials["pulses"])
+    assert code == 0
+    assert doc["period"]["source"] == "detected" and doc["period"]["value"] == pytest.approx(1.0, rel=0.02)
+    assert doc["chosen"] == "pl_lssvm"
+    m, fv, fc, _ = _emps_errors(doc["model"]["physical"])
+    # with the pulse force known, least squares on this trial gives Fv = 214 N·s/m (+5.3 %): the data's own
+    # answer; the test allows that (see the report)
+    assert abs(m) < 0.02 and abs(fv) < 0.06 and abs(fc) < 0.05, (m, fv, fc)
+    m_ls, _, _, _ = _emps_errors(doc["ls"]["physical"])
     assert abs(m_ls) > 1.0  # LS: the unknown 176 N pulses bias M by hundreds of percent
-    m, fv, fc = _emps_errors(doc["pl_lssvm"]["physical"])
-    assert abs(m) < 0.03 and abs(fv) < 0.07 and abs(fc) < 0.05, (m, fv, fc)
-    assert doc["truth"]["force_correlation"] >= 0.98
-    hp = doc["hyperparameters"]
-    assert hp["tuned"] and np.isfinite(hp["log_likelihood"]) and hp["evaluations"] > 10
+    assert doc["truth"]["disturbance_correlation"] >= 0.99
+    # the offset holds the pulses' mean force (88 N): said so, never passed off as the drive's offset
+    offset_told = ("offset" in doc["pl_lssvm"]["undetermined"]
+                   or any("mean force" in n for n in doc["pl_lssvm"]["notes"]))
+    assert offset_told, doc["pl_lssvm"]["notes"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("period", [0.8, 2.0])
+def test_emps_pulses_wrong_period_is_noticed(emps_trials, tmp_path_factory, period):
+    model_path = tmp_path_factory.mktemp("m") / "wrong.model.toml"
+    code, doc, _ = run_identify(emps_trials["pulses"], "--period", period, output=model_path)
+    assert code == 0 and doc["period"]["value"] == period and doc["period"]["source"] == "given"
+    assert doc["period"]["suggested"] == pytest.approx(1.0, rel=0.02)
+    assert any("the data prefer ψ = 1" in n for n in doc["ls"]["notes"])
+    load_model(model_path)  # what was written is a model that can be right
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("trial, period", [("plain", 1.0), ("pulses", 0.5)])
+def test_no_period_makes_identify_write_an_invalid_model(emps_trials, tmp_path_factory, trial, period):
+    model_path = tmp_path_factory.mktemp("m") / "p.model.toml"
+    code, doc, err = run_identify(emps_trials[trial], "--period", period, output=model_path)
+    if code == 0:
+        model = load_model(model_path)  # refuses a model that cannot be right
+        assert model.validity_problems() == []
+        chosen = [c for c in doc["candidates"] if c["valid"]]
+        assert chosen and doc["chosen"] in {c["method"] for c in chosen}
+    else:
+        assert code == 1 and not model_path.exists() and "not" in err
+
+
+# ------------------------------------------------------------------------------------------------
+# simulated drives with known truth
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("scenario", ["shaker-constant", "shaker-sweep"])
+def test_shaker_pl_lssvm_unbiased_ls_biased(simulated, scenario):
+    code, doc, _ = run_identify(simulated(scenario, duration=20.0), "--period", SHAKER_PERIOD)
+    assert code == 0 and doc["chosen"] == "pl_lssvm"
+    truth = doc["truth"]["beta"]
+    pl_err = _rel(doc["pl_lssvm"]["beta"], truth)
+    ls_err = _rel(doc["ls"]["beta"], truth)
+    assert np.all(pl_err < 0.005), pl_err
+    assert ls_err.max() >= 5 * pl_err.max(), (ls_err, pl_err)
+    assert doc["truth"]["disturbance_correlation"] > 0.95
+    assert doc["pl_lssvm"]["beta_names"] == ["v_ref", "v_meas", "-sigma_p", "-sigma_n", "one"]
+    errs = doc["truth"]["model_physical_error"]
+    assert errs["inertia"] < 0.01 and errs["damping"] < 0.02 and errs["coulomb"] < 0.05
+
+
+def test_milling_incdec_period_from_spindle_and_damping_flagged(simulated):
+    code, doc, _ = run_identify(simulated("milling-incdec", duration=20.0))
+    assert code == 0
+    assert doc["period"] == {"value": pytest.approx(0.02), "source": "spindle", "suggested": None}
+    assert any("no speed reversal" in n for n in doc["ls"]["notes"])  # Coulomb columns dropped, and said so
+    assert doc["pl_lssvm"]["beta_names"] == ["v_ref", "v_meas", "one"]
+    truth = doc["truth"]["beta"]
+    assert np.all(_rel(doc["pl_lssvm"]["beta"], truth) < 0.02)
+    assert _rel(doc["ls"]["beta"], truth)[0] > 0.2  # LS badly biased by the cutting force
+    # the mean cutting force follows the feed: damping competes with the disturbance model, and is flagged
+    assert "damping" in doc["pl_lssvm"]["competing"] and doc["pl_lssvm"]["vif"]["damping"] > 10
+
+
+@pytest.fixture(scope="module")
+def far_trials(tmp_path_factory):
+    """Drives far from the defaults: J, B × 0.2 and × 5, and the ratio B/J changed 25× either way; the loop
+    gain keeps K_d of the default drive (closed-loop pole p_d − K_d unchanged in stability)."""
+    folder = tmp_path_factory.mktemp("far")
+    out = {}
+    for scenario in ("shaker-control", "shaker-constant"):
+        base = load_scenario(scenario)
+        d, Ts = base["drive"], 1.0 / base["rate"]
+        kd = d["loop_gain"] * (1 - math.exp(-d["damping"] * Ts / d["inertia"])) / d["damping"]
+        for fj, fb in ((0.2, 0.2), (5.0, 5.0), (5.0, 0.2), (0.2, 5.0)):
+            J, B = d["inertia"] * fj, d["damping"] * fb
+            K = kd * B / (1 - math.exp(-B * Ts / J))
+            sc = load_scenario(scenario, {"drive": {"inertia": J, "damping": B, "loop_gain": K}}, duration=20.0)
+            path = folder / f"{scenario}-{fj}-{fb}.mcap"
+            write_trial(simulate(sc, seed=3), path)
+            out[(scenario, fj, fb)] = path
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["shaker-control", "shaker-constant"])
+@pytest.mark.parametrize("fj, fb", [(0.2, 0.2), (5.0, 5.0), (5.0, 0.2), (0.2, 5.0)])
+def test_drives_far_from_the_defaults(far_trials, scenario, fj, fb):
+    code, doc, _ = run_identify(far_trials[(scenario, fj, fb)])
+    assert code == 0
+    truth = doc["truth"]["physical"]
+    phys = doc["model"]["physical"]
+    assert phys["inertia"] == pytest.approx(truth["inertia"], rel=0.02)
+    assert phys["damping"] == pytest.approx(truth["damping"], rel=0.02)
+    for key in ("coulomb_pos", "coulomb_neg"):  # right sign and direction (+ 9 N, − 10 N in the scenario)
+        assert phys[key] == pytest.approx(truth[key], rel=0.05)
+    assert doc["chosen"] == ("ls" if scenario == "shaker-control" else "pl_lssvm")
+
+
+def test_json_document_has_exactly_the_documented_shape(simulated):
+    code, doc, _ = run_identify(simulated("shaker-control", duration=20.0))
+    assert code == 0 and set(doc) == JSON_KEYS
+    assert set(doc["period"]) == {"value", "source", "suggested"}
+    assert doc["period"]["source"] == "none" and doc["period"]["value"] is None  # nothing periodic to find
+    for c in doc["candidates"]:
+        assert set(c) == {"method", "kernel", "period", "hyperparameters", "log_evidence", "valid", "why_not"}
+    assert [c["method"] for c in doc["candidates"]] == ["ls", "pl_lssvm"]  # LS and the squared exponential
+    assert set(doc["model"]) == {"method", "beta", "beta_se", "physical", "physical_se"}
+    assert doc["chosen"] == "ls" and doc["model"]["beta"] == doc["ls"]["beta"]
+    assert set(doc["model"]["physical"]) == PHYSICAL_KEYS == set(doc["model"]["physical_se"])
+    assert all(s > 0 for s in doc["model"]["beta_se"])
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(doc["truth"]["physical"]["inertia"], rel=0.01)
+    json.dumps(doc, allow_nan=False)  # strict JSON
+
+
+def test_without_loop_gain_only_ratios(simulated):
+    trial = read_trial(simulated("shaker-control", duration=20.0))
+    trial.meta.loop_gain = None
+    ident = identify(trial, method="ls", tune=False)
+    assert set(ident.ls.physical) == {f"{k}_over_gain" for k in PHYSICAL_KEYS}
+    assert any("only J/K" in n for n in ident.notes)
+
+
+def test_model_file_and_report(simulated, tmp_path):
+    model_path = tmp_path / "axis.model.toml"
+    report = tmp_path / "report"
+    trial = simulated("shaker-constant", duration=20.0)
+    assert main(["identify", str(trial), "--period", str(SHAKER_PERIOD), "-o", str(model_path),
+                 "--report", str(report)]) == 0
+    model = load_model(model_path)
+    assert model.form == "velocity-loop" and model.coulomb and model.beta_names[-1] == "one"
+    assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD)
+    assert model.identification["chosen"] == "pl_lssvm" and len(model.candidates) >= 4
+    assert len(model.provenance["sha256"]) == 64 and model.validity_warning is None
+    pngs = list(report.glob("*.png"))
+    assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and pngs[0].stat().st_size > 50_000
+    md = next(report.glob("*.md")).read_text()
+    assert "**Chosen model: PL-LSSVM" in md and "| LS |" in md and "log evidence" in md
+    assert "disturbance correlation with the truth" in md and "vs truth" in md
+
+
+def test_invalid_model_refused_unless_forced_and_run_refuses_it(emps_trials, tmp_path, capsys):
+    """The thesis' PL-LSSVM at ψ = 1 s on the clean EMPS trial takes the Coulomb friction (it competes with
+    sign(v)): asked for explicitly it is refused (exit 1, nothing written); --force writes it with the
+    warning in the file and 'feedmon run' refuses the file with that reason."""
+    trial = emps_trials["plain"]
+    refused = tmp_path / "refused.toml"
+    argv = ["identify", str(trial), "--method", "pl-lssvm", "--period", "1", "--no-tune"]
+    assert main([*argv, "-o", str(refused)]) == 1
+    err = capsys.readouterr().err
+    assert "no PL-LSSVM candidate is a valid model" in err and "competes" in err and "Nothing written" in err
+    assert not refused.exists()
+    forced = tmp_path / "forced.toml"
+    assert main([*argv, "-o", str(forced), "--force"]) == 0
+    text = forced.read_text()
+    assert "[validity]" in text and "--force" in text
+    assert load_model(forced, allow_invalid=True).validity_warning.startswith("written with --force")
+    out = tmp_path / "est.mcap"
+    assert main(["run", "--from", str(trial), "-o", str(out), "--model", str(forced)]) == 2
+    err = capsys.readouterr().err
+    assert "forced.toml" in err and "validity.warning" in err and "competes" in err
+
+
+def test_clear_errors(simulated, capsys):
+    trial = simulated("shaker-control", duration=20.0)
+    assert main(["identify", str(trial), "--period", "0.02", "--spindle-rpm", "3000"]) == 2
+    assert "--period and --spindle-rpm" in capsys.readouterr().err
+    assert main(["identify", str(trial), "--period", "1e-5"]) == 2
+    assert "shorter than two samples" in capsys.readouterr().err
+    assert main(["identify", str(simulated("milling-inc")), "--coulomb"]) == 2
+    err = capsys.readouterr().err
+    assert "-sigma_n" in err and "--no-coulomb" in err

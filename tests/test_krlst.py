@@ -11,6 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kernels import KRLST, LocallyPeriodic, SquaredExponential, Step
+from kernels import _krlst_core as core
+from kernels.krlst_numpy import NumpyKRLST
 
 DATA = Path(__file__).parent / "data" / "krlst"
 G1 = dict(gamma=5.85, forgetting=0.996, budget=100, jitter=1e-6)   # golden README, g1
@@ -37,6 +39,28 @@ def _stream(n, seed=0):
 
 # -- 1. golden vectors (kafbox krlst.m) -------------------------------------------------------
 
+#: relative gap between the two smallest pruning criteria below which kafbox's own decision is
+#: rounding noise: its recursive Q is accurate to ~1e-3 only, and the criterion
+#: |[Q_new μ]_i / [Q_new]_ii| cancels terms of size |q|²/γ²; float64 NumPy and Matlab already
+#: part ways on this stream at a gap of 1.7e-2 (row 642)
+NEAR_TIE = 2e-2
+
+
+def _assert_first_divergence_is_a_near_tie(t, y, removed, gold_removed):
+    """Our pruning decisions equal kafbox's until the first row where they differ, and there the
+    NumPy port of kafbox (same decisions as kafbox up to that row) sees a near-tie."""
+    differs = removed + 1 != gold_removed
+    if not differs.any():
+        return
+    first = int(np.argmax(differs))
+    assert first >= 100                                   # not before the dictionary is full
+    ref = NumpyKRLST(g1_kernel(), **G1)
+    for i in range(first + 1):
+        ref.learn_one(t[i], y[i])
+        if i < first:
+            assert ref.removed + 1 == gold_removed[i], i
+    assert ref.criterion_gap < NEAR_TIE, (first, ref.criterion_gap)
+
 
 @pytest.mark.parametrize("grid_step", [None, TS], ids=["direct", "lag-table"])
 def test_golden_g1(g1, grid_step):
@@ -60,8 +84,7 @@ def test_golden_g1(g1, grid_step):
     np.testing.assert_array_equal(res["reduced"], res["removed"] == res["size"])
     assert np.all((res["removed"] >= 0) == (gold_removed > 0))       # prunes on the same rows
     # the same reduced/removed decisions until floating point picks another near-tie
-    first = np.argmax(res["removed"] + 1 != gold_removed)
-    assert first > 400
+    _assert_first_divergence_is_a_near_tie(t, y, res["removed"], gold_removed)
     gold_reduced = gold_removed == ref["dict_size"] + 1
     assert np.mean(res["reduced"] == gold_reduced) > 0.8
 
@@ -80,7 +103,7 @@ def test_golden_g1_with_refresh_midstream(g1, grid_step):
     np.testing.assert_array_equal(res["size"], ref["dict_size"].astype(int))
     gold_removed = ref["removed_index"].astype(int)
     assert np.all((res["removed"] >= 0) == (gold_removed > 0))
-    assert np.argmax(res["removed"] + 1 != gold_removed) > 400
+    _assert_first_divergence_is_a_near_tie(t, y, res["removed"], gold_removed)
     gold_reduced = gold_removed == ref["dict_size"] + 1
     assert np.mean(res["reduced"] == gold_reduced) > 0.8
     assert tr.inverse_error() < 1e-8                   # refreshed at sample 3000 (the last)
@@ -191,18 +214,31 @@ def test_refresh_restores_the_inverse():
     np.testing.assert_allclose(fresh.Q, np.linalg.inv(fresh.K), rtol=0, atol=1e-8 * np.abs(fresh.Q).max())
 
 
+def _set_k(st, i, j, v):
+    """``K_D[i, j] = K_D[j, i] = v`` in the core's (strict upper, diagonal) storage."""
+    if i == j:
+        st.Kd[i] = v
+    else:
+        st.K[min(i, j), max(i, j)] = v
+
+
 def test_refresh_keeps_q_when_k_is_singular():
-    from kernels import _krlst_core as core
     tr = KRLST(SquaredExponential(1.0), gamma=100.0, forgetting=1.0, budget=10, jitter=0.0, refresh_every=0)
     for i in range(5):
         tr.learn_one(np.array([float(i)]), 0.1 * i)
-    X, Q, S, K, mu, order, ist, fst, P = tr._state
-    K[order[1], :] = K[order[0], :]
-    K[:, order[1]] = K[:, order[0]]                      # two equal rows: not positive definite
-    before = Q.copy(), ist.copy()
-    assert not core.refresh_inverse(Q, K, order, ist, tr._W)
-    np.testing.assert_array_equal(Q, before[0])
-    np.testing.assert_array_equal(ist, before[1])
+    st = tr.core_state(np.zeros(1))
+    K = tr.K
+    a, b = st.order[0], st.order[1]
+    for j in range(tr.size):                             # row/column of b := those of a: singular
+        _set_k(st, b, st.order[j], K[0, j])
+    _set_k(st, a, b, K[0, 0])
+    _set_k(st, b, b, K[0, 0])
+    assert np.linalg.matrix_rank(tr.K) < tr.size
+    before = st.Q.copy(), st.Qd.copy(), st.ist.copy()
+    assert not core.refresh_inverse(st)
+    np.testing.assert_array_equal(st.Q, before[0])
+    np.testing.assert_array_equal(st.Qd, before[1])
+    np.testing.assert_array_equal(st.ist, before[2])
 
 
 def test_inverse_error_is_max_abs():
@@ -213,7 +249,9 @@ def test_inverse_error_is_max_abs():
     assert tr.inverse_error() == pytest.approx(np.max(np.abs(Q @ K - np.eye(len(K)))), rel=0, abs=0)
     np.testing.assert_array_equal(Q, Q.T)
     np.testing.assert_array_equal(tr.Sigma, tr.Sigma.T)
-    np.testing.assert_allclose(K, g1_kernel()(tr.dictionary) + G1["jitter"] * np.eye(len(K)), rtol=1e-14)
+    # the batch formula evaluates sin(π d/ψ) at arguments up to π·0.9 s/ψ ≈ 155 rad (rounding ~2e-14);
+    # the core's phases are reduced exactly (fmod) first, so the two agree to that
+    np.testing.assert_allclose(K, g1_kernel()(tr.dictionary) + G1["jitter"] * np.eye(len(K)), rtol=1e-12)
 
 
 # -- 4. non-finite input rejected, state untouched ----------------------------------------------
@@ -479,13 +517,38 @@ def test_track_many_input_checks():
     assert list(res["learned"]) == [False, True] and list(res["size"]) == [0, 1]
 
 
+def _layout1(prefix):
+    """A snapshot written by the full-matrix core (layout 1, commit 3b4f507; tests/data/krlst/README.md)."""
+    f = np.load(DATA / "snapshot_layout1.npz")
+    snap = {k[len(prefix) + 1:]: f[k] for k in f.files if k.startswith(prefix + ".") and ".expect." not in k}
+    expect = {k[len(prefix) + 8:]: f[k] for k in f.files if k.startswith(prefix + ".expect.")}
+    return f["t"], f["y"], snap, expect
+
+
+@pytest.mark.parametrize("prefix", ["unarmed", "armed"])
+def test_restore_snapshot_of_layout1(prefix):
+    # full Q, Sigma, K with pending rank-one updates (unarmed) or an armed prediction: converted,
+    # the continuation follows what the full-matrix core computed to rounding
+    t, y, snap, expect = _layout1(prefix)
+    assert "state_layout" not in snap and "Sigma" in snap
+    tr = KRLST.restore(snap)
+    assert tr.armed == (prefix == "armed") and tr.size == 24 and tr.refine and tr.refresh_every == 97
+    assert tr.inverse_error() < 1e-8
+    if prefix == "armed":
+        assert tr.update(y[150]).mean == pytest.approx(float(expect["first_mean"]), rel=1e-12)
+        res = tr.learn_many(t[151:], y[151:])
+    else:
+        res = tr.learn_many(t[150:], y[150:])
+    np.testing.assert_array_equal(res["size"], expect["size"])
+    np.testing.assert_array_equal(res["removed"], expect["removed"])
+    assert np.linalg.norm(res["mean"] - expect["mean"]) <= 1e-6 * np.linalg.norm(expect["mean"])
+    np.testing.assert_allclose(res["sigma_y2"], expect["sigma_y2"], rtol=1e-6)
+    assert KRLST.restore(tr.snapshot()).snapshot()["state_layout"] == 2
+
+
 def test_restore_snapshot_of_the_previous_format():
-    t, y = _stream(300, seed=16)
-    kw = dict(G1, budget=40)
-    a = KRLST(g1_kernel(), **kw)
-    a.learn_many(t[:200], y[:200])
-    snap = a.snapshot()
     # the format before refresh_every/refine/predict_next: ist[:6], fst[:10], P[:3], no new keys
+    t, y, snap, expect = _layout1("unarmed")
     old = dict(snap)
     for key in ("refresh_every", "refine"):
         del old[key]
@@ -494,7 +557,22 @@ def test_restore_snapshot_of_the_previous_format():
     old["P"] = snap["P"][:3].copy()
     b = KRLST.restore(old)
     assert b.refresh_every == KRLST.REFRESH_EVERY and not b.refine and not b.armed
-    np.testing.assert_array_equal(b.learn_many(t[200:], y[200:])["mean"], a.learn_many(t[200:], y[200:])["mean"])
+    res = b.learn_many(t[150:], y[150:])
+    np.testing.assert_array_equal(res["size"], expect["size"])
+    assert np.linalg.norm(res["mean"] - expect["mean"]) <= 1e-3 * np.linalg.norm(expect["mean"])
+
+
+def test_restore_rejects_snapshot_of_unknown_layout():
+    tr = KRLST(g1_kernel(), **G1)
+    tr.learn_many(*_stream(20))
+    snap = tr.snapshot()
+    snap["state_layout"] = np.array(7)
+    with pytest.raises(ValueError, match="state_layout"):
+        KRLST.restore(snap)
+    snap = tr.snapshot()
+    snap["Q"] = snap["Q"][:-1]
+    with pytest.raises(ValueError, match="'Q' has shape"):
+        KRLST.restore(snap)
 
 
 def test_bad_refresh_and_refine():

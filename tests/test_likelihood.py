@@ -5,7 +5,7 @@ import pytest
 from scipy.linalg import block_diag
 
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
-from kernels.likelihood import log_marginal_likelihood, reml_terms, tune
+from kernels.likelihood import default_bounds, log_evidence, log_marginal_likelihood, reml_terms, tune
 from kernels.pl_lssvm import pl_lssvm
 
 try:
@@ -33,20 +33,40 @@ def dense_reml(Z, y, A, intercept=True):
                    + np.linalg.slogdet(M)[1] - np.linalg.slogdet(Zt.T @ Zt)[1])
 
 
+def dense_gls_cov(Z, y, A, intercept=True):
+    """Reference GLS covariance ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹ (eq. L3)."""
+    n = y.size
+    Zt = np.column_stack([np.ones(n), Z]) if intercept else Z
+    M = Zt.T @ np.linalg.solve(A, Zt)
+    b = np.linalg.solve(M, Zt.T @ np.linalg.solve(A, y))
+    r = y - Zt @ b
+    s2 = r @ np.linalg.solve(A, r) / (n - Zt.shape[1])
+    return s2 * np.linalg.inv(M)
+
+
 @pytest.mark.parametrize("form", ["velocity-loop", "force-input"])
-def test_toeplitz_likelihood_equals_dense(form):
+def test_levinson_likelihood_and_gls_covariance_equal_dense(form):
     s = shaker_stream(501, amplitude=10.0, seed=11, form=form)
     reg = s.regression()
     kernel = LocallyPeriodic(*THESIS[:2], PSI)
     A = kernel(s.x) + np.eye(500) / THESIS[2]
-    ref = dense_reml(reg.Z, reg.y, A, intercept=(form == "velocity-loop"))
-    fast = log_marginal_likelihood(reg.Z, reg.y, kernel, THESIS[2], s.Ts, dense_limit=0)  # Levinson + PCG
-    dense = log_marginal_likelihood(reg.Z, reg.y, kernel, THESIS[2], s.Ts)  # Cholesky path
-    assert fast == pytest.approx(ref, rel=1e-8)
-    assert dense == pytest.approx(ref, rel=1e-8)
-    terms = reml_terms(reg.Z, reg.y, kernel, THESIS[2], s.Ts, dense_limit=0)
+    intercept = form == "velocity-loop"
+    ref = dense_reml(reg.Z, reg.y, A, intercept=intercept)
+    terms = reml_terms(reg.Z, reg.y, kernel, THESIS[2], s.Ts)
+    assert terms.solver == "levinson"
+    assert terms.log_likelihood == pytest.approx(ref, rel=1e-9)
     assert terms.logdet_A == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-10)
-    assert terms.solver.startswith("pcg-")
+    np.testing.assert_allclose(terms.cov, dense_gls_cov(reg.Z, reg.y, A, intercept), rtol=1e-7)
+    assert terms.intercept == intercept and terms.beta.size == reg.Z.shape[1]
+    # least squares is the same reading with A = I (comparable REML)
+    ls = reml_terms(reg.Z, reg.y, None, None, s.Ts)
+    assert ls.log_likelihood == pytest.approx(dense_reml(reg.Z, reg.y, np.eye(500), intercept=intercept), rel=1e-10)
+    np.testing.assert_allclose(ls.cov, dense_gls_cov(reg.Z, reg.y, np.eye(500), intercept), rtol=1e-8)
+
+
+def test_log_evidence_penalises_fitted_hyperparameters():
+    assert log_evidence(100.0, 0, 1010, 10) == 100.0
+    assert log_evidence(100.0, 3, 1010, 10) == pytest.approx(100.0 - 1.5 * np.log(1000.0))
 
 
 def test_likelihood_invariant_to_column_scaling():
@@ -75,16 +95,35 @@ def test_tune_beats_thesis_values_and_recovers_beta():
     s = shaker_stream(1501, amplitude=10.0, seed=5, sweep=True)
     reg = s.regression()
     seen = []
-    res = tune(reg.Z, reg.y, s.Ts, PSI, max_evaluations=120, progress=lambda *a: seen.append(a))
-    assert res.evaluations == len(seen) > 28
-    assert res.period == PSI
+    res = tune(reg.Z, reg.y, s.Ts, PSI, max_evaluations=60, progress=lambda *a: seen.append(a))
+    assert res.evaluations == len(seen) > 10
+    assert res.period == PSI and res.kind == "locally_periodic"
     thesis_kernel = LocallyPeriodic(*THESIS[:2], PSI)
     ll_thesis = log_marginal_likelihood(reg.Z, reg.y, thesis_kernel, THESIS[2], s.Ts)
     ll_tuned = log_marginal_likelihood(reg.Z, reg.y, res.kernel(), res.gamma, s.Ts)
     assert ll_tuned > ll_thesis
+    assert res.log_likelihood == pytest.approx(ll_tuned, rel=1e-12)  # the exact objective
+    assert res.terms.log_likelihood == pytest.approx(ll_tuned, rel=1e-12)
     pl = pl_lssvm(reg.Z, reg.y, res.kernel(), res.gamma, Ts=s.Ts)
     err = np.abs(pl.beta[:2] - s.beta[:2]) / s.beta[:2]
     assert np.all(err < 0.005), err
+
+
+def test_default_bounds_scale_with_the_record_and_bounds_are_reported():
+    b = default_bounds("locally_periodic", 3000, 0.001, 0.2)
+    assert b["sigma1"] == (0.4, 3.0) and b["sigma2"][0] == pytest.approx(0.05) and b["gamma"] == (1e-2, 1e6)
+    assert default_bounds("locally_periodic", 3000, 0.001, 0.002)["sigma2"][0] == pytest.approx(np.pi / 4)
+    assert default_bounds("squared_exponential", 3000, 0.001)["lengthscale"] == (0.01, 3.0)
+    # white noise only: nothing for a kernel to explain, γ ends on its lower bound and is reported
+    rng = np.random.default_rng(4)
+    n = 800
+    Z = np.column_stack([np.ones(n), rng.normal(size=n)])
+    y = Z @ [0.5, 2.0] + rng.normal(size=n)
+    res = tune(Z, y, 0.01, kind="squared_exponential", max_evaluations=25)
+    assert res.kind == "squared_exponential" and set(res.hyper) == {"lengthscale"}
+    assert res.on_bound  # a white residual leaves the kernel nothing to do: it ends on a bound
+    ls = log_marginal_likelihood(Z, y, None, None, 0.01)
+    assert res.log_likelihood - ls < 3.0  # and adds (next to) nothing to the evidence
 
 
 def test_errors():
@@ -96,6 +135,10 @@ def test_errors():
     with pytest.raises(ValueError, match="Ts"):
         log_marginal_likelihood(reg.Z, reg.y, LocallyPeriodic(0.5, 0.4, PSI), 50.0, 0.0)
     with pytest.raises(ValueError, match="bounds"):
-        tune(reg.Z, reg.y, s.Ts, PSI, bounds=((1, 0.5), (0.1, 1), (1, 10)))
+        tune(reg.Z, reg.y, s.Ts, PSI, bounds={"sigma1": (1, 0.5), "sigma2": (0.1, 1), "gamma": (1, 10)})
+    with pytest.raises(ValueError, match="bounds must give"):
+        tune(reg.Z, reg.y, s.Ts, PSI, bounds={"sigma1": (1, 2)})
+    with pytest.raises(ValueError, match="kernel family"):
+        tune(reg.Z, reg.y, s.Ts, PSI, kind="matern")
     with pytest.raises(ValueError, match="period"):
         tune(reg.Z, reg.y, s.Ts, -1.0)

@@ -82,11 +82,45 @@ def test_ts_only_equals_sample_times_and_tchan_path():
     b = pl_lssvm(reg.Z, reg.y, THESIS_KERNEL, GAMMA, x=s.x + 12.5, toeplitz_dense_limit=0)
     np.testing.assert_allclose(a.beta, b.beta, rtol=1e-10)
     long_kernel = LocallyPeriodic(10 * 1700 * s.Ts, 0.42, 1 / 55)
-    c = pl_lssvm(reg.Z, reg.y, long_kernel, GAMMA, Ts=s.Ts, toeplitz_dense_limit=0)
+    c = pl_lssvm(reg.Z, reg.y, long_kernel, GAMMA, Ts=s.Ts, toeplitz_dense_limit=0, solver="pcg")
     assert c.solver == "toeplitz-pcg-tchan"
     beta, _, _, f = dense_kkt(reg.Z, reg.y, long_kernel(s.x), GAMMA)
     np.testing.assert_allclose(c.beta, beta, rtol=1e-8)
     assert rel(c.f, f) < 1e-8
+    lev = pl_lssvm(reg.Z, reg.y, long_kernel, GAMMA, Ts=s.Ts, solver="levinson")
+    assert lev.solver == "toeplitz-levinson" and lev.iterations == 0
+    np.testing.assert_allclose(lev.beta, beta, rtol=1e-8)
+    assert rel(lev.f, f) < 1e-8
+
+
+def test_auto_falls_back_to_levinson_when_pcg_stalls():
+    """Long σ1 with a large γ: PCG needs thousands of iterations; auto switches to the exact Levinson
+    solve (no warning, same answer as the dense KKT system)."""
+    s = shaker_stream(1700, amplitude=10.0, seed=9)
+    reg = s.regression()
+    kernel = LocallyPeriodic(100.0, 0.05, 1 / 55)
+    res = pl_lssvm(reg.Z, reg.y, kernel, 1e6, Ts=s.Ts, toeplitz_dense_limit=0)
+    assert res.solver == "toeplitz-levinson"
+    beta, _, _, f = dense_kkt(reg.Z, reg.y, kernel(s.x), 1e6)
+    np.testing.assert_allclose(res.beta, beta, rtol=1e-6)
+
+
+def test_gls_covariance_is_that_of_the_gp_reading():
+    """cov(β) = ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹ with ŝ² = rᵀA⁻¹r/(N − p) (eq. L3), the same on every path."""
+    s = shaker_stream(900, amplitude=10.0, seed=4)
+    reg = s.regression()
+    A = THESIS_KERNEL(s.x) + np.eye(s.x.size) / GAMMA
+    Zt = np.column_stack([np.ones(s.x.size), reg.Z])
+    M = Zt.T @ np.linalg.solve(A, Zt)
+    b = np.linalg.solve(M, Zt.T @ np.linalg.solve(A, reg.y))
+    r = reg.y - Zt @ b
+    s2 = r @ np.linalg.solve(A, r) / (s.x.size - Zt.shape[1])
+    ref = s2 * np.linalg.inv(M)[1:, 1:]
+    for solver, limit in (("auto", 1500), ("pcg", 0), ("levinson", 0)):
+        res = pl_lssvm(reg.Z, reg.y, THESIS_KERNEL, GAMMA, Ts=s.Ts, solver=solver, toeplitz_dense_limit=limit)
+        np.testing.assert_allclose(res.cov, ref, rtol=1e-6)
+        np.testing.assert_allclose(res.stderr, np.sqrt(np.diag(ref)), rtol=1e-6)
+        assert res.s2 == pytest.approx(s2, rel=1e-8)
 
 
 def test_shaker_stream_ls_biased_pl_lssvm_recovers_beta():

@@ -53,7 +53,8 @@ def test_main_passes_and_prints_the_table():
 def test_every_criterion_holds_on_a_short_run(short_run):
     res, text = short_run
     assert res.ok, text
-    assert set(res.checks) == {"nan", "accounting", "memory", "inverse", "quality", "rate"}
+    assert set(res.checks) == {"nan", "accounting", "memory", "inverse", "quality", "health", "rate"}
+    assert res.health["ok"] > 150 and res.health["warn"] == res.health["alarm"] == 0
     assert res.samples > 55_000
     assert len(res.rows) == 10
     c = res.counters

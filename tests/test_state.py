@@ -137,8 +137,8 @@ def _set(key, fn):
     return edit
 
 
-def _asym(Q):
-    Q[0, 1] += 1e-3
+def _below_diagonal(Q):
+    Q[1, 0] += 1e-3  # the core keeps the strict upper triangle: the rest must stay zero
     return Q
 
 
@@ -146,8 +146,12 @@ def _free_slot(a):
     order, n = a["tracker.order"], int(a["tracker.ist"][core.I_N])
     free = int(order[n])  # dictionary 100 of 101 slots: one is free
     K = a["tracker.K"].copy()
-    K[free, :] = K[:, free] = 0.5  # symmetric, but a free slot must be empty
+    K[: free, free] = 0.5  # its column of the upper triangle, where a free slot must be empty
     a["tracker.K"] = K
+
+
+def _scaled(key, factor):
+    return _set(key, lambda x: x * factor)
 
 
 CRAFTED = {  # name -> (edit of the valid arrays, words of the reason)
@@ -157,9 +161,13 @@ CRAFTED = {  # name -> (edit of the valid arrays, words of the reason)
     "pending mode 7": (lambda a: _ist(a, core.I_QPEND, 7), "pending Q update is 7"),
     "negative step count": (lambda a: _ist(a, core.I_STEPS, -5), "step count"),
     "Q all NaN": (_set("tracker.Q", lambda q: np.full_like(q, np.nan)), "'tracker.Q' holds non-finite"),
-    "Sigma with inf": (_set("tracker.Sigma", lambda s: np.where(s == s.max(), np.inf, s)), "non-finite"),
-    "Q not symmetric": (_set("tracker.Q", _asym), "not symmetric"),
-    "K entries in a free slot": (_free_slot, "K has entries in free slots"),
+    "Sigma with inf": (_set("tracker.D", lambda s: np.where(s == s.max(), np.inf, s)), "non-finite"),
+    "Q below its triangle": (_set("tracker.Q", _below_diagonal), "on or below the diagonal"),
+    "K entries in a free slot": (_free_slot, "'K' has entries in free slots"),
+    "Q not the inverse of K": (_scaled("tracker.Q", 1.5), "Q is not the inverse of K_D"),
+    "K not the kernel of the dictionary": (_scaled("tracker.Kd", 1.1), "not the kernel of its dictionary"),
+    "Sigma beyond the prior": (_scaled("tracker.Dd", -1e3), "between 0 and the prior"),
+    "mu 1e300": (_set("tracker.mu", lambda m: np.where(m != 0, 1e300, m)), "implausibly large"),
     "trained 1e300": (lambda a: a.update({"estimator.trained": np.array(1e300)}), "'estimator.trained' is float64"),
     "trained 2**62": (lambda a: a.update({"estimator.trained": np.array(2**62)}), f"outside 0…{COUNT_MAX}"),
     "trained negative": (lambda a: a.update({"estimator.trained": np.array(-1)}), "outside"),
@@ -167,9 +175,9 @@ CRAFTED = {  # name -> (edit of the valid arrays, words of the reason)
     "other budget": (lambda a: a.update({"tracker.budget": np.array(10**6)}), "'tracker.budget'"),
     "forgetting inside the core": (_set("tracker.fst", lambda f: np.where(np.arange(f.size) == core.F_LAM, 0.5, f)),
                                    "forgetting"),
-    "Q of another shape": (lambda a: a.update({"tracker.Q": np.zeros((5, 5))}), "'tracker.Q' has shape (5, 5), expected (101, 101)"),
+    "Q of another shape": (lambda a: a.update({"tracker.Q": np.zeros((5, 5))}), "'tracker.Q' has shape (5, 5), expected ("),
     "order as floats": (_set("tracker.order", lambda o: o.astype(np.float64)), "'tracker.order' is float64"),
-    "a tracker array missing": (lambda a: a.pop("tracker.Sigma"), "missing tracker.Sigma"),
+    "a tracker array missing": (lambda a: a.pop("tracker.D"), "missing tracker.D"),
     "an unexpected entry": (lambda a: a.update({"evil": a.pop("tracker.mu")}), "unexpected entries 'evil.npy'"),
     "one entry too many": (lambda a: a.update({"evil": np.zeros(3)}), "entries; a state of this model has at most"),
     "another axis": (lambda a: a.update({"meta.axis": np.array("Y")}), "state of axis linear-drive/Y"),
@@ -257,10 +265,11 @@ def test_npy_header_lying_about_its_shape_is_refused_before_its_data(work, saved
 def test_too_many_entries_or_a_huge_file_are_refused_unread(work, saved, tmp_path):
     path, _ = saved
     members = {f"{k}.npy": _npy(v) for k, v in _arrays(path).items()}
+    n = len(members)
     members.update({f"x{i}.npy": b"" for i in range(100)})
     (tmp_path / "a").mkdir()
     _zip_with(tmp_path / "a" / path.name, members)
-    assert "126 entries; a state of this model has at most 26" in _load_fresh(work, tmp_path / "a")[1].detail
+    assert f"{n + 100} entries; a state of this model has at most {n}" in _load_fresh(work, tmp_path / "a")[1].detail
     (tmp_path / "b").mkdir()
     with open(tmp_path / "b" / path.name, "wb") as fh:  # 64 MB: beyond any state of this model
         fh.truncate(64 * 2**20)
@@ -437,7 +446,7 @@ def test_daemon_refuses_a_crafted_state_runs_and_saves_a_good_one(work, saved, t
     _write(_axis_state_path(tmp_path), arrays)
     mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--state-dir", str(tmp_path)], cwd=work)
     try:
-        assert "tracker state unreadable: tracker slot order is not a permutation" in mon.stderr, mon.stderr
+        assert "tracker state unreadable: tracker state 'order' is not a permutation" in mon.stderr, mon.stderr
         st = _replay_and_wait(mon, trial, len(trial))
         assert st["axes"]["linear-drive/Z"]["state"]["origin"] == "unreadable"
     finally:

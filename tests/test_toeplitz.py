@@ -8,6 +8,8 @@ from kernels.covariance import LocallyPeriodic, Periodic, SquaredExponential
 from kernels.toeplitz import (
     SymmetricToeplitz,
     ToeplitzSolver,
+    levinson_solve,
+    levinson_whiten,
     pcg,
     solve_spd_toeplitz,
     strang_eigenvalues,
@@ -114,10 +116,31 @@ def test_levinson_logdet_equals_slogdet(kernel):
     assert toeplitz_logdet(t * 7.0) == pytest.approx(ref + 900 * np.log(7.0), rel=1e-10)
 
 
+@pytest.mark.parametrize("kernel, gamma", [(KERNELS[0], 50.0), (SquaredExponential(0.003), 1e3),
+                                           (LocallyPeriodic(30.0, 0.05, 1 / 55), 1e6)], ids=["lp", "se-short", "lp-long-stiff"])
+def test_levinson_solve_and_whiten_equal_dense(kernel, gamma):
+    """A⁻¹B and L⁻¹B by Levinson–Durbin, whatever the conditioning (σ1 ≫ record, γ = 1e6), and for a
+    short kernel whose predictor would decay into subnormal numbers."""
+    n = 700
+    t = column(kernel, n, gamma)
+    A = toeplitz(t)
+    B = np.random.default_rng(3).normal(size=(n, 3))
+    X = levinson_solve(t, B)
+    ref = np.linalg.solve(A, B)
+    assert np.linalg.norm(X - ref) / np.linalg.norm(ref) < 1e-7 * max(1.0, gamma / 1e3)
+    np.testing.assert_allclose(levinson_solve(t, B[:, 0]), X[:, 0])
+    W, logdets = levinson_whiten(t, B.T[None, :, :])
+    L = np.linalg.cholesky(A)
+    np.testing.assert_allclose(W[0].T, np.linalg.solve(L, B), rtol=1e-6, atol=1e-7 * np.abs(W).max())
+    assert logdets[0] == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-9, abs=1e-6)
+
+
 def test_not_positive_definite_is_reported():
     with pytest.raises(ValueError, match="not positive definite"):
         toeplitz_logdet(np.array([1.0, 2.0, 0.0]))
     with pytest.raises(ValueError, match="not positive definite"):
         ToeplitzSolver(np.array([1.0, 2.0, 0.0]))
+    with pytest.raises(ValueError, match="not positive definite"):
+        levinson_solve(np.array([1.0, 2.0, 0.0]), np.ones(3))
     with pytest.raises(ValueError, match="non-finite value at lag 1"):
         SymmetricToeplitz([1.0, np.nan])

@@ -41,8 +41,9 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
   file is opened ``discover_seconds`` (default 1 s) after the first block, with
   every axis seen by then, so a multi-axis run does not rotate at start-up.
 
-Items: :class:`SampleBlock`, :class:`EstimateBlock`, or ``(machine, axis, TruthBlock)``
-(see :meth:`McapSink.offer_truth`).
+Items: :class:`SampleBlock`, :class:`EstimateBlock`, ``(machine, axis, TruthBlock)``
+(see :meth:`McapSink.offer_truth`) or :class:`Health` (:meth:`McapSink.offer_health`, channel
+``/<machine>/<axis>/health``).
 
 In its own process
 ------------------
@@ -55,7 +56,8 @@ pipe. The child decodes them (the schema checks again: what is logged went throu
 decoder as before) and runs a :class:`McapSink`, so the file is the same as with the sink
 in-process. Wire format: frames ``tag (1 byte), received_ns (int64), head length (u32),
 payload length (u32), head, payload`` back to back in one pipe message; tags ``S`` sample
-block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``); a pipe message
+block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``), ``H`` health report
+(as published on ``<prefix>/<machine>/<axis>/health``); a pipe message
 ``Q`` finishes. The child reports its :meth:`McapSink.status` whenever it changes (at most every
 ``report_interval`` s) and once at the end; the parent's status merges it (files, failures,
 drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
@@ -195,6 +197,11 @@ class McapSink(QueuedSink):
         """Queue a :class:`TruthBlock` of ``machine/axis`` (truth blocks carry no axis)."""
         return self.offer((machine, axis, block), received_ns)
 
+    def offer_health(self, machine: str, axis: str, report: S.Health, received_ns: int | None = None) -> bool:
+        """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; ``machine``/``axis`` are
+        the report's own)."""
+        return self.offer(report, received_ns)
+
     @property
     def rotating(self) -> bool:
         return self.rotate_bytes is not None or self.rotate_seconds is not None
@@ -291,12 +298,12 @@ class McapSink(QueuedSink):
 
     @staticmethod
     def _axis_of(item: Any) -> tuple[str, str]:
-        if isinstance(item, (S.SampleBlock, S.EstimateBlock)):
+        if isinstance(item, (S.SampleBlock, S.EstimateBlock, S.Health)):
             return item.machine, item.axis
         if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             return str(item[0]), str(item[1])
         raise TypeError(
-            f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+            f"McapSink accepts SampleBlock, EstimateBlock, Health or (machine, axis, TruthBlock), got {type(item).__name__}"
         )
 
     def _release(self) -> None:
@@ -323,6 +330,9 @@ class McapSink(QueuedSink):
             self._call(lambda: w.write_estimates(item, log_time=rx))
             if self._pairer is not None:
                 self._write_scalars(self._pairer.add_estimates(item, rx))
+        elif isinstance(item, S.Health):
+            w = self._ensure_axis(item.machine, item.axis, None)
+            self._call(lambda: w.write_health(item, log_time=rx))
         elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             machine, axis, block = item
             w = self._ensure_axis(machine, axis, block)
@@ -331,7 +341,7 @@ class McapSink(QueuedSink):
                 self._write_scalars(self._pairer.add_truth(machine, axis, block))
         else:
             raise TypeError(
-                f"McapSink accepts SampleBlock, EstimateBlock or (machine, axis, TruthBlock), got {type(item).__name__}"
+                f"McapSink accepts SampleBlock, EstimateBlock, Health or (machine, axis, TruthBlock), got {type(item).__name__}"
             )
 
     def _write_scalars(self, ready: list) -> None:
@@ -450,18 +460,25 @@ class McapProcessSink(QueuedSink):
         return False
 
     def offer(self, item: Any, received_ns: int | None = None) -> bool:
-        """Queue a :class:`SampleBlock` or :class:`EstimateBlock` (encoded here)."""
+        """Queue a :class:`SampleBlock`, :class:`EstimateBlock` or :class:`Health` (encoded here)."""
         rx = time.time_ns() if received_ns is None else int(received_ns)
         if isinstance(item, S.SampleBlock):
             return self.offer_encoded(b"S", S.encode(item), rx)
         if isinstance(item, S.EstimateBlock):
             return self.offer_encoded(b"E", S.encode(item), rx)
-        raise TypeError(f"McapProcessSink accepts SampleBlock or EstimateBlock, got {type(item).__name__}")
+        if isinstance(item, S.Health):
+            return self.offer_encoded(b"H", S.encode(item), rx)
+        raise TypeError(f"McapProcessSink accepts SampleBlock, EstimateBlock or Health, got {type(item).__name__}")
 
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock, received_ns: int | None = None) -> bool:
         """Queue a :class:`TruthBlock` of ``machine/axis``."""
         rx = time.time_ns() if received_ns is None else int(received_ns)
         return self.offer_encoded(b"T", S.encode(block), rx, f"{machine}\0{axis}".encode())
+
+    def offer_health(self, machine: str, axis: str, report: S.Health, received_ns: int | None = None) -> bool:
+        """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; see
+        :meth:`McapSink.offer_health`)."""
+        return self.offer(report, received_ns)
 
     # ---- status ----------------------------------------------------------------------------
     def status(self):
@@ -597,6 +614,8 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
                 elif tag == b"T":
                     machine, axis = head.decode().split("\0", 1)
                     sink.offer_truth(machine, axis, S.decode_truth(payload), received_ns=rx)
+                elif tag == b"H":
+                    sink.offer(S.decode_health(payload), received_ns=rx)
                 else:
                     counts["undecodable"] += 1
             except (S.SchemaError, ValueError):

@@ -149,7 +149,12 @@ def describe_model(model, teeth: int | None = None) -> dict[str, Any]:
     kernel (s), Ts, force scaling, and the tool's teeth (argument, else a ``teeth`` attribute of the
     model when it has one)."""
     kernel = model.tracker.kernel or {}
-    period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "periodic") else None
+    period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "locally_periodic_zero_mean", "periodic") else None
+    if kernel.get("type") == "spindle":  # the spindle-phase kernel: its period in time at the nominal speed
+        per_rev = 60.0 / float(kernel["spindle_rpm"])
+        period = per_rev / int(kernel.get("teeth", 1)) if kernel.get("per") == "tooth" else per_rev
+        if teeth is None:
+            teeth = kernel.get("teeth")
     if teeth is None:
         teeth = getattr(model, "teeth", None)
     return {"period": float(period) if period else None, "Ts": float(model.Ts), "force": bool(model.force_scalable),

@@ -27,6 +27,8 @@ import signal
 import threading
 from typing import Any
 
+import msgspec
+
 from feedio import schema as S
 
 from .queued import QueuedSink
@@ -103,6 +105,8 @@ class RerunProcessSink(QueuedSink):
 
     def offer_health(self, machine: str, axis: str, health: dict[str, Any]) -> bool:
         """Queue a health report (see :meth:`RerunSink.offer_health`)."""
+        if isinstance(health, msgspec.Struct):  # a feedio.schema.Health message
+            health = msgspec.to_builtins(health)
         return self.offer(("health", {"machine": machine, "axis": axis, "health": dict(health)}))
 
     def status(self):

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from itertools import chain
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from feedio import schema as S
@@ -312,6 +313,8 @@ class RerunSink(QueuedSink):
     def offer_health(self, machine: str, axis: str, health: Mapping[str, Any]) -> bool:
         """Queue a health report (``{"seq", "t", "state": "ok"|"warn"|"alarm", "reasons": [...]}``,
         issue 11): the event log gets a line when the state of the axis changes."""
+        if isinstance(health, msgspec.Struct):  # a feedio.schema.Health message
+            health = msgspec.to_builtins(health)
         return self.offer(_HealthItem(machine, axis, dict(health)))
 
     def extra_status(self) -> dict[str, Any]:

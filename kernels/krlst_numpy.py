@@ -1,17 +1,28 @@
-"""Plain vectorised NumPy KRLS-T (kafbox ``krlst.m`` port), the baseline of ``krlst_step.py``.
+"""Plain vectorised NumPy KRLS-T (kafbox ``krlst.m`` port): the speed baseline of
+``benchmarks/krlst_step.py`` and an independent reference for the tests.
 
-Same algorithm as :mod:`kernels._krlst_core` (method §6: forget, predict, update,
-s0², prune, with the cached ``K_D`` updated by one row/column), written the way one
-would in NumPy: whole-array expressions, ``np.block``/``np.delete`` reallocation,
-the kernel row from :class:`kernels.Kernel` (NumPy path). No numba.
+Same algorithm as :mod:`kernels._krlst_core` (method §6: forget, predict, update, s0²,
+prune, with the cached ``K_D`` updated by one row/column), written the way one would in
+NumPy: whole-array expressions, ``np.block``/``np.delete`` reallocation, the kernel row from
+:class:`kernels.Kernel` (NumPy path), full matrices, no refinement, no numba.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["NumpyKRLST"]
+
 
 class NumpyKRLST:
+    """kafbox's KRLS-T with back-to-the-prior forgetting, eq. 2.14–2.22.
+
+    After each :meth:`learn_one`, ``removed`` is the 0-based index of the pruned basis (-1:
+    none; the new sample is last) and ``criterion_gap`` the relative gap between the two
+    smallest pruning criteria ``|[Qμ]_i/Q_ii|`` (``inf`` when the criterion was not used):
+    how near the pruning decision was to a tie.
+    """
+
     def __init__(self, kernel, gamma, forgetting, budget, jitter=1e-6):
         self.kernel = kernel
         self.sn2 = 1.0 / gamma
@@ -19,10 +30,14 @@ class NumpyKRLST:
         self.M = budget
         self.jitter = jitter
         self.dict = None
+        self.removed = -1
+        self.criterion_gap = np.inf
 
     def learn_one(self, x, y):
+        """Train on ``(x, y)``; returns the prediction ``ŷ`` made before ``y`` was seen."""
         x = np.atleast_1d(np.asarray(x, dtype=float))[None, :]
         sn2, lam, jit = self.sn2, self.lam, self.jitter
+        self.removed, self.criterion_gap = -1, np.inf
         if self.dict is None:
             k = self.kernel(x)[0, 0] + jit
             self.dict = x
@@ -65,7 +80,10 @@ class NumpyKRLST:
             if gamma2 < jit:
                 r = m - 1
             else:
-                r = int(np.argmin(np.abs((self.Q @ self.mu) / np.diag(self.Q))))
+                crit = np.abs((self.Q @ self.mu) / np.diag(self.Q))
+                r = int(np.argmin(crit))
+                two = np.partition(crit, 1)[:2]
+                self.criterion_gap = (two[1] - two[0]) / two[1]
             if r == m - 1:
                 self.Q = Qold
             else:
@@ -75,4 +93,5 @@ class NumpyKRLST:
             self.Sigma = np.delete(np.delete(self.Sigma, r, 0), r, 1)
             self.K = np.delete(np.delete(self.K, r, 0), r, 1)
             self.dict = np.delete(self.dict, r, 0)
+            self.removed = r
         return y_mean

@@ -1,0 +1,477 @@
+"""Health statistics of one axis: parameter drift and model validity (issue 11, item 3).
+
+Pure numerics: a per-sample ``@njit`` step on the normalised innovation and a
+per-tick (about once a second) verdict on the online physical parameters,
+allocation-free over a :class:`HealthState` of plain arrays, plus the thin
+Python class :class:`HealthMonitor`. Levels: 0 ``ok``, 1 ``warn``, 2 ``alarm``.
+
+Model validity (per sample)
+---------------------------
+Input: the normalised innovation ``ν(k) = e(k)/√S(k)`` of the joint tracker
+(:mod:`kernels.beta_tracker`: ``e = v_m(k+1) − β̂ᵀz(k) − f̂(k)``, ``S = s0²σ_y² + z̃ᵀPz̃``).
+When the model explains the data, ``ν`` has unit variance (KRLS-T's ``s0²`` is the
+running mean of ``e²/σ_y²``, eq. 2.20). A disturbance the model cannot explain — a
+spindle-speed change the time kernel does not know, a wrong model file — makes
+the tracker's one-step predictions fail and ``ν²`` large for as long as it lasts.
+
+    c(k) = min(ν(k)², c_max)                         clipped square (one outlier ≤ c_max)
+    m(k) = m(k−1) + a (c(k) − m(k−1)),  a = 1 − exp(−Ts/τ)   EWMA of ν², time constant τ
+    warn  while m ≥ θ_warn  for ≥ t_persist (and until m < θ_clear for ≥ t_hold)
+    alarm while m ≥ θ_alarm for ≥ t_persist (and until m < θ_warn for ≥ t_hold)
+
+Why these numbers (defaults; measured with ``benchmarks/online_checks.py``):
+``τ = 0.5 s``, ``θ_warn = 5``, ``θ_alarm = 8``, ``θ_clear = 3``, ``c_max = 16``
+(|ν| clipped at 4), ``t_persist = 0.25 s``, ``t_hold = 2 s``.
+
+* False alarms. For white Gaussian ``ν`` the EWMA has mean 1 and standard
+  deviation ``√(2a/(2−a)) ≈ 0.078`` (τ = 0.5 s at 333 Hz): ``θ_warn = 5`` is ~50
+  standard deviations away, so what sets the threshold is the *nominal* non-white
+  behaviour. Measured maxima of the EWMA on nominal streams: 1.1–1.5 (shaker,
+  milling), 2.7–2.8 over 1 h and 4 h of the soak stream (a 60 N shaker and a feed
+  force switched on abruptly every 18 s). θ_warn = 5 leaves a factor ≥ 1.8; the
+  clipping bounds one sample's contribution to 16/333 of a window, and the
+  persistence of 0.25 s rejects bursts. White-noise check in the tests: 2·10⁶
+  N(0, 1) samples, no warning.
+* Detection. After a 3000 → 2400 rpm spindle change with the time kernel at the
+  old period the EWMA passes 5 within ~0.2 s and stays above it for seconds
+  (peak ~11–12): warn 0.44 s after the change, alarm (θ = 8, below the clip
+  ceiling 16) shortly after.
+* Limits (documented): ``s0²`` is a cumulative mean, so after a persistent change
+  the normalisation catches up over tens of seconds and the verdict returns to
+  ok once the tracker has adapted (the spindle case: ~20 s). A whiteness test
+  (autocorrelation of ν) is not used: its nominal value depends on the noise
+  structure and the tracker (lag-1 autocorrelation measured −0.44 … +0.37).
+
+Parameter drift (per tick)
+--------------------------
+For each physical parameter j (inertia, damping, Coulomb +, Coulomb −, offset) with
+model-file value ``θ_j⁰ ± s_j⁰`` and online value ``θ̂_j ± ŝ_j``:
+
+    z_j = (θ̂_j − θ_j⁰) / √(ŝ_j² + s_j⁰²)            drift in combined standard errors
+    r_j = |θ̂_j − θ_j⁰| / scale_j                       relative drift (scale: |θ_j⁰|, or the
+                                                       friction scale for Coulomb and offset)
+    determined_j:  ŝ_j ≤ κ · ŝ_j^prior                 the data at least halved the prior s.e.
+    warn  when determined, |z| ≥ z_warn  and r ≥ r_warn;  cleared when |z| < z_clear or r < r_warn/2
+    alarm when determined, |z| ≥ z_alarm and r ≥ r_alarm; back to warn when |z| < z_warn or r < r_alarm/2
+
+Defaults ``z_warn = 6``, ``z_alarm = 8``, ``z_clear = 4``, ``r_warn = 0.03``,
+``r_alarm = 0.15``, ``κ = 0.5``. With the β memory of ~10 s a day holds ~9000 independent
+looks per parameter, ~1.6·10⁷ a year for five parameters: the expected largest |z| of honest
+standard errors is ≈ 4.8 in a day and ≈ 5.9 in a year. Measured over the 24 h soak stream
+(``benchmarks/soak.py``, true β): largest |z| 4.5 (inertia), 2.7 (damping), 5.1 and 2.1
+(Coulomb ±) — the standard errors are about honest, and ``z_warn = 5`` warned once in those
+24 h (Coulomb +, 5.1). ``z_warn = 6`` (``P(|z| > 6) = 2·10⁻⁹``: less than one false warning in 30 years per
+axis if Gaussian; a factor 1.2 above the measured nominal maximum) and the relative
+threshold (statistically *and* practically significant) removes the alarms a
+high-SNR drive would otherwise raise for irrelevant deviations. ``r_warn = 3 %`` (not 5 %)
+because a parameter is seen only while it is excited: with the β memory of 10 s and a feed
+change every ~6 s (milling), one acceleration event moves the inertia estimate about a third of
+the way after a step (+4.4 … +6.5 % after a +20 % payload step, three noise seeds, at 8.6 … 11
+standard errors); 3 % warns at the first event after the step (3 s), 5 % at the second (10 s).
+No nominal stream measured warns at 3 %. The gap between
+``z_warn`` and ``z_clear`` (hysteresis) keeps a parameter sitting at the threshold
+from flapping. A parameter the data do not determine (its online s.e. still more
+than half the prior's — e.g. damping during constant-feed milling, where the mean
+cutting force and viscous friction cannot be told apart) is reported with its
+uncertainty and never raises a drift warning.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from ._krlst_simd import view
+
+__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
+           "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
+           "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
+
+LEVELS = ("ok", "warn", "alarm")
+#: the drift-tested physical parameters (indices into :data:`kernels.beta_tracker.PHYSICAL`)
+PARAMS = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "offset")
+PHYS_INDEX = (0, 1, 2, 3, 5)
+#: reasons, in the order of ``HealthState.level``
+REASONS = ("innovation",) + PARAMS
+N_REASON = len(REASONS)
+
+# par slots
+(Q_A, Q_CLIP, Q_THW, Q_THA, Q_THC, Q_NPERS, Q_NHOLD, Q_ZW, Q_ZA, Q_ZC, Q_RW, Q_RA, Q_KAPPA,
+ Q_WARMUP) = range(14)
+N_QPAR = 14
+# acc slots
+(A_EWMA, A_SEEN, A_RUN_W, A_RUN_A, A_RUN_CLR, A_RUN_DOWN, A_WSUM, A_WN, A_WMAX) = range(9)
+N_ACC = 9
+# per-parameter statistics rows of ``stat``
+S_Z, S_REL, S_DET = range(3)
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    """Health thresholds (see the module docstring for what each trades); SI units, seconds."""
+
+    tau: float = 0.5            # s, EWMA time constant of ν²            (0.05 … 10)
+    clip: float = 4.0           # |ν| clip (standard deviations)          (2 … 20)
+    warn: float = 5.0           # EWMA level for warn                     (> clear)
+    alarm: float = 8.0          # EWMA level for alarm                    (> warn, < clip²)
+    clear: float = 3.0          # EWMA level below which warn clears      (> 1)
+    persist: float = 0.25       # s above a level before it counts        (0 … 10)
+    hold: float = 2.0           # s below before a level clears           (0 … 60)
+    z_warn: float = 6.0         # drift: standard errors for warn         (> z_clear)
+    z_alarm: float = 8.0        # drift: standard errors for alarm        (≥ z_warn)
+    z_clear: float = 4.0        # drift: warn clears below this           (> 0)
+    rel_warn: float = 0.03      # drift: relative change for warn         (0 … 10)
+    rel_alarm: float = 0.15     # drift: relative change for alarm        (≥ rel_warn)
+    kappa: float = 0.5          # determined: online s.e. ≤ κ · prior s.e. (0 … 1]
+    warmup: float = 2.0         # s of innovations ignored at the start   (0 … 3600)
+
+    def validate(self) -> HealthConfig:
+        """Raise ``ValueError`` naming the first setting outside its documented range."""
+        def need(ok, name, rule):
+            if not ok:
+                raise ValueError(f"health setting {name} = {getattr(self, name)!r} is out of range: {rule}")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v), f.name,
+                 "must be a finite number")
+        need(0.05 <= self.tau <= 10.0, "tau", "0.05 … 10 s")
+        need(2.0 <= self.clip <= 20.0, "clip", "2 … 20")
+        need(1.0 < self.clear < self.warn < self.alarm < self.clip ** 2, "clear", "1 < clear < warn < alarm < clip²")
+        need(0.0 <= self.persist <= 10.0, "persist", "0 … 10 s")
+        need(0.0 <= self.hold <= 60.0, "hold", "0 … 60 s")
+        need(0.0 < self.z_clear < self.z_warn <= self.z_alarm, "z_clear", "0 < z_clear < z_warn ≤ z_alarm")
+        need(0.0 <= self.rel_warn <= self.rel_alarm <= 10.0, "rel_warn", "0 ≤ rel_warn ≤ rel_alarm ≤ 10")
+        need(0.0 < self.kappa <= 1.0, "kappa", "0 < kappa ≤ 1")
+        need(0.0 <= self.warmup <= 3600.0, "warmup", "0 … 3600 s")
+        return self
+
+
+class HealthState(NamedTuple):
+    """Named views of two base buffers (:func:`new_health_buffers`): ``par`` settings, ``ref``
+    rows ``[θ⁰, s⁰, ŝ^prior, scale]`` per :data:`PARAMS` (settings), ``acc`` the EWMA, run
+    lengths and window sums (state), ``stat`` rows ``[z, r, determined]`` of the last tick
+    (output), ``level`` one level per :data:`REASONS` (state, the ``int64`` buffer)."""
+
+    par: np.ndarray
+    ref: np.ndarray
+    acc: np.ndarray
+    stat: np.ndarray
+    level: np.ndarray
+
+
+#: the fields that are state (snapshots): the others are settings or the last tick's output
+STATE_FIELDS = ("acc", "level")
+_F_REF = N_QPAR
+_F_ACC = _F_REF + 4 * len(PARAMS)
+_F_STAT = _F_ACC + N_ACC
+_F_END = _F_STAT + 3 * len(PARAMS)
+
+
+def health_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> HealthState:
+    """The :class:`HealthState` of the two base buffers, as NumPy views."""
+    k = len(PARAMS)
+    return HealthState(fbuf[:N_QPAR], fbuf[_F_REF:_F_ACC].reshape(4, k), fbuf[_F_ACC:_F_STAT],
+                       fbuf[_F_STAT:_F_END].reshape(3, k), ibuf[:N_REASON])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def health_state_of(fbuf, ibuf):
+    """The :class:`HealthState` of the two base buffers inside compiled code (reference-free views,
+    valid while the buffers are)."""
+    k = len(PARAMS)
+    return HealthState(view(fbuf, 0, (N_QPAR,)), view(fbuf, _F_REF, (4, k)), view(fbuf, _F_ACC, (N_ACC,)),
+                       view(fbuf, _F_STAT, (3, k)), view(ibuf, 0, (N_REASON,)))
+
+
+def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
+                       config: HealthConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Base buffers ``(float64, int64)`` of the state of an axis sampled every ``Ts`` s; the reference
+    arrays are per :data:`PARAMS` (NaN for a parameter the model does not have: never tested)."""
+    cfg = (config or HealthConfig()).validate()
+    if not (math.isfinite(Ts) and Ts > 0):
+        raise ValueError(f"Ts must be a positive number of seconds, got {Ts!r}")
+    fbuf = np.zeros(_F_END)
+    ibuf = np.zeros(N_REASON, dtype=np.int64)
+    hs = health_state_views(fbuf, ibuf)
+    par = hs.par
+    par[Q_A] = 1.0 - math.exp(-Ts / cfg.tau)
+    par[Q_CLIP] = cfg.clip * cfg.clip
+    par[Q_THW], par[Q_THA], par[Q_THC] = cfg.warn, cfg.alarm, cfg.clear
+    par[Q_NPERS] = max(1.0, round(cfg.persist / Ts))
+    par[Q_NHOLD] = max(1.0, round(cfg.hold / Ts))
+    par[Q_ZW], par[Q_ZA], par[Q_ZC] = cfg.z_warn, cfg.z_alarm, cfg.z_clear
+    par[Q_RW], par[Q_RA] = cfg.rel_warn, cfg.rel_alarm
+    par[Q_KAPPA] = cfg.kappa
+    par[Q_WARMUP] = round(cfg.warmup / Ts)
+    for row, values in enumerate((theta_file, se_file, se_prior, scale)):
+        a = np.asarray(values, dtype=np.float64)
+        if a.shape != (len(PARAMS),):
+            raise ValueError(f"health reference arrays must have {len(PARAMS)} entries ({', '.join(PARAMS)}), got {a.shape}")
+        hs.ref[row] = a
+    hs.acc[A_EWMA] = 1.0
+    hs.stat[:] = np.nan
+    return fbuf, ibuf
+
+
+def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: HealthConfig | None = None) -> HealthState:
+    """A fresh :class:`HealthState` (views of :func:`new_health_buffers`)."""
+    return health_state_views(*new_health_buffers(Ts, theta_file, se_file, se_prior, scale, config))
+
+
+def validate_health_state(hs: HealthState) -> None:
+    """Raise ``ValueError`` naming the entry unless the state part of ``hs`` (read from a file) is possible:
+    levels in 0…2, the EWMA in [0, clip²], run lengths, counts and window sums finite and ≥ 0."""
+    if not np.all(np.isfinite(hs.acc)):
+        raise ValueError("health 'acc' holds non-finite values")
+    if np.any((hs.level < 0) | (hs.level > 2)):
+        raise ValueError("health 'level' must hold levels 0 (ok), 1 (warn) or 2 (alarm)")
+    if not 0.0 <= hs.acc[A_EWMA] <= hs.par[Q_CLIP] or np.any(hs.acc < 0.0):
+        raise ValueError("health 'acc': the EWMA of ν² must lie in [0, clip²] and the counts be ≥ 0")
+    if hs.acc[A_WMAX] > hs.par[Q_CLIP] or hs.acc[A_WSUM] > hs.par[Q_CLIP] * hs.acc[A_WN]:
+        raise ValueError("health 'acc': window statistics beyond the clip level")
+
+
+@njit(cache=True, nogil=True)
+def health_sample(hs, nu):
+    """Per-sample model-validity step on the normalised innovation ``ν`` (NaN: skipped).
+
+    Returns the validity level after the sample (0 ok, 1 warn, 2 alarm); it may change
+    at any sample, so a publisher can report a change at once.
+    """
+    par = hs.par
+    acc = hs.acc
+    level = hs.level
+    if not math.isfinite(nu):
+        return level[0]
+    acc[A_SEEN] += 1.0
+    if acc[A_SEEN] <= par[Q_WARMUP]:
+        return level[0]
+    c = nu * nu
+    if c > par[Q_CLIP]:
+        c = par[Q_CLIP]                            # c = min(ν², c_max)
+    m = acc[A_EWMA] + par[Q_A] * (c - acc[A_EWMA])  # m ← m + a (c − m)
+    acc[A_EWMA] = m
+    acc[A_WSUM] += c
+    acc[A_WN] += 1.0
+    if m > acc[A_WMAX]:
+        acc[A_WMAX] = m
+    # run lengths above / below the levels
+    acc[A_RUN_W] = acc[A_RUN_W] + 1.0 if m >= par[Q_THW] else 0.0
+    acc[A_RUN_A] = acc[A_RUN_A] + 1.0 if m >= par[Q_THA] else 0.0
+    acc[A_RUN_CLR] = acc[A_RUN_CLR] + 1.0 if m < par[Q_THC] else 0.0
+    acc[A_RUN_DOWN] = acc[A_RUN_DOWN] + 1.0 if m < par[Q_THW] else 0.0
+    lv = level[0]
+    if acc[A_RUN_A] >= par[Q_NPERS]:
+        lv = 2
+    elif lv == 2 and acc[A_RUN_DOWN] >= par[Q_NHOLD]:
+        lv = 1                                     # alarm → warn after t_hold below θ_warn
+    if lv < 2 and acc[A_RUN_W] >= par[Q_NPERS]:
+        lv = 1
+    if lv == 1 and acc[A_RUN_CLR] >= par[Q_NHOLD]:
+        lv = 0                                     # warn → ok after t_hold below θ_clear
+    level[0] = lv
+    return lv
+
+
+@njit(cache=True, nogil=True)
+def health_tick(hs, theta, se):
+    """Per-tick verdict: drift of each parameter (``theta``, ``se`` per :data:`PARAMS`, NaN =
+    unknown) with hysteresis; returns the overall level (max over :data:`REASONS`).
+
+    Also resets the window statistics of :func:`health_sample` (read them before)."""
+    par = hs.par
+    ref = hs.ref
+    stat = hs.stat
+    level = hs.level
+    for j in range(ref.shape[1]):
+        lv = level[1 + j]
+        t0 = ref[0, j]
+        s0 = ref[1, j]
+        sp = ref[2, j]
+        sc = ref[3, j]
+        th = theta[j]
+        s = se[j]
+        stat[S_Z, j] = np.nan
+        stat[S_REL, j] = np.nan
+        stat[S_DET, j] = 0.0
+        if not (math.isfinite(t0) and math.isfinite(th) and math.isfinite(s) and sc > 0.0):
+            level[1 + j] = 0
+            continue
+        s0v = s0 if math.isfinite(s0) else 0.0
+        comb = math.sqrt(s * s + s0v * s0v)
+        d = th - t0
+        z = d / comb if comb > 0.0 else (np.inf if d != 0.0 else 0.0)
+        r = abs(d) / sc
+        det = (not math.isfinite(sp)) or s <= par[Q_KAPPA] * sp
+        stat[S_Z, j] = z
+        stat[S_REL, j] = r
+        stat[S_DET, j] = 1.0 if det else 0.0
+        az = abs(z)
+        if not det:
+            lv = 0
+        elif az >= par[Q_ZA] and r >= par[Q_RA]:
+            lv = 2
+        elif lv == 2:
+            if az < par[Q_ZW] or r < 0.5 * par[Q_RA]:
+                lv = 1                             # alarm → warn
+        if lv < 2 and det:
+            if az >= par[Q_ZW] and r >= par[Q_RW]:
+                lv = 1
+            elif lv == 1 and (az < par[Q_ZC] or r < 0.5 * par[Q_RW]):
+                lv = 0                             # warn → ok (hysteresis)
+        level[1 + j] = lv
+    acc = hs.acc
+    acc[A_WSUM] = 0.0
+    acc[A_WN] = 0.0
+    acc[A_WMAX] = 0.0
+    top = 0
+    for i in range(level.shape[0]):
+        if level[i] > top:
+            top = level[i]
+    return top
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One health verdict: ``state`` (``ok | warn | alarm``), human-readable ``reasons``,
+    ``levels`` per :data:`REASONS`, the innovation statistics of the window (``nu2_mean``,
+    ``ewma_max``) and per parameter ``z``, ``rel``, ``determined``."""
+
+    state: str
+    reasons: list
+    levels: dict
+    nu2_mean: float
+    ewma_max: float
+    z: dict
+    rel: dict
+    determined: dict
+
+
+class HealthMonitor:
+    """River-style API over :func:`health_sample` / :func:`health_tick`.
+
+    Parameters
+    ----------
+    Ts : float
+        Sampling period (s).
+    theta_file, se_file : mapping or sequence
+        Model-file physical parameters and their standard errors per :data:`PARAMS`
+        (missing → NaN: not tested).
+    se_prior : sequence
+        Prior standard errors of the online estimator (:class:`kernels.beta_tracker.OnlineBeta`
+        ``.prior_se``), for the "determined" rule.
+    scale : sequence, optional
+        Scale of the relative drift per parameter (default ``|θ⁰|``, and the friction scale
+        ``max(|d_p|, |c_n|, |offset|, 1 N)`` for Coulomb and offset).
+    config : HealthConfig
+    """
+
+    def __init__(self, Ts: float, theta_file, se_file=None, se_prior=None, scale=None,
+                 config: HealthConfig | None = None):
+        t0 = self._vec(theta_file)
+        s0 = self._vec(se_file)
+        sp = self._vec(se_prior)
+        if scale is None:
+            fr = [abs(v) for v in (t0[2], t0[3], t0[4]) if math.isfinite(v)]
+            fscale = max(fr + [1.0])
+            scale = [abs(t0[0]), abs(t0[1]), fscale, fscale, fscale]
+        self.config = (config or HealthConfig()).validate()
+        self._buf = new_health_buffers(Ts, t0, s0, sp, self._vec(scale), self.config)
+        self.state = health_state_views(*self._buf)
+
+    @staticmethod
+    def _vec(values) -> np.ndarray:
+        if values is None:
+            return np.full(len(PARAMS), np.nan)
+        if isinstance(values, dict):
+            unknown = set(values) - set(PARAMS) - {"coulomb"}
+            if unknown:
+                raise ValueError(f"unknown health parameter(s) {sorted(unknown)}; known: {', '.join(PARAMS)}")
+            return np.array([float(values.get(k, np.nan)) for k in PARAMS])
+        a = np.asarray(values, dtype=np.float64)
+        if a.shape != (len(PARAMS),):
+            raise ValueError(f"health reference arrays must have {len(PARAMS)} entries ({', '.join(PARAMS)}), "
+                             f"got shape {a.shape}")
+        return a
+
+    @property
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The two base buffers of :attr:`state`, for compiled loops (:func:`kernels.online.track_block`)."""
+        return self._buf
+
+    def learn_one(self, nu: float) -> str:
+        """Feed one normalised innovation; returns the innovation level (``ok | warn | alarm``)."""
+        return LEVELS[int(health_sample(self.state, float(nu)))]
+
+    def learn_many(self, nu) -> np.ndarray:
+        """Feed a block; returns the innovation level after each sample (0/1/2)."""
+        out = np.empty(len(nu), dtype=np.int64)
+        _sample_many(self.state, np.ascontiguousarray(nu, dtype=np.float64), out)
+        return out
+
+    def verdict(self, theta=None, se=None) -> Verdict:
+        """The tick verdict with the online parameters (mapping or sequence per :data:`PARAMS`)."""
+        hs = self.state
+        acc = hs.acc
+        nu2 = acc[A_WSUM] / acc[A_WN] if acc[A_WN] > 0 else math.nan
+        ewma_max = acc[A_WMAX] if acc[A_WN] > 0 else math.nan
+        top = int(health_tick(hs, self._vec(theta), self._vec(se)))
+        levels = {name: LEVELS[int(lv)] for name, lv in zip(REASONS, hs.level)}
+        reasons = describe(hs.level, hs.stat[S_Z], hs.stat[S_REL], nu2, ewma_max)
+        z = {p: float(hs.stat[S_Z, j]) for j, p in enumerate(PARAMS)}
+        rel = {p: float(hs.stat[S_REL, j]) for j, p in enumerate(PARAMS)}
+        det = {p: bool(hs.stat[S_DET, j]) for j, p in enumerate(PARAMS)}
+        return Verdict(state=LEVELS[top], reasons=reasons, levels=levels, nu2_mean=float(nu2),
+                       ewma_max=float(ewma_max), z=z, rel=rel, determined=det)
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """The state (:data:`STATE_FIELDS`) as plain arrays (copies)."""
+        return {f"health.{k}": np.array(getattr(self.state, k), copy=True) for k in STATE_FIELDS}
+
+    def restore(self, snap: dict) -> None:
+        """Continue from :meth:`snapshot` (same shapes required; checked by :func:`validate_health_state`,
+        nothing changed when it fails)."""
+        fbuf, ibuf = self._buf[0].copy(), self._buf[1].copy()
+        hs = health_state_views(fbuf, ibuf)
+        for k in STATE_FIELDS:
+            key = f"health.{k}"
+            if key not in snap:
+                raise ValueError(f"health snapshot is missing {key!r}")
+            arr = np.asarray(snap[key])
+            dst = getattr(hs, k)
+            if arr.shape != dst.shape or arr.dtype != dst.dtype:
+                raise ValueError(f"health snapshot {key!r} is {arr.dtype} {arr.shape}, expected {dst.dtype} {dst.shape}")
+            dst[...] = arr
+        validate_health_state(hs)
+        self._buf = (fbuf, ibuf)
+        self.state = hs
+
+
+def describe(level, z, rel, nu2_mean: float, ewma_max: float) -> list[str]:
+    """The human-readable reasons of a verdict: ``level`` per :data:`REASONS`, ``z`` and ``rel`` per
+    :data:`PARAMS` (the tick's statistics), the innovation window's mean ν² and EWMA peak."""
+    reasons = []
+    if level[0]:
+        reasons.append(f"innovation: the model does not explain the data (mean ν² {nu2_mean:.1f} over the last "
+                       f"window, EWMA peak {ewma_max:.1f}; expected 1)")
+    for j, p in enumerate(PARAMS):
+        if level[1 + j]:
+            sign = "+" if z[j] > 0 else "−"
+            reasons.append(f"{p} drift {sign}{100 * rel[j]:.1f} % of the model file value "
+                           f"({abs(z[j]):.1f} standard errors)")
+    return reasons
+
+
+@njit(cache=True, nogil=True)
+def _sample_many(hs, nu, out):
+    for i in range(nu.shape[0]):
+        out[i] = health_sample(hs, nu[i])
+
+
+def physical_vector(theta6) -> np.ndarray:
+    """The :data:`PARAMS` entries of a :data:`kernels.beta_tracker.PHYSICAL` vector."""
+    return np.asarray(theta6, dtype=np.float64)[list(PHYS_INDEX)]

@@ -1,0 +1,335 @@
+"""The online settings of an axis beyond β: tracker kernel choice and defaults, β adaptation, health.
+
+They live in the model file (``[tracker]``: the kernel and its hyperparameters, λ, budget,
+jitter; ``[adaptation]``; ``[health]``) and ``feedmon run --config`` may override any of them for
+every axis (``[run.tracker]``, ``[run.adaptation]``, ``[run.health]``). Each setting has a
+documented range (msgspec ``Meta``, checked when a file is read: an error names the file, the
+key and the range) and says what it trades; README "Online β and health" has the table.
+
+Tracker kernels (method §5, §6):
+
+* the time kernel ``LocallyPeriodic(σ1, σ2, ψ)`` on ``x = t`` (``[tracker] kernel =
+  "locally_periodic"``, ``period`` ψ in s) — a fixed disturbance period;
+* the spindle-phase kernel (``kernel = "spindle"``) on ``x = (t, θ)``, θ the spindle angle
+  (rad): ``SquaredExponential(σ1, dims=0) × Periodic(σ2, P, dims=1)`` with ``P = 2π`` (``per =
+  "revolution"``: runout, the default) or ``2π/teeth`` (``per = "tooth"``). With
+  ``θ = 2π·n/60·t`` it *is* the time kernel with ``ψ = 60/n`` (per revolution), so σ1, σ2
+  mean the same in both; a change of spindle speed needs no new model. ``spindle_rpm`` (the
+  identification trial's median speed) is the nominal speed used when samples carry no
+  spindle data (the fallback, counted ``spindle_fallback``: then it is exactly the time kernel
+  with ψ = 60/``spindle_rpm``).
+
+Defaults from measurements (``benchmarks/tracker_defaults.py``, ``benchmarks/online_checks.py``):
+λ = 0.998 at 333 Hz (memory ≈ 1.5 s: less lag at disturbance edges than the thesis' 0.996
+without losing steady-cutting accuracy), M = 100; σ1, σ2, γ the REML-tuned values of
+identification when it tuned them (``feedmon identify --tune``), else the thesis' Table 4.5.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from kernels.covariance import Kernel, Periodic, Product, SquaredExponential
+from kernels.health import HealthConfig
+
+__all__ = ["TRACKER_DEFAULTS", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
+           "TrackerOverride", "AdaptationOverride", "HealthOverride", "build_tracker_kernel", "check_kernel_desc",
+           "tracker_table", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
+
+#: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
+TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
+                    "jitter": 1e-6}
+SPINDLE = "spindle"
+PER = ("revolution", "tooth")
+MODES = ("off", "track", "apply")
+#: fastest spindle a model may name (rpm); matches the simulator's bound
+SPINDLE_RPM_MAX = 100_000.0
+
+_OPTS = dict(frozen=True, forbid_unknown_fields=True, kw_only=True)
+
+
+def _num(lo: float, hi: float, doc: str, *, open_lo: bool = False) -> Any:
+    meta = msgspec.Meta(gt=lo, le=hi, description=doc) if open_lo else msgspec.Meta(ge=lo, le=hi, description=doc)
+    return Annotated[float, meta]
+
+
+class SpindleKernel(msgspec.Struct, **_OPTS):
+    """The spindle-phase kernel of ``[tracker] kernel = "spindle"`` (see the module docstring)."""
+
+    sigma1: _num(0.0, 1e4, "s, length scale of the slow (time) factor", open_lo=True)
+    sigma2: _num(0.0, 1e3, "smoothness of the periodic factor (as in the time kernel)", open_lo=True)
+    per: Literal["revolution", "tooth"] = "revolution"
+    teeth: Annotated[int, msgspec.Meta(ge=1, le=1000, description="cutting edges of the tool")] = 1
+    spindle_rpm: _num(0.0, SPINDLE_RPM_MAX, "rpm, nominal speed: the fallback without spindle data",
+                      open_lo=True)
+
+    @property
+    def period(self) -> float:
+        """Period of the periodic factor in spindle angle (rad): 2π per revolution, 2π/teeth per tooth."""
+        return 2.0 * math.pi / (self.teeth if self.per == "tooth" else 1)
+
+    def build(self) -> Kernel:
+        return Product(SquaredExponential(self.sigma1, dims=0), Periodic(self.sigma2, self.period, dims=1))
+
+    def to_dict(self) -> dict:
+        return {"type": SPINDLE, **msgspec.structs.asdict(self)}
+
+
+def check_kernel_desc(desc: dict) -> Kernel:
+    """The kernel of a ``[tracker]`` description (``type`` and its keys); ``ValueError`` naming the key."""
+    if desc.get("type") == SPINDLE:
+        body = {k: v for k, v in desc.items() if k != "type"}
+        try:
+            return msgspec.convert(body, SpindleKernel).build()
+        except msgspec.ValidationError as exc:
+            raise ValueError(f"spindle kernel: {exc}") from None
+    return Kernel.from_dict(desc)
+
+
+def build_tracker_kernel(desc: dict) -> Kernel:
+    """:meth:`monitor.model_file.TrackerConfig.build_kernel`: the time kernels of
+    :meth:`kernels.covariance.Kernel.from_dict` or the spindle-phase kernel."""
+    return check_kernel_desc(desc)
+
+
+def spindle_of(desc: dict) -> SpindleKernel | None:
+    """The :class:`SpindleKernel` of a ``[tracker]`` kernel description, None for a time kernel."""
+    if desc.get("type") != SPINDLE:
+        return None
+    return msgspec.convert({k: v for k, v in desc.items() if k != "type"}, SpindleKernel)
+
+
+def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) -> dict:
+    """The ``[tracker]`` settings ``feedmon identify`` writes (decision of issue 11): λ, M, jitter from
+    :data:`TRACKER_DEFAULTS`; σ1, σ2, γ the REML-tuned values when identification tuned them, else
+    the thesis'; the spindle-phase kernel when the trial has spindle data (``spindle``: ``teeth``
+    and the median ``spindle_rpm``), else the time kernel with ψ = ``period`` (s). Returns the
+    kernel description under ``"kernel"`` and the scalar settings."""
+    cfg = dict(TRACKER_DEFAULTS)
+    if tuned:
+        cfg.update({k: float(tuned[k]) for k in ("sigma1", "sigma2", "gamma")})
+    if spindle:
+        kernel = SpindleKernel(sigma1=cfg["sigma1"], sigma2=cfg["sigma2"], per="revolution",
+                               teeth=int(spindle.get("teeth") or 1), spindle_rpm=float(spindle["spindle_rpm"]))
+        desc = kernel.to_dict()
+    else:
+        desc = {"type": "locally_periodic", "sigma1": cfg["sigma1"], "sigma2": cfg["sigma2"], "period": float(period)}
+    return {"kernel": desc, "gamma": cfg["gamma"], "forgetting": cfg["forgetting"], "budget": int(cfg["budget"]),
+            "jitter": cfg["jitter"]}
+
+
+class Adaptation(msgspec.Struct, **_OPTS):
+    """``[adaptation]``: online β (method "Online β and health"; :mod:`kernels.beta_tracker`)."""
+
+    #: off: β stays the model file's, nothing estimated (cheapest); track (default): β̂ and its
+    #: covariance are estimated and reported (health, drift alarms), the disturbance uses the
+    #: model file's β; apply: the disturbance uses β̂ (unbiased under drift, but β̂ may take up
+    #: a disturbance that moves with the motion)
+    mode: Literal["off", "track", "apply"] = "track"
+    #: T_β, s of learning samples: a drift of ṙ per second lags by ≈ ṙ·T_β; standard errors ∝ 1/√T_β
+    memory: _num(0.5, 3600.0, "s, β memory T_β (drift lag vs noise)") = 10.0
+    #: ρ, relative drift allowance of the prior P₀ (bounds P; larger: faster start, farther wander
+    #: of weakly determined parameters)
+    allowance: _num(0.01, 10.0, "relative drift allowance ρ of the prior") = 0.3
+    #: Huber threshold (standard deviations): smaller bounds outliers harder, larger is more efficient
+    huber: _num(1.0, 100.0, "Huber threshold c (standard deviations)") = 3.0
+    #: the model's one-step velocity prediction as instrument of v_m (removes the closed-loop noise bias)
+    instrument: bool = True
+    #: |ν| beyond which a sample teaches nothing (None: off; delays learning after a real step)
+    reject: _num(1.0, 1000.0, "standard deviations, > huber; none = off") | None = None
+    #: s after a rejected sample that teach nothing either
+    hold: _num(0.0, 60.0, "s after a rejected sample") = 0.0
+
+    def __post_init__(self) -> None:
+        if self.reject is not None and not self.reject > self.huber:
+            raise ValueError(f"adaptation.reject = {self.reject!r} must be larger than adaptation.huber = {self.huber!r}")
+
+
+_H = HealthConfig()
+
+
+class Health(msgspec.Struct, **_OPTS):
+    """``[health]``: the health verdict (:mod:`kernels.health`; what each trades is documented there)."""
+
+    period: _num(0.1, 60.0, "s of data time between two health reports") = 1.0
+    tau: _num(0.05, 10.0, "s, EWMA time constant of ν² (detection delay vs noise)") = _H.tau
+    clip: _num(2.0, 20.0, "|ν| clip, standard deviations (one outlier's weight)") = _H.clip
+    warn: _num(1.0, 400.0, "EWMA level of ν² for warn (false alarms vs detection)") = _H.warn
+    alarm: _num(1.0, 400.0, "EWMA level of ν² for alarm") = _H.alarm
+    clear: _num(1.0, 400.0, "EWMA level below which warn clears (hysteresis)") = _H.clear
+    persist: _num(0.0, 10.0, "s above a level before it counts (bursts vs delay)") = _H.persist
+    hold: _num(0.0, 60.0, "s below before a level clears (flapping vs staying up)") = _H.hold
+    z_warn: _num(0.1, 1000.0, "drift: standard errors for warn") = _H.z_warn
+    z_alarm: _num(0.1, 1000.0, "drift: standard errors for alarm") = _H.z_alarm
+    z_clear: _num(0.1, 1000.0, "drift: standard errors below which warn clears") = _H.z_clear
+    rel_warn: _num(0.0, 10.0, "drift: relative change for warn") = _H.rel_warn
+    rel_alarm: _num(0.0, 10.0, "drift: relative change for alarm") = _H.rel_alarm
+    kappa: _num(0.0, 1.0, "determined: online s.e. ≤ kappa × prior s.e.", open_lo=True) = _H.kappa
+    warmup: _num(0.0, 3600.0, "s of innovations ignored after the start") = _H.warmup
+
+    def __post_init__(self) -> None:
+        try:
+            self.config()
+        except ValueError as exc:
+            raise ValueError(str(exc).replace("health setting ", "health.")) from None
+
+    def config(self) -> HealthConfig:
+        """The :class:`kernels.health.HealthConfig` (cross-field rules checked)."""
+        d = msgspec.structs.asdict(self)
+        d.pop("period")
+        return HealthConfig(**d).validate()
+
+
+class OnlineSettings(msgspec.Struct, **_OPTS):
+    """``[adaptation]`` and ``[health]`` of one axis (``AxisModel.online``)."""
+
+    adaptation: Adaptation = Adaptation()
+    health: Health = Health()
+
+
+def _override_of(struct: type) -> type:
+    """A Struct with the fields of ``struct``, each optional (None: keep the model file's value)."""
+    fields = []
+    for f in msgspec.structs.fields(struct):
+        fields.append((f.name, f.type | None, None))
+    return msgspec.defstruct(f"{struct.__name__}Override", fields, **_OPTS, module=__name__)
+
+
+class TrackerOverride(msgspec.Struct, **_OPTS):
+    """``[run.tracker]``: tracker settings for every axis instead of the model files' (None: keep).
+
+    ``forgetting`` λ (memory ≈ Ts/(1 − λ): shorter follows disturbance edges, longer averages
+    steady cutting), ``budget`` M (cost ∝ M², more detail), ``jitter`` ε_j (numerical floor),
+    ``sigma1`` (s), ``sigma2``, ``gamma`` (kernel hyperparameters, method §5; γ = signal/noise)."""
+
+    forgetting: _num(0.5, 1.0, "λ per sample", open_lo=True) | None = None
+    budget: Annotated[int, msgspec.Meta(ge=4, le=2000, description="dictionary size M")] | None = None
+    jitter: _num(0.0, 1e-2, "ε_j") | None = None
+    sigma1: _num(0.0, 1e4, "s", open_lo=True) | None = None
+    sigma2: _num(0.0, 1e3, "", open_lo=True) | None = None
+    gamma: _num(0.0, 1e12, "γ", open_lo=True) | None = None
+
+
+#: ``[run.adaptation]``: the fields of :class:`Adaptation`, each optional (None: the model file's)
+AdaptationOverride = _override_of(Adaptation)
+#: ``[run.health]``: the fields of :class:`Health`, each optional (None: the model file's)
+HealthOverride = _override_of(Health)
+
+
+def _convert(table: Any, struct: type, where: str, name: str):
+    """``table`` as ``struct``; ``ValueError`` "<where>: key '<name>.<field>': <problem> (allowed: <range>)"."""
+    from feedio.limits import range_text
+
+    try:
+        return msgspec.convert(table, struct)
+    except msgspec.ValidationError as exc:
+        msg, _, path = str(exc).partition(" - at `$.")
+        field = path.rstrip("`").split(".")[0].split("[")[0]
+        allowed = None
+        if field:
+            try:
+                allowed = range_text(struct, field)
+            except KeyError:
+                allowed = None
+        if "enum value" in msg and field:
+            info = {f.name: f.type for f in msgspec.inspect.type_info(struct).fields}.get(field)
+            values = getattr(info, "values", None)
+            if values:
+                msg += f"; use one of {', '.join(map(str, values))}"
+        if "unknown field" in msg:
+            msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
+        key = f"{name}.{field}" if field else name
+        raise ValueError(f"{where}: key '{key}': {msg}" + (f" (allowed: {allowed})" if allowed else "")) from None
+    except ValueError as exc:  # a cross-field rule in __post_init__
+        raise ValueError(f"{where}: key '{name}': {exc}") from None
+
+
+def parse_model_tables(doc: dict, path) -> OnlineSettings:
+    """``[adaptation]`` and ``[health]`` of a model file (optional tables; defaults when absent).
+    ``ValueError`` naming the file, the key and the allowed range."""
+    out = {}
+    for name, struct in (("adaptation", Adaptation), ("health", Health)):
+        table = doc.get(name, {})
+        if not isinstance(table, dict):
+            raise ValueError(f"{path}: key '{name}': must be a table [{name}], got {type(table).__name__}")
+        out[name] = _convert(table, struct, str(path), name)
+    return OnlineSettings(**out)
+
+
+#: the comment written next to each setting in a model file: unit and what it trades
+COMMENTS = {
+    "adaptation": {
+        "mode": "off | track (β estimated, disturbance with the file's β) | apply (disturbance with online β)",
+        "memory": "s of learning samples: drift lag ≈ rate × memory vs. noise ∝ 1/√memory (0.5 … 3600)",
+        "allowance": "relative drift the prior allows (0.01 … 10): bounds the covariance of β",
+        "huber": "standard deviations (1 … 100): a sample's largest influence",
+        "instrument": "model's velocity prediction as instrument of v_m (closed-loop noise bias)",
+        "reject": "standard deviations (> huber): larger innovations teach nothing; absent = off",
+        "hold": "s after a rejected sample that teach nothing (0 … 60)",
+    },
+    "health": {
+        "period": "s of data time between two health reports (0.1 … 60)",
+        "tau": "s, EWMA of ν² (0.05 … 10): detection delay vs. noise",
+        "clip": "|ν| clip, standard deviations (2 … 20): one outlier's weight",
+        "warn": "EWMA of ν² for warn (clear < warn < alarm < clip²): false alarms vs. detection",
+        "alarm": "EWMA of ν² for alarm",
+        "clear": "EWMA of ν² below which warn clears (> 1): hysteresis",
+        "persist": "s above a level before it counts (0 … 10): bursts vs. delay",
+        "hold": "s below a level before it clears (0 … 60): flapping vs. staying up",
+        "z_warn": "drift: standard errors for warn (> z_clear)",
+        "z_alarm": "drift: standard errors for alarm (≥ z_warn)",
+        "z_clear": "drift: standard errors below which warn clears",
+        "rel_warn": "drift: relative change for warn (practical significance)",
+        "rel_alarm": "drift: relative change for alarm (≥ rel_warn)",
+        "kappa": "a parameter is tested once its s.e. ≤ kappa × prior s.e. (0 … 1]",
+        "warmup": "s of innovations ignored after the start (0 … 3600)",
+    },
+}
+
+
+def model_tables(settings: OnlineSettings) -> list[tuple[str, dict, dict]]:
+    """The ``[adaptation]`` and ``[health]`` tables to write into a model file: ``(name, values,
+    comments)`` (:data:`COMMENTS`)."""
+    return [(name, msgspec.to_builtins(getattr(settings, name)), COMMENTS[name]) for name in ("adaptation", "health")]
+
+
+def _merged(current, override) -> Any:
+    given = {k: v for k, v in msgspec.structs.asdict(override).items() if v is not None}
+    if not given:
+        return current
+    return msgspec.convert({**msgspec.to_builtins(current), **given}, type(current))
+
+
+def apply_overrides(model, tracker: TrackerOverride | None = None, adaptation=None, health=None):
+    """``model`` (an :class:`~monitor.model_file.AxisModel`) with the ``--config`` overrides applied
+    (a copy; None or empty overrides: the model itself). ``ValueError`` when the result breaks a
+    cross-field rule (e.g. health.clear < warn < alarm), naming the setting."""
+    import copy
+
+    if not any(o is not None and any(v is not None for v in msgspec.structs.asdict(o).values())
+               for o in (tracker, adaptation, health)):
+        return model
+    m = copy.deepcopy(model)
+    if tracker is not None:
+        t = m.tracker
+        for k in ("forgetting", "budget", "jitter", "gamma"):
+            v = getattr(tracker, k)
+            if v is not None:
+                setattr(t, k, v)
+        for k in ("sigma1", "sigma2"):
+            v = getattr(tracker, k)
+            if v is not None:
+                t.kernel = {**t.kernel, k: float(v)}
+        check_kernel_desc(t.kernel)
+    online = getattr(m, "online", None) or OnlineSettings()
+    try:
+        online = OnlineSettings(adaptation=_merged(online.adaptation, adaptation) if adaptation is not None
+                                else online.adaptation,
+                                health=_merged(online.health, health) if health is not None else online.health)
+    except (msgspec.ValidationError, ValueError) as exc:
+        raise ValueError(f"--config overrides for {m.machine}/{m.axis}: {exc}") from None
+    m.online = online
+    return m
