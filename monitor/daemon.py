@@ -5,8 +5,8 @@ Threads of the live monitor
 * **Zenoh callback** (a Zenoh runtime thread): for each sample on ``<prefix>/*/*/samples`` it
   first checks the payload length against ``max_message_bytes`` (``len`` of the Zenoh buffer, no
   copy; beyond: refused, counted ``too_large``). Then, when nothing is being estimated and nothing
-  waits, and the message is small (at most ``inline_bytes``, 16 KiB: a few hundred samples, a
-  few ms of tracker work), it **estimates the message right there** — decode, key check, route,
+  waits, and the message is small (at most ``inline_bytes``, 2 KiB: a few tens of samples, well
+  under a millisecond of tracker work), it **estimates the message right there** — decode, key check, route,
   estimate, publish — so a sample costs no thread hand-off: the thread that received it publishes
   its estimate. Otherwise (a burst, a large block, or a message arriving while another one is
   being estimated) it copies the payload and appends ``(key, bytes, times)`` to the input queue,
@@ -84,7 +84,7 @@ log = logging.getLogger("monitor.daemon")
 _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
                      "shutdown_discarded": "shutdown_discarded"}
 #: messages up to this size (bytes) are estimated in the Zenoh callback when nothing else is (a few
-#: hundred samples: a few ms of tracker work); larger ones go through the input queue
+#: tens of samples: well under a millisecond of tracker work); larger ones go through the input queue
 INLINE_BYTES = 2048
 
 
