@@ -372,8 +372,10 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
             if decoded is None:
                 raise AssertionError("the soak stream produced a malformed block")
             block = decoded
-        _, est = pipe.estimate(block)
-        for h in pipe.last_health:
+        res_est = pipe.estimate(block)
+        rows = res_est.est
+        est = None if rows is None else rows.block()
+        for h in res_est.health:
             res.health[h.state] += 1
             if h.state != "ok" and len(res.health_events) < 20:
                 res.health_events.append(f"{_fmt_t(h.t)} {h.state}: {'; '.join(h.reasons)}")
@@ -392,7 +394,7 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
                     res.zs_max[name] = max(res.zs_max.get(name, 0.0), abs(v - ref) / se)
         if est is not None:
             if opts.wire:
-                S.encode(est)
+                rows.json()  # what the monitor publishes
             if writer is not None:
                 writer.write_samples(block)
                 writer.write_estimates(est)

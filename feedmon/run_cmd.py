@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import logging
 import signal
 import sys
@@ -56,6 +57,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="offline: estimate this trial file (.mcap) instead of listening on Zenoh")
     p.add_argument("-o", "--output", default=None, metavar="FILE",
                    help="offline: output MCAP (samples + truth + estimates); required with --from")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="offline: processes for a trial with several axes (default: one per core, at most one per "
+                        "axis; the output is the same for every N)")
     g = p.add_argument_group("outputs (live)")
     g.add_argument("--mcap", default=None, metavar="DIR_OR_FILE",
                    help="MCAP log of inputs and estimates: a .mcap file, or a directory "
@@ -128,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_offline(args, cfg)
     if args.output is not None:
         raise ValueError("-o/--output is for --from (offline); use --mcap for the live log")
+    if cfg.jobs is not None:
+        raise ValueError("--jobs is for --from (offline)")
     return _run_live(cfg)
 
 
@@ -141,7 +147,7 @@ def _run_offline(args, cfg: RunConfig) -> int:
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
     axes = load_axes(cfg.model, cfg)
-    res = run_offline(args.source, args.output, axes, limits=cfg.limits)
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     for ax in axes.values():
@@ -150,8 +156,9 @@ def _run_offline(args, cfg: RunConfig) -> int:
             if ax.status.counters.get("too_large") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
              f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
+    procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
-          f"({res.rate:,.0f} samples/s) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
+          f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
     return 0
 
 
@@ -184,19 +191,21 @@ def _run_live(cfg: RunConfig) -> int:
     problems: list[str] = []
     try:
         if cfg.mcap is not None:
-            from monitor.sinks.mcap_sink import McapSink
+            from monitor.sinks.mcap_sink import McapProcessSink
 
             path, rb, rs = _mcap_path(cfg.mcap, cfg)
-            sinks.append(McapSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
+            # own process: decoding, pairing, compression and disk never hold the estimator's GIL
+            sinks.append(McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
             rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") + ")" \
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
         if cfg.rrd is not None or cfg.serve_rerun is not None:
+            from monitor.sinks.forward import RerunForwardSink
             from monitor.sinks.rerun_layout import describe_model
-            from monitor.sinks.rerun_process import RerunProcessSink
 
             info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
-            rs_ = RerunProcessSink(cfg.rrd, cfg.serve_rerun, axis_info=info)  # own process: never holds our GIL
+            # own process: never holds our GIL; fed the bytes received and published (no second encoding)
+            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info)
             sinks.append(rs_)
             if cfg.rrd:
                 _say(f"Rerun recording: {cfg.rrd}")
@@ -204,6 +213,7 @@ def _run_live(cfg: RunConfig) -> int:
                 _say(f"Rerun live: rerun --connect {rs_.server_uri}")
         # Zenoh itself drops what is far too large, before reassembling it (the callback counts the rest)
         zconfig = limit_message_size(config_from_args(_zenoh_args(cfg)), cfg.limits.transport_max_message_bytes)
+        _estimate_queue(zconfig)
         session = open_session(zconfig)
         zdesc = describe_config(zconfig)  # what the session really does (also with --zenoh-config)
         listen, connect = zdesc["listen"], zdesc["connect"]
@@ -258,6 +268,25 @@ def _run_live(cfg: RunConfig) -> int:
         _say(f"stopped with {len(problems)} problem(s): " + "; ".join(problems))
         return 1
     return 0
+
+
+#: Zenoh transmission queue (batches) of the estimates' priority (DATA_HIGH, Zenoh's default 2). Estimates
+#: are published express, one batch each, with congestion control DROP (a slow subscriber never holds the
+#: monitor): after a burst (a backlog worked off) two slots drop estimates a subscriber would have taken
+#: 1 ms later; 16 (Zenoh's maximum) absorbs such bursts
+ESTIMATE_TX_QUEUE = 16
+
+
+def _estimate_queue(zconfig) -> None:
+    """Raise the DATA_HIGH transmission queue to :data:`ESTIMATE_TX_QUEUE` unless the configuration
+    (``--zenoh-config``) already set it larger."""
+    key = "transport/link/tx/queue/size/data_high"
+    try:
+        now = int(json.loads(zconfig.get_json(key)))
+    except (ValueError, TypeError):
+        now = 0
+    if now < ESTIMATE_TX_QUEUE:
+        zconfig.insert_json5(key, str(ESTIMATE_TX_QUEUE))
 
 
 def _summary(monitor) -> None:

@@ -54,6 +54,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     state_dir: str | None = None
     fresh: bool = False
     drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0
+    jobs: Annotated[int, msgspec.Meta(ge=1, le=1024)] | None = None  # offline: processes (None: one per core)
     listen: list[str] | None = None
     connect: list[str] | None = None
     mode: Literal["peer", "client"] | None = None

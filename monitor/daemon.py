@@ -2,27 +2,40 @@
 
 Threads of the live monitor
 ---------------------------
-* **Zenoh callback** (a Zenoh runtime thread): for each sample on
-  ``<prefix>/*/*/samples`` it first checks the payload length against
-  ``max_message_bytes`` (``len`` of the Zenoh buffer, no copy; beyond: refused, counted
-  ``too_large``), then copies the payload bytes, takes the receive time and
-  ``put_nowait`` s ``(key, bytes, t_recv, size)`` into the input queue, which is bounded in
-  messages (``queue_messages``) and in payload bytes (``queue_bytes``); when either bound is
-  reached the message is refused and counted (``queue_full``). No decoding. Refusals are counted
-  per modelled axis (looked up by the exact key) or monitor-wide, so a peer inventing keys cannot
-  grow any table.
-* **Estimator thread** (one): takes items in arrival order and runs the
-  :class:`~monitor.pipeline.Pipeline` (decode, key check, route, estimate; refusals counted and
-  logged once per burst), publishes the :class:`~feedio.schema.EstimateBlock` on
+* **Zenoh callback** (a Zenoh runtime thread): for each sample on ``<prefix>/*/*/samples`` it
+  first checks the payload length against ``max_message_bytes`` (``len`` of the Zenoh buffer, no
+  copy; beyond: refused, counted ``too_large``). Then, when nothing is being estimated and nothing
+  waits, and the message is small (at most ``inline_bytes``, 2 KiB: a few tens of samples, well
+  under a millisecond of tracker work), it **estimates the message right there** — decode, key check, route,
+  estimate, publish — so a sample costs no thread hand-off: the thread that received it publishes
+  its estimate. Otherwise (a burst, a large block, or a message arriving while another one is
+  being estimated) it copies the payload and appends ``(key, bytes, times)`` to the input queue,
+  bounded in messages (``queue_messages``) and payload bytes (``queue_bytes``); when either bound
+  is reached the message is refused and counted (``queue_full``). One token (``busy``, under the
+  input lock) admits one message at a time to the estimators, so messages are estimated one at a
+  time in arrival order, whichever thread does it. Refusals are counted per modelled axis (looked
+  up by the exact key) or monitor-wide, so a peer inventing keys cannot grow any table.
+* **Estimator thread** (one): works off the input queue, in order, taking the token for each
+  message; it sleeps while the queue is empty.
+* For each estimated message (on whichever of the two): the :class:`~monitor.pipeline.Pipeline`
+  (decode, key check, route, estimate; refusals counted and logged once per burst), the
+  :class:`~feedio.schema.EstimateBlock` encoded once and published on
   ``<prefix>/<machine>/<axis>/disturbance`` (publisher declared once per axis, congestion control
-  DROP, express), records the latency *receive → published*, then offers the input and the
-  estimate to the sinks; the health reports the block produced (about one per second of data)
-  go to ``<prefix>/<machine>/<axis>/health`` and to the sinks (``offer_health``). Only blocks the schema accepted reach a sink (times within
-  ``[0, T_MAX]``, names and ``seq`` bounded), so no sink sees a value it cannot store. Sinks are
-  :class:`~monitor.sinks.QueuedSink` s: ``offer`` never blocks and counts its drops.
-* **Sink workers** (one per sink, inside the sinks).
+  DROP, express), the latency *receive → published* and the time of each stage recorded
+  (:class:`~monitor.status.StageRing`: queue, decode, estimate, encode, publish, sinks), then the
+  input and the estimate offered to the sinks — as the bytes received and published to sinks that
+  take them (``offer_encoded``: the MCAP log, which runs in its own process), as objects to the
+  others. Only blocks the schema accepted reach a sink (times within ``[0, T_MAX]``, names and
+  ``seq`` bounded), so no sink sees a value it cannot store. Sinks are
+  :class:`~monitor.sinks.QueuedSink` s: ``offer`` never blocks and never wakes their thread; a
+  sink must keep that promise (a sink that blocks holds the thread that estimates).
+  The health reports the block produced (``Estimated.health``, about one per second of data) go
+  to ``<prefix>/<machine>/<axis>/health`` and to the sinks that take them (``offer_health``: the
+  MCAP channel ``/<machine>/<axis>/health``, the Rerun event log).
+* **Sink workers** (one per sink, inside the sinks; the MCAP and Rerun sinks forward to their
+  own processes).
 * **Queryable** ``<prefix>/monitor/status`` (a Zenoh thread) answers a cached JSON document,
-  rebuilt at most every ``status_refresh_s`` on that thread (never on the estimator thread, no
+  rebuilt at most every ``status_refresh_s`` on that thread (never on an estimating thread, no
   work per message); replies are rate-limited (token bucket, ``status_rate`` /
   ``status_burst``), queries beyond are not answered and counted (``status.refused``).
 * The **main thread** waits for SIGINT/SIGTERM (see :mod:`feedmon.run_cmd`).
@@ -30,9 +43,10 @@ Threads of the live monitor
 Shutdown (:meth:`Monitor.stop`) always finishes; every step is guarded, its errors logged and
 returned: stop accepting input (later messages counted ``shutdown_discarded``), undeclare the
 subscribers, let the estimator thread drain the queue for up to ``drain_seconds``, then discard
-(and count, per axis) what is still queued and join the thread; close the sinks (MCAP finished
-and readable, .rrd finalised); save the tracker states — only when the estimator thread has
-stopped (a state it may still be changing is never written); undeclare the rest.
+(and count, per axis) what is still queued and wait for the message in progress (on either
+thread) up to ``finish_seconds``; close the sinks (MCAP finished and readable, .rrd finalised);
+save the tracker states — only when no message is being estimated any more (a state that may
+still be changing is never written); undeclare the rest.
 
 The per-sample work is :class:`~monitor.pipeline.Pipeline`, shared with
 :func:`monitor.offline.run_offline`, so a trial estimated offline gives the same numbers, sample
@@ -45,11 +59,10 @@ from __future__ import annotations
 import json
 import logging
 import os
-import queue
 import socket
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -61,15 +74,18 @@ from feedio.limits import DEFAULT, InputLimits
 from .axes import AxisRuntime
 from .pipeline import Pipeline
 from .state import StateStore
+from .status import StageRing
 
-__all__ = ["Monitor"]
+__all__ = ["Monitor", "INLINE_BYTES"]
 
 log = logging.getLogger("monitor.daemon")
 
-_STOP = object()
 #: callback-side refusal reasons (status name in ``input`` → per-axis ``drops`` name)
 _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
                      "shutdown_discarded": "shutdown_discarded"}
+#: messages up to this size (bytes) are estimated in the Zenoh callback when nothing else is (a few
+#: tens of samples: well under a millisecond of tracker work); larger ones go through the input queue
+INLINE_BYTES = 2048
 
 
 class Monitor:
@@ -82,8 +98,9 @@ class Monitor:
     session:
         an open Zenoh session (the caller closes it).
     sinks:
-        :class:`~monitor.sinks.QueuedSink` s offered every input block and estimate
-        (``offer_truth`` too when ``record_truth``); closed by :meth:`stop`.
+        :class:`~monitor.sinks.QueuedSink` s offered every input block and estimate (as bytes through
+        ``offer_encoded`` when they have it, else as objects through ``offer``; ``offer_truth`` too when
+        ``record_truth``); closed by :meth:`stop`.
     limits:
         :class:`~feedio.limits.InputLimits` (message size, block length, input queue, unknown
         axes, status rate).
@@ -98,6 +115,9 @@ class Monitor:
         at :meth:`stop`, after that: how long the estimator may take to finish the block in progress
         (at most ``max_block_samples`` samples) before the monitor gives up on it (and does not save
         the tracker states).
+    inline_bytes:
+        messages up to this size are estimated in the Zenoh callback when nothing else is being
+        estimated or waits (0: always through the queue and the estimator thread).
     """
 
     def __init__(
@@ -113,6 +133,7 @@ class Monitor:
         endpoints: Sequence[str] = (),
         drain_seconds: float = 30.0,
         finish_seconds: float = 10.0,
+        inline_bytes: int = INLINE_BYTES,
     ) -> None:
         if not drain_seconds >= 0 or not finish_seconds >= 0:
             raise ValueError(f"drain_seconds and finish_seconds must be ≥ 0, got {drain_seconds}, {finish_seconds}")
@@ -127,18 +148,25 @@ class Monitor:
         self.endpoints = list(endpoints)
         self.drain_seconds = float(drain_seconds)
         self.finish_seconds = float(finish_seconds)
-        self._q: queue.Queue = queue.Queue(maxsize=limits.queue_messages)
-        # input side (Zenoh callback threads), under _in_lock
+        self.inline_bytes = int(inline_bytes)
+        # input side, under _in_lock (= the condition _cv): the queue, the token, the counters
         self._in_lock = threading.Lock()
+        self._cv = threading.Condition(self._in_lock)
+        self._queue: deque[tuple[str, bytes, float, int, int]] = deque()  # key, payload, t_recv, size, rx_ns
+        self._busy = False  # one message at a time is being estimated (callback or estimator thread)
+        self._running = False  # started and not stopping: messages may be estimated in the callback
         self._accepting = True
-        self.received = 0  # messages put into the queue
+        self._stop_thread = False
+        self.received = 0  # messages taken for estimation (in the callback or queued)
+        self.inline = 0  # of them, estimated in the Zenoh callback
         self._bytes_in = 0
-        self._refused: Counter[tuple[str, str]] = Counter()  # (reason, axis name or "") -> messages
-        # estimator thread
         self._bytes_out = 0
-        self.handled = 0  # messages taken off the queue and handled
+        self._refused: Counter[tuple[str, str]] = Counter()  # (reason, axis name or "") -> messages
+        self.handled = 0  # messages taken by an estimating thread
         self.truth_blocks = 0
         self.publish_errors = 0
+        self._encoded = [s for s in self.sinks if hasattr(s, "offer_encoded")]
+        self._plain = [s for s in self.sinks if not hasattr(s, "offer_encoded")]
         # status queryable (Zenoh threads), under _status_lock
         self._status_lock = threading.Lock()
         self._status_doc: bytes | None = None
@@ -165,7 +193,7 @@ class Monitor:
             self._refused[(reason, ax.status.name if ax is not None else "")] += 1
 
     def _on_sample(self, sample) -> None:
-        """Zenoh callback: size check, copy, enqueue. No decoding, never blocks."""
+        """Zenoh callback: size check; then estimate now (idle, small) or queue (bounded, counted)."""
         t = time.perf_counter()
         payload = sample.payload
         size = len(payload)
@@ -173,21 +201,36 @@ class Monitor:
             self._refuse("too_large", sample.key_expr)
             return
         key = str(sample.key_expr)
-        with self._in_lock:
+        rx = time.time_ns()
+        with self._cv:
             if not self._accepting:
                 reason = "shutdown_discarded"
-            elif self._bytes_in - self._bytes_out + size > self.limits.queue_bytes:
+            elif not self._busy and not self._queue and self._running and size <= self.inline_bytes:
+                self._busy = True  # the token: this thread estimates it now
+                self.received += 1
+                self.inline += 1
+                self.handled += 1
+                reason = None
+            elif (len(self._queue) >= self.limits.queue_messages
+                  or self._bytes_in - self._bytes_out + size > self.limits.queue_bytes):
                 reason = "queue_full"
             else:
-                try:
-                    self._q.put_nowait((key, payload.to_bytes(), t, size))
-                except queue.Full:
-                    reason = "queue_full"
-                else:
-                    self._bytes_in += size
-                    self.received += 1
-                    return
-        self._refuse(reason, key)
+                self._queue.append((key, payload.to_bytes(), t, size, rx))
+                self._bytes_in += size
+                self.received += 1
+                self._cv.notify()
+                return
+        if reason is not None:
+            self._refuse(reason, key)
+            return
+        try:
+            data = payload.to_bytes()
+            self._guarded(key, data, t, time.perf_counter(), rx)
+        finally:
+            with self._cv:
+                self._busy = False
+                if self._queue or self._stop_thread:
+                    self._cv.notify_all()
 
     def _on_query(self, query) -> None:
         """Status queryable: a cached document, rate-limited (a refused query gets no reply)."""
@@ -218,72 +261,106 @@ class Monitor:
         except Exception as exc:  # noqa: BLE001 - the querier went away, the session is closing
             log.debug("status reply failed: %s", exc)
 
-    def start(self) -> None:
-        """Declare publishers, queryable and subscriber(s); start the estimator thread."""
+    def _publisher(self, key: str, high: bool = True):
+        """A JSON publisher, congestion control DROP; ``high``: priority DATA_HIGH and express (the
+        estimates), else DATA (the health reports)."""
         import zenoh
 
+        return self.session.declare_publisher(
+            key, encoding=zenoh.Encoding.APPLICATION_JSON, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_HIGH if high else zenoh.Priority.DATA, express=high)
+
+    def start(self) -> None:
+        """Declare publishers, queryable and subscriber(s); start the estimator thread."""
         from feedio.transport import disturbance_key, health_key, samples_key, status_key, truth_key
 
         for key in self.axes:
-            self._pubs[key] = self.session.declare_publisher(
-                disturbance_key(self.prefix, *key), encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_HIGH, express=True,
-            )
-            self._health_pubs[key] = self.session.declare_publisher(
-                health_key(self.prefix, *key), encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
-            )
+            self._pubs[key] = self._publisher(disturbance_key(self.prefix, *key))
+            self._health_pubs[key] = self._publisher(health_key(self.prefix, *key), high=False)
         self._queryable = self.session.declare_queryable(status_key(self.prefix), self._on_query)
         self._thread = threading.Thread(target=self._run, name="estimator", daemon=True)
         self._thread.start()
+        with self._cv:
+            self._running = True
         self._subs.append(self.session.declare_subscriber(samples_key(self.prefix), self._on_sample))
         if self.record_truth:
             self._subs.append(self.session.declare_subscriber(truth_key(self.prefix), self._on_sample))
         self.state = "running"
 
-    # ---- estimator thread ---------------------------------------------------------------------
+    # ---- estimating ---------------------------------------------------------------------------
     def _run(self) -> None:
-        q = self._q
+        """The estimator thread: the queue, in order, one message at a time (the token)."""
+        cv = self._cv
         while True:
-            item = q.get()
-            if item is _STOP:
-                return
-            key, payload, t_recv, size = item
-            self._bytes_out += size
-            self.handled += 1
+            with cv:
+                while (self._busy or not self._queue) and not (self._stop_thread and not self._queue
+                                                                and not self._busy):
+                    cv.wait()
+                if not self._queue:
+                    return  # stopping, nothing queued, nothing in progress
+                key, payload, t_recv, size, rx = self._queue.popleft()
+                self._bytes_out += size
+                self._busy = True
+                self.handled += 1
             try:
-                self.handle(key, payload, t_recv)
-            except Exception:  # noqa: BLE001 - the estimator thread must survive anything
-                self.pipeline.counters["internal_error"] += 1
-                log.exception("internal error while handling a message (counted, continuing)")
+                self._guarded(key, payload, t_recv, time.perf_counter(), rx)
+            finally:
+                with cv:
+                    self._busy = False
+                    cv.notify_all()
+
+    def _guarded(self, key: str, payload: bytes, t_recv: float, t_start: float, rx_ns: int) -> None:
+        try:
+            self._process(key, payload, t_recv, t_start, rx_ns)
+        except Exception:  # noqa: BLE001 - an estimating thread must survive anything
+            self.pipeline.counters["internal_error"] += 1
+            log.exception("internal error while handling a message (counted, continuing)")
 
     def handle(self, key: str, payload: bytes, t_recv: float) -> S.EstimateBlock | None:
-        """Process one received message (estimator thread)."""
+        """Process one received message now, on this thread (tests; the monitor uses the callback and
+        the estimator thread). Returns the estimate block (None: none)."""
+        est = self._process(key, payload, t_recv, time.perf_counter(), time.time_ns())
+        return None if est is None else est.block()
+
+    def _process(self, key: str, payload: bytes, t_recv: float, t_start: float, rx_ns: int):
+        """Decode → estimate → encode → publish → sinks (the token is held)."""
         p = self.pipeline
         if key.endswith("/truth"):
-            self._handle_truth(key, payload)
+            self._handle_truth(key, payload, rx_ns)
             return None
         block = p.receive(key, payload)
         if block is None:
             return None
-        ax, est = p.estimate(block)
+        t1 = time.perf_counter()
+        ax, est, health = p.estimate(block)
         if ax is None:
             return None
+        t2 = time.perf_counter()
+        data = None
         if est is not None:
-            pub = self._pubs.get(ax.key)
+            data = est.json()
+            t3 = time.perf_counter()
             try:
-                pub.put(S.encode(est))
+                self._pubs[ax.key].put(data)
             except Exception as exc:  # noqa: BLE001 - session closing, etc.
                 self.publish_errors += 1
                 p.burst(f"publish:{ax.status.name}", "publishing the estimate of %s failed: %s", ax.status.name,
                         str(exc))
-            ax.status.latency.record(time.perf_counter() - t_recv)
-        for sink in self.sinks:
+            t4 = time.perf_counter()
+            ax.status.latency.record(t4 - t_recv)
+        for sink in self._encoded:
+            sink.offer_encoded(b"S", payload, rx_ns)
+            if data is not None:
+                sink.offer_encoded(b"E", data, rx_ns)
+        for sink in self._plain:
             sink.offer(block)
             if est is not None:
-                sink.offer(est)
-        if p.last_health:
-            self._publish_health(ax, p.last_health)
+                sink.offer(est.block())
+        if est is not None:
+            ax.status.stages.record(t_start - t_recv, t1 - t_start, t2 - t1, t3 - t2, t4 - t3,
+                                    time.perf_counter() - t4)
+        if health:  # after the block's messages (the MCAP log keeps main's order), outside the stage times
+            self._publish_health(ax, health)
         return est
 
     def _publish_health(self, ax: AxisRuntime, reports: list[S.Health]) -> None:
@@ -302,7 +379,7 @@ class Monitor:
                 if offer is not None:
                     offer(h.machine, h.axis, h)
 
-    def _handle_truth(self, key: str, payload: bytes) -> None:
+    def _handle_truth(self, key: str, payload: bytes, rx_ns: int) -> None:
         ax = self.pipeline.axis_of_key(key)
         if ax is None:  # truth of an axis without a model: not recorded
             self.pipeline.counters["truth_no_model"] += 1
@@ -315,10 +392,15 @@ class Monitor:
                                 key, str(exc))
             return
         self.truth_blocks += 1
+        m, a = ax.model.machine, ax.model.axis
         for sink in self.sinks:
+            enc = getattr(sink, "offer_encoded", None)
+            if enc is not None:
+                enc(b"T", payload, rx_ns, f"{m}\0{a}".encode())
+                continue
             offer = getattr(sink, "offer_truth", None)
             if offer is not None:
-                offer(ax.model.machine, ax.model.axis, block)
+                offer(m, a, block)
 
     # ---- shutdown ----------------------------------------------------------------------------
     def _problem(self, msg: str, *args: Any) -> None:
@@ -328,45 +410,49 @@ class Monitor:
 
     def _discard_queued(self) -> int:
         """Take every queued item off the queue and count it (per axis); returns how many."""
-        n = 0
-        while True:
-            try:
-                item = self._q.get_nowait()
-            except queue.Empty:
-                return n
-            if item is _STOP:
-                continue
-            key, _, _, size = item
-            self._bytes_out += size
+        with self._cv:
+            items = list(self._queue)
+            self._queue.clear()
+            for item in items:
+                self._bytes_out += item[3]
+        for key, *_ in items:
             self._refuse("shutdown_discarded", key)
-            n += 1
+        return len(items)
+
+    def _idle(self) -> bool:
+        """True when the estimator thread has ended and no message is being estimated."""
+        th = self._thread
+        return (th is None or not th.is_alive()) and not self._busy
+
+    def _wait_idle(self, seconds: float) -> bool:
+        deadline = time.monotonic() + seconds
+        th = self._thread
+        if th is not None:
+            th.join(max(0.0, deadline - time.monotonic()))
+        with self._cv:
+            while self._busy and time.monotonic() < deadline:
+                self._cv.wait(max(0.0, deadline - time.monotonic()))
+        return self._idle()
 
     def _stop_estimator(self) -> bool:
-        """Stop the estimator thread: drain for up to ``drain_seconds``, then discard the rest.
-        True when the thread has ended."""
+        """Stop estimating: drain for up to ``drain_seconds``, then discard the rest and wait for the
+        message in progress up to ``finish_seconds``. True when nothing is being estimated any more."""
         th = self._thread
+        with self._cv:
+            self._running = False
+            self._stop_thread = True
+            self._cv.notify_all()
         if th is None or not th.is_alive():  # never started (or gone): what is queued will not be estimated
             n = self._discard_queued()
             if n:
                 log.warning("%d queued message(s) discarded at stop (status: shutdown_discarded)", n)
-            return True
-        deadline = time.monotonic() + self.drain_seconds
-        try:
-            self._q.put(_STOP, timeout=max(0.0, self.drain_seconds))
-        except queue.Full:
-            pass
-        th.join(max(0.0, deadline - time.monotonic()))
-        if not th.is_alive():
+            return self._wait_idle(self.finish_seconds)
+        if self._wait_idle(self.drain_seconds):
             return True
         n = self._discard_queued()
         log.error("the estimator did not work off the input queue within %.3g s: %d queued message(s) discarded "
                   "(status: shutdown_discarded)", self.drain_seconds, n)
-        try:
-            self._q.put(_STOP, timeout=5.0)
-        except queue.Full:  # only if the estimator is stuck and callbacks refilled it, which _accepting prevents
-            pass
-        th.join(self.finish_seconds)  # the block in progress (at most max_block_samples samples)
-        return not th.is_alive()
+        return self._wait_idle(self.finish_seconds)  # the block in progress (at most max_block_samples samples)
 
     def stop(self, timeout: float = 30.0) -> list[str]:
         """Stop input, drain the queue, close the sinks, save the tracker states. Idempotent and always
@@ -390,7 +476,7 @@ class Monitor:
             try:
                 stopped = self._stop_estimator()
             except Exception as exc:  # noqa: BLE001
-                stopped = self._thread is None or not self._thread.is_alive()
+                stopped = self._idle()
                 self._problem("stopping the estimator thread failed: %s: %s", type(exc).__name__, exc)
             if not stopped:
                 self._problem("the estimator thread did not stop (a block still in progress); tracker states are "
@@ -449,6 +535,8 @@ class Monitor:
         if lat.size:
             p50, p99 = np.percentile(lat, [50.0, 99.0])
             latency.update(p50=round(float(p50), 1), p99=round(float(p99), 1))
+        all_st = [ax.status.stages.values() for ax in self.axes.values()]
+        stages = StageRing.summarize(np.concatenate(all_st, axis=1) if all_st else np.zeros((6, 0)))
         pc = dict(p.counters)
 
         def axis_sum(reason: str) -> int:
@@ -462,7 +550,7 @@ class Monitor:
                 "uptime_s": round(time.monotonic() - self._started_mono, 3), "endpoints": self.endpoints,
             },
             "input": {
-                "received": received, "handled": self.handled, "pending": self._q.qsize(),
+                "received": received, "inline": self.inline, "handled": self.handled, "pending": len(self._queue),
                 "capacity": lim.queue_messages,
                 "pending_bytes": max(0, bytes_in - self._bytes_out), "capacity_bytes": lim.queue_bytes,
                 "queue_full": int(totals["queue_full"]),
@@ -480,6 +568,7 @@ class Monitor:
             "limits": {f: getattr(lim, f) for f in lim.__struct_fields__},
             "status": {"served": self.status_served, "refused": self.status_refused},
             "latency_us": latency,
+            "stages_us": stages,
             "axes": axes,
             "sinks": [dict(s.status()) for s in self.sinks],
         }

@@ -60,6 +60,7 @@ import math
 from collections import Counter
 from numbers import Integral
 
+import msgspec
 import numpy as np
 
 from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
@@ -73,16 +74,78 @@ from .model_file import AxisModel
 from .online_settings import OnlineSettings, spindle_of
 from .state_check import StateError, check_snapshot
 
-__all__ = ["AxisEstimator", "LIMITS", "StateError"]
+__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
 _TRAINED = "estimator.trained"
+_C_SEQ_RANGE = online.COUNTERS.index("rejected_seq_range")
 
 
 def _as_column(values) -> np.ndarray:
-    """A measured column (``None`` = missing) as float64 with NaN."""
-    return np.array([math.nan if x is None else x for x in values], dtype=np.float64)
+    """A measured column (``None`` = missing) as float64 with NaN (one C call: NumPy turns
+    ``None`` into NaN for a float64 array)."""
+    return np.array(values, dtype=np.float64)
+
+
+_json = msgspec.json.Encoder()
+#: JSON keys of the columns of an EstimateBlock after machine, axis and seq, in field order
+_COLUMN_KEYS = [f',"{name}":'.encode() for name in EstimateBlock.__struct_fields__[3:]]
+
+
+class EstimateRows:
+    """The estimate rows of one block as the compiled loop wrote them (columns, no per-sample
+    Python objects): ``seq`` of the first row, ``t`` (s), ``v_meas`` (m/s), ``rows``
+    (:data:`kernels.online.ROWS`, float64), ``irows`` (:data:`kernels.online.IROWS`, int64) and
+    ``force`` (``force``, ``force_var``, ``force_next`` in N, or None when the model cannot scale).
+    :meth:`block` makes the :class:`~feedio.schema.EstimateBlock` (once), :meth:`scalar_columns`
+    the per-sample columns of :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
+
+    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "_block", "_json")
+
+    def __init__(self, machine: str, axis: str, seq: int, t: np.ndarray, v_meas: np.ndarray, rows: np.ndarray,
+                 irows: np.ndarray, force: np.ndarray | None) -> None:
+        self.machine, self.axis, self.seq = machine, axis, seq
+        self.t, self.v_meas, self.rows, self.irows, self.force = t, v_meas, rows, irows, force
+        self._block: EstimateBlock | None = None
+        self._json: bytes | None = None
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+    def block(self) -> EstimateBlock:
+        """The :class:`~feedio.schema.EstimateBlock` (made on the first call; the columns of
+        :data:`~kernels.online.ROWS` and :data:`~kernels.online.IROWS` are its fields in that order)."""
+        if self._block is None:
+            force = () if self.force is None else self.force.tolist()
+            self._block = EstimateBlock(self.machine, self.axis, self.seq, self.t.tolist(), self.v_meas.tolist(),
+                                        *self.rows.tolist(), *self.irows.tolist(), *force)
+        return self._block
+
+    def json(self) -> bytes:
+        """The JSON of :meth:`block` — the bytes ``feedio.schema.encode(self.block())`` gives — made
+        from the columns with one ``msgspec`` call, without the schema object (the live monitor
+        publishes it before anything else). Names match ``NAME_PATTERN`` (no character to escape)."""
+        if self._json is None:
+            cols = [self.t.tolist(), self.v_meas.tolist(), *self.rows.tolist(), *self.irows.tolist()]
+            if self.force is not None:
+                cols += self.force.tolist()
+            parts = _json.encode(cols)[2:-2].split(b"],[")  # "[[c0],[c1],…]" -> c0, c1, …
+            body = [f'{{"machine":"{self.machine}","axis":"{self.axis}","seq":{self.seq}'.encode()]
+            for key, part in zip(_COLUMN_KEYS, parts):
+                body += (key, b"[", part, b"]")
+            body.append(b"}")
+            self._json = b"".join(body)
+        return self._json
+
+    def scalar_columns(self) -> dict[str, np.ndarray | None]:
+        """The columns :meth:`feedio.scalars.ScalarsPairer.add_rows` takes (views, no copies):
+        ``v_meas, f, f_var, f_next``, ``force, force_var, force_next`` (None without a force scale) and
+        ``flags``."""
+        r, fc = self.rows, self.force
+        return {"v_meas": self.v_meas, "f": r[online.R_F], "f_var": r[online.R_FVAR], "f_next": r[online.R_FNEXT],
+                "force": None if fc is None else fc[0], "force_var": None if fc is None else fc[1],
+                "force_next": None if fc is None else fc[2], "flags": self.irows[online.R_FLAGS]}
 
 
 class AxisEstimator:
@@ -138,8 +201,14 @@ class AxisEstimator:
             rpm_nominal=sp.spindle_rpm if sp else 0.0, rpm_max=PHYSICAL.spindle_rpm_max,
             tick_period=self.settings.health.period)
         self.counters: Counter[str] = Counter()
+        b = self.force_gain
+        #: divisors of the rows f, f_var, f_next that give force, force_var, force_next (None: no scale)
+        self._force_div = None if b is None else np.array([[-b], [b * b], [-b]])
+        #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
+        self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
         self._state = online.new_state()
         self._xdim = 2 if sp is not None else 1
+        self._xbuf = np.zeros(self._xdim)  # an example input (its size) for the tracker's buffers
         self._scratch = online.new_scratch(len(names))
         self._no_spindle = np.zeros((2, 0))
         self._health_out: list[Health] = []
@@ -226,6 +295,12 @@ class AxisEstimator:
     def process(self, block: SampleBlock) -> EstimateBlock | None:
         """Estimates for the samples of ``block`` (None when every sample was dropped or refused);
         the health reports it produced wait in :meth:`take_health`."""
+        rows = self.process_rows(block)
+        return None if rows is None else rows.block()
+
+    def process_rows(self, block: SampleBlock) -> EstimateRows | None:
+        """:meth:`process` returning the rows as columns (:class:`EstimateRows`): the schema object
+        and its JSON are made only when asked for; the health reports wait in :meth:`take_health`."""
         n = len(block.t)
         exo = block.u if self.model.form == "force-input" else block.v_ref
         if exo is None:
@@ -234,13 +309,17 @@ class AxisEstimator:
                 f"axis {block.machine}/{block.axis}: the {self.model.form} model needs "
                 f"'{'u' if self.model.form == 'force-input' else 'v_ref'}' in every sample block"
             )
-        self.counters["samples_in"] += n
+        c = self.counters
+        c["samples_in"] += n
         seq0 = block.seq
-        if isinstance(seq0, bool) or not isinstance(seq0, Integral) or not 0 <= seq0 <= SEQ_MAX - (n - 1):
-            self.counters["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
+        if type(seq0) is not int and (isinstance(seq0, bool) or not isinstance(seq0, Integral)) \
+                or not 0 <= seq0 <= SEQ_MAX - (n - 1):
+            c["rejected_seq_range"] += n  # not a valid sequence number: never handed to compiled code
+            self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
+            self.block_counts[_C_SEQ_RANGE] = n
             return None
         seq0 = int(seq0)
-        t = np.asarray(block.t, dtype=np.float64)
+        t = np.array(block.t, dtype=np.float64)
         e = _as_column(exo)
         v = _as_column(block.v_meas)
         sp = self._no_spindle
@@ -252,20 +331,36 @@ class AxisEstimator:
                 sp[1] = _as_column(block.spindle_rpm)
         rows, irows, counts = online.new_rows(n)
         ticks = online.new_ticks(n, self._tick_min, self._change_min)
-        first = online.track_block(*self.tracker.core_buffers(np.zeros(self._xdim)), *self.online.buffers,
+        first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
                                    *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows, irows,
                                    counts, ticks, self._scratch)
-        for name, count in zip(online.COUNTERS, counts.tolist()):
-            if count:
-                self.counters[name] += count
+        self.block_counts = counts
+        for name, k in zip(online.COUNTERS, counts.tolist()):
+            if k:
+                c[name] += k
         nt = int(counts[online.C_TICKS])
         if nt:
             self._health_out.extend(self._health(block.machine, block.axis, ticks[i]) for i in range(nt))
         if first == n:
             return None
-        self.counters["estimates_out"] += n - first
-        return self._block(block.machine, block.axis, seq0 + first, t[first:], v[first:], rows[:, first:],
-                           irows[:, first:])
+        c["estimates_out"] += n - first
+        if first:
+            t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
+        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
+                            self._force(rows))
+
+    def _force(self, rows: np.ndarray) -> np.ndarray | None:
+        """``force``, ``force_var``, ``force_next`` (N) of the rows: F = −f/b, var F = var f / b²,
+        F_next = −f_next/b with b = β1 (force-input) or β1/K (velocity loop with known K), the β1 the
+        row's disturbance goes with (β̂ per row in apply mode); None when the model cannot scale."""
+        if self._force_div is None:
+            return None
+        if self.mode != "apply":
+            return rows[online.R_F:online.R_FNEXT + 1] / self._force_div
+        b = rows[online.R_BETA1]
+        if self.model.form == "velocity-loop":
+            b = b / self.model.loop_gain
+        return np.stack((-rows[online.R_F] / b, rows[online.R_FVAR] / (b * b), -rows[online.R_FNEXT] / b))
 
     def take_health(self) -> list[Health]:
         """The health reports produced since the last call (oldest first), and forget them."""
@@ -297,19 +392,6 @@ class AxisEstimator:
         return Health(machine=machine, axis=axis, seq=int(row[k.K_SEQ]), t=float(row[k.K_T]),
                       state=("ok", "warn", "alarm")[int(row[k.K_STATE])], reasons=reasons,
                       nu2=nu2 if math.isfinite(nu2) else None, adaptation=self.mode, **vals)
-
-    def _block(self, machine, axis, seq0, t, v, rows, irows) -> EstimateBlock:
-        cols = dict(zip(online.ROWS, rows[:len(online.ROWS)].tolist()))
-        cols.update(zip(online.IROWS, irows.tolist()))
-        if self.force_gain is not None:
-            # b = β1 (force-input) or β1/K, with the β1 the row's disturbance goes with (β̂ in apply mode)
-            b = rows[online.R_BETA1] if self.mode == "apply" else self.force_gain
-            if self.mode == "apply" and self.model.form == "velocity-loop":
-                b = b / self.model.loop_gain
-            f, f_var, f_next = rows[online.R_F], rows[online.R_FVAR], rows[online.R_FNEXT]
-            cols.update(force=(-f / b).tolist(), force_var=(f_var / (b * b)).tolist(),
-                        force_next=(-f_next / b).tolist())
-        return EstimateBlock(machine=machine, axis=axis, seq=int(seq0), t=t.tolist(), v_meas=v.tolist(), **cols)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:

@@ -1,25 +1,62 @@
 """The offline twin of the monitor (``feedmon run --from``): a recorded trial through the same
-:class:`~monitor.pipeline.Pipeline`, as fast as the machine goes."""
+:class:`~monitor.pipeline.Pipeline`, as fast as the machine goes.
+
+How the work is spread
+----------------------
+One axis (``jobs=1``): three threads of this process — a reader (MCAP chunks, zstd, CRCs, JSON
+decoding), the estimator (this thread: :meth:`Pipeline.estimate`, whose compiled tracker loop
+releases the interpreter lock) and a writer (JSON encoding, the per-sample scalars, MCAP records,
+zstd). The writer runs the writes in the order the input came, so the file is the one that
+writing inline would give.
+
+Several axes (``jobs`` > 1, default: as many processes as cores, at most one per axis): the axes
+are shared out round-robin among child processes (``spawn``); each reads the trial (only its axes'
+channels are decoded), estimates its axes and encodes everything it will write — block messages
+as the JSON :func:`feedio.schema.encode` writes, the per-sample scalars as finished MCAP records —
+and sends them to this process through a pipe (length-prefixed frames of bytes and NumPy
+columns, no pickling). This process merges the children's streams in the order of the one-process
+run — by the time of the input block's last sample, then the axis' position, then the block's
+position in its axis (the key :func:`_merged_blocks` orders by) — and writes them with one
+:class:`~feedio.mcapio.TrialWriter`, so the chunks (by controller time) and every byte of the file
+are those of ``jobs=1``. At the end each child sends its axes' counters and tracker states (NumPy
+arrays, checked like a saved state when restored), so the :class:`AxisRuntime` objects passed in
+end as after a one-process run. Axes whose estimator does not start fresh from its model file
+(a restored tracker, other estimator options) are estimated in this process (``jobs`` is then 1).
+
+Per input item the work is the same in both cases (:class:`_Encoder`): a truth block is copied
+and paired with the rows it belongs to; a samples block is copied, estimated, its estimates
+written, and the scalars that became complete written (:class:`~feedio.scalars.ScalarsPairer`);
+at the end the scalars still waiting are written, axis by axis in the order the axes first
+reached the pairer. The health reports of a block (:attr:`~monitor.pipeline.Estimated.health`)
+are written on ``/<machine>/<axis>/health`` right after the estimates and scalars of their block,
+each stamped at its sample (the block's log time minus the controller time from the report to the
+block's last sample) — in :meth:`_Encoder.samples`, the one place both paths go through.
+"""
 
 from __future__ import annotations
 
 import heapq
+import io
+import json
 import math
+import multiprocessing
 import os
 import queue
+import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from functools import partial
 from typing import Any
 
 import msgspec
+import numpy as np
 
+from feedio import schema as S
 from feedio.limits import DEFAULT, InputLimits
 
 from .axes import AxisRuntime
-from .pipeline import Pipeline
+from .pipeline import Estimated, Pipeline
 
 __all__ = ["OfflineResult", "run_offline"]
 
@@ -33,6 +70,7 @@ class OfflineResult:
     seconds: float
     axes: list[str]
     skipped_axes: list[str]
+    jobs: int = 1
     health_reports: int = 0
 
     @property
@@ -40,24 +78,98 @@ class OfflineResult:
         return self.samples / self.seconds if self.seconds > 0 else math.inf
 
 
-def _merged_blocks(path: str, axes: list[str]) -> Iterator[tuple[str, str, int, Any]]:
-    """``(axis_name, kind, log_time, block)`` of several axes merged by the time of their last
-    sample, from one pass over the file (:func:`feedio.mcapio.iter_axes`)."""
+def _merged_blocks(path: str, axes: list[str], index: dict[str, int] | None = None
+                   ) -> Iterator[tuple[tuple[float, int, int], str, str, int, Any]]:
+    """``(key, axis_name, kind, log_time, block)`` of several axes merged by ``key`` = (time of the
+    block's last sample, the axis' position in ``index`` (default: in ``axes``), the block's
+    position in its axis' stream), from one pass over the file (:func:`feedio.mcapio.iter_axes`)."""
     from feedio.mcapio import iter_axes
 
+    index = index or {a: i for i, a in enumerate(axes)}
     streams = iter_axes(path, axes, kinds=("samples", "truth"))
 
-    def one(idx: int, name: str):
+    def one(name: str):
+        idx = index[name]
         for j, (kind, lt, b) in enumerate(streams[name]):
-            yield float(b.t[-1]), idx, j, name, kind, lt, b
+            yield (float(b.t[-1]), idx, j), name, kind, lt, b
 
-    for _, _, _, name, kind, lt, b in heapq.merge(*(one(i, a) for i, a in enumerate(axes)),
-                                                  key=lambda x: (x[0], x[1], x[2])):
-        yield name, kind, lt, b
+    yield from heapq.merge(*(one(a) for a in axes), key=lambda x: x[0])
 
 
+# ---- the work per input item (both paths) -----------------------------------------------------
+#: kinds of block channels, as sent by the children
+_KINDS = ("samples", "truth", "disturbance")
+
+
+class _Encoder:
+    """What one input item puts into the output, encoded: block messages ``("B", kind, machine, axis,
+    data, seq, n, t0, t1, log_time)``, per-sample scalars ``("C", machine, axis, records, sizes,
+    log_ns, t, seq)`` (:meth:`feedio.scalars.ScalarsBatch.records`, channel id set by the writer) and
+    health reports ``("H", machine, axis, data, log_time)`` (the JSON of a :class:`~feedio.schema.Health`)."""
+
+    def __init__(self, has_truth: set[tuple[str, str]]) -> None:
+        from feedio.scalars import ScalarsPairer
+
+        self.pairer = ScalarsPairer(expect_truth=has_truth)
+        self.has_truth = has_truth
+        self.touched: dict[str, tuple] = {}  # axis name -> key of the first item that reached the pairer
+
+    @staticmethod
+    def _scalars(batches) -> list[tuple]:
+        out = []
+        for b in batches:
+            records, sizes = b.records(0)
+            out.append(("C", b.machine, b.axis, records, sizes, b.log_ns, b.t, b.seq))
+        return out
+
+    def truth(self, key: tuple, name: str, block: S.TruthBlock, lt: int) -> list[tuple]:
+        m, a = name.split("/", 1)
+        out = [("B", "truth", m, a, S.encode(block), block.seq, len(block.t), float(block.t[0]), float(block.t[-1]),
+                lt)]
+        if (m, a) in self.has_truth:
+            self.touched.setdefault(name, key)
+            out += self._scalars(self.pairer.add_truth(m, a, block))
+        return out
+
+    def samples(self, key: tuple, block: S.SampleBlock, lt: int, res: Estimated) -> list[tuple]:
+        m, a = block.machine, block.axis
+        n = len(block.t)
+        out = [("B", "samples", m, a, S.encode(block), block.seq, n, float(block.t[0]), float(block.t[-1]), lt)]
+        est = res.est
+        if est is not None:
+            out.append(("B", "disturbance", m, a, est.json(), est.seq, len(est), float(est.t[0]),
+                        float(est.t[-1]), lt))
+            self.touched.setdefault(f"{m}/{a}", key)
+            out += self._scalars(self.pairer.add_rows(m, a, est.seq, est.t, lt, **est.scalar_columns()))
+        t_end = float(block.t[-1])
+        for h in res.health:  # stamped at its sample: the block's log time minus the time to its end
+            out.append(("H", m, a, S.encode(h), max(0, lt - round((t_end - h.t) * 1e9))))
+        return out
+
+    def drain(self) -> dict[str, list[tuple]]:
+        """The scalars still waiting, per axis name."""
+        per: dict[str, list[tuple]] = {}
+        for entry in self._scalars(self.pairer.drain()):
+            per.setdefault(f"{entry[1]}/{entry[2]}", []).append(entry)
+        return per
+
+
+def _write(w, entries: list[tuple]) -> None:
+    for e in entries:
+        if e[0] == "B":
+            _, kind, m, a, data, seq, n, t0, t1, lt = e
+            w.write_encoded(m, a, kind, data, seq=seq, n=n, t0=t0, t1=t1, log_time=lt)
+        elif e[0] == "C":
+            _, m, a, records, sizes, log_ns, t, seq = e
+            w.write_scalar_records(m, a, records, sizes, log_ns, t, seq)
+        else:  # "H": the report is checked again by the writer (bounds of seq and t)
+            w.write_health(S.decode_health(e[3]), log_time=e[4])
+
+
+# ---- the entry point ------------------------------------------------------------------------------
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
-                axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT) -> OfflineResult:
+                axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT,
+                jobs: int | None = None) -> OfflineResult:
     """Estimate a recorded trial without Zenoh, as fast as the machine goes.
 
     Every samples block of the axes that have a model goes through the same
@@ -68,15 +180,19 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     ``disturbance/scalars`` (:class:`~feedio.scalars.ScalarsPairer`, stamped from those
     log times) and the health reports (``/<machine>/<axis>/health``, stamped at their sample).
     The trial's own metadata (with its truth and start time) is kept, with the model file and
-    hash added to the provenance details. Chunks follow controller time
-    only, so the same input gives the same bytes.
+    hash added to the provenance details. Chunks follow controller time only, so the same input
+    gives the same bytes — whatever ``jobs`` is.
+
+    ``jobs``: processes for a trial with several modelled axes (None: one per core, at most one
+    per axis; 1: this process only). See the module docstring.
     """
     from feedio.mcapio import TrialWriter, _Open
-    from feedio.scalars import ScalarsPairer
 
     trial, output = os.fspath(trial), os.fspath(output)
     if os.path.abspath(trial) == os.path.abspath(output):
         raise ValueError(f"output {output!r} would overwrite the input trial")
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
+        raise ValueError(f"jobs must be an integer ≥ 1, got {jobs!r}")
     with _Open(trial) as f:
         present = f.axes()
         metas = {key: f.meta(*key) for key in present if key in axes}
@@ -97,46 +213,68 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                        model_sha256=ax.status.model_sha256, tracker_state=ax.status.state)
         out_metas.append(msgspec.structs.replace(meta, provenance=msgspec.structs.replace(meta.provenance,
                                                                                            details=details)))
-    pipe = Pipeline(axes, limits=limits)
     names = [f"{m}/{a}" for (m, a) in metas]
-    pairer = ScalarsPairer(expect_truth=has_truth)
+    jobs = min(os.cpu_count() or 1, len(names)) if jobs is None else min(jobs, max(1, len(names)))
+    if jobs > 1 and threading.active_count() > 1 and not all(_fresh(axes[key]) for key in metas):
+        jobs = 1  # a spawned child builds its estimators from the model files: only when that is what they are
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
-    samples = estimates = truth = health = 0
     t0 = time.perf_counter()
-    with TrialWriter(output, out_metas, start=start) as w, _WriterThread(w) as out:
-        for name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
-            if kind == "truth":
-                m, a = name.split("/", 1)
-                out.put(partial(w.write_truth, block, m, a, log_time=lt))
-                if (m, a) in has_truth:
-                    out.put(_scalars, w, pairer.add_truth, m, a, block)
-                truth += 1
-                continue
-            samples += len(block.t)
-            ax, est = pipe.estimate(block)
-            if ax is None:  # refused (too long): counted, not copied, as live
-                continue
-            out.put(partial(w.write_samples, block, log_time=lt))
-            if est is not None:
-                out.put(partial(w.write_estimates, est, log_time=lt))
-                out.put(_scalars, w, pairer.add_estimates, est, lt)
-                estimates += len(est.t)
-            for h in pipe.last_health:  # stamped at its sample: the block's log time minus the time to its end
-                out.put(partial(w.write_health, h, log_time=max(0, lt - round((block.t[-1] - h.t) * 1e9))))
-                health += 1
-        out.put(_scalars, w, pairer.drain)
+    with TrialWriter(output, out_metas, start=start) as w:
+        if jobs > 1:
+            counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
+                                   jobs)
+        else:
+            counts = _run_here(trial, w, names, axes, has_truth, limits)
     seconds = time.perf_counter() - t0
-    return OfflineResult(output, samples, estimates, truth, seconds, names, skipped, health)
+    return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
+                         jobs, counts["health"])
 
 
-def _scalars(w, pair, *args) -> None:
-    """On the writer thread: feed the pairer (``pair(*args)``) and write the scalars that became
-    complete (grouped per axis, order kept)."""
-    by_axis: dict[tuple[str, str], list] = {}
-    for machine, axis, ns, sc in pair(*args):
-        by_axis.setdefault((machine, axis), []).append((ns, sc))
-    for (machine, axis), items in by_axis.items():
-        w.write_scalars(machine, axis, items)
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits) -> dict[str, int]:
+    """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
+    pipe = Pipeline(axes, limits=limits)
+    enc = _Encoder(has_truth)
+    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
+    with _WriterThread() as out:
+        for key, name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
+            if kind == "truth":
+                out.put(lambda k=key, n=name, b=block, t=lt: _write(w, enc.truth(k, n, b, t)))
+                counts["truth"] += 1
+                continue
+            counts["samples"] += len(block.t)
+            res = pipe.estimate(block)
+            if res.ax is None:  # refused (too long): counted, not copied, as live
+                continue
+            if res.est is not None:
+                counts["estimates"] += len(res.est)
+            counts["health"] += len(res.health)
+            out.put(lambda k=key, b=block, t=lt, r=res: _write(w, enc.samples(k, b, t, r)))
+        out.put(lambda: _write_drain(w, enc.drain(), {n: enc.touched.get(n) for n in names}))
+    return counts
+
+
+def _write_drain(w, per_axis: dict[str, list[tuple]], touched: dict[str, tuple | None]) -> None:
+    """The scalars still waiting, axis by axis in the order the axes first reached the pairer."""
+    for name in sorted((n for n in per_axis if touched.get(n) is not None), key=lambda n: touched[n]):
+        _write(w, per_axis[name])
+
+
+def _fresh(ax: AxisRuntime) -> bool:
+    """The estimator is what a spawned child process builds from the model file: fresh, default
+    options, the model as the file has it (no ``--config`` override of its settings)."""
+    from kernels import online
+
+    from .model_file import load_model
+
+    e = ax.estimator
+    if not (e.trained == 0 and e.tracker.size == 0 and not e.counters and e.warmup == ax.model.tracker.budget
+            and e.stale_detection and e.reorder_window == online.REORDER_WINDOW and ax.status.state == "fresh"
+            and os.path.isfile(ax.status.model_path)):
+        return False
+    try:
+        return load_model(ax.status.model_path) == ax.model
+    except (OSError, ValueError):
+        return False
 
 
 def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
@@ -176,14 +314,15 @@ def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
 
 
 class _WriterThread:
-    """Runs the MCAP writes of :func:`run_offline` on a second thread, in order.
+    """Runs callables on a second thread, in order (the writes of :func:`run_offline`, or the
+    encoding and sending of a child).
 
     The tracker loop (``@njit(nogil=True)``) and zstd compression both release the GIL, so
     estimating and encoding/compressing/writing overlap on two cores; one thread and a FIFO
-    keep the output byte-identical to writing inline. A write error is raised in the caller.
+    keep the output byte-identical to writing inline. An error is raised in the caller.
     """
 
-    def __init__(self, writer, depth: int = 256) -> None:
+    def __init__(self, depth: int = 256) -> None:
         self._q: queue.Queue = queue.Queue(maxsize=depth)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="offline-writer", daemon=True)
@@ -192,19 +331,19 @@ class _WriterThread:
         self._thread.start()
         return self
 
-    def put(self, fn, *args) -> None:
+    def put(self, fn: Callable[[], Any]) -> None:
         if self._error is not None:
             raise self._error
-        self._q.put((fn, args))
+        self._q.put(fn)
 
     def _run(self) -> None:
         while True:
-            item = self._q.get()
-            if item is None:
+            fn = self._q.get()
+            if fn is None:
                 return
             if self._error is None:
                 try:
-                    item[0](*item[1])
+                    fn()
                 except BaseException as exc:  # noqa: BLE001 - re-raised in the caller
                     self._error = exc
 
@@ -214,3 +353,309 @@ class _WriterThread:
         if self._error is not None and exc[0] is None:
             raise self._error
 
+
+# ---- several processes ------------------------------------------------------------------------------
+# frames child -> parent, one pipe message holding several: tag byte, then
+#   b"I" item:  key (t f8, axis i4, j i8), entry count u4, entries
+#   b"D" drain: axis i4, key present u1 (+ key), entry count u4, entries
+#   b"F" final: JSON length u4, JSON (counters), then per axis: npz length u8, npz bytes (tracker state)
+#   b"E" error: JSON {"type", "message"}
+# entries: b"B" kind u1, seq i8, n i8, t0 f8, t1 f8, log_time i8, data length u4, data
+#          b"C" count u4, records length u8, sizes i8[count], log_ns i8[count], t f8[count], seq i8[count], records
+#          b"H" log_time i8, data length u4, data (the JSON of a Health report)
+_KEY = struct.Struct("<dqi")
+_B = struct.Struct("<BqqddqI")
+_C = struct.Struct("<IQ")
+_H = struct.Struct("<qI")
+_SEND_BYTES = 1 << 18
+
+
+def _pack_entries(entries: list[tuple], buf: list[bytes]) -> None:
+    buf.append(struct.pack("<I", len(entries)))
+    for e in entries:
+        if e[0] == "B":
+            _, kind, _m, _a, data, seq, n, t0, t1, lt = e
+            buf += (b"B", _B.pack(_KINDS.index(kind), seq, n, t0, t1, lt, len(data)), data)
+        elif e[0] == "C":
+            _, _m, _a, records, sizes, log_ns, t, seq = e
+            buf += (b"C", _C.pack(sizes.size, records.size), sizes.astype("<i8").tobytes(),
+                    log_ns.astype("<i8").tobytes(), t.astype("<f8").tobytes(), seq.astype("<i8").tobytes(),
+                    records.tobytes())
+        else:
+            _, _m, _a, data, lt = e
+            buf += (b"H", _H.pack(lt, len(data)), data)
+
+
+def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple], int]:
+    m, a = name.split("/", 1)
+    (count,) = struct.unpack_from("<I", view, pos)
+    pos += 4
+    out = []
+    for _ in range(count):
+        tag = view[pos:pos + 1].tobytes()
+        pos += 1
+        if tag == b"B":
+            kind, seq, n, t0, t1, lt, size = _B.unpack_from(view, pos)
+            pos += _B.size
+            out.append(("B", _KINDS[kind], m, a, view[pos:pos + size].tobytes(), seq, n, t0, t1, lt))
+            pos += size
+        elif tag == b"H":
+            lt, size = _H.unpack_from(view, pos)
+            pos += _H.size
+            out.append(("H", m, a, view[pos:pos + size].tobytes(), lt))
+            pos += size
+        else:
+            k, size = _C.unpack_from(view, pos)
+            pos += _C.size
+            cols = np.frombuffer(view, dtype="<i8", count=4 * k, offset=pos).copy()
+            pos += 32 * k
+            records = np.frombuffer(view, dtype=np.uint8, count=size, offset=pos).copy()
+            pos += size
+            out.append(("C", m, a, records, cols[:k], cols[k:2 * k], cols[2 * k:3 * k].view("<f8"), cols[3 * k:]))
+    return out, pos
+
+
+def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime], has_truth, limits,
+                  jobs: int) -> dict[str, int]:
+    """``jobs`` > 1: children estimate and encode, this process merges and writes (module docstring)."""
+    # fork when this process has no other thread (the command line): the children start at once with the
+    # estimators as they are; else spawn (a thread holding a lock at fork time would leave it held), and
+    # the children build their estimators from the model files
+    fork = threading.active_count() == 1
+    ctx = multiprocessing.get_context("fork" if fork else "spawn")
+    groups = [names[i::jobs] for i in range(jobs)]
+    children = []
+    try:
+        for group in groups:
+            conn, child = ctx.Pipe(duplex=False)
+            spec = {"trial": trial, "axes": group, "index": {n: names.index(n) for n in group},
+                    "models": {n: axes[n].status.model_path for n in group},
+                    "sha256": {n: axes[n].status.model_sha256 for n in group},
+                    "has_truth": [list(k) for k in has_truth], "limits": msgspec.to_builtins(limits),
+                    "log_format": None if fork else _log_format()}
+            own = {axes[n].key: axes[n] for n in group} if fork else None
+            p = ctx.Process(target=_child_main, args=(child, json.dumps(spec), own), name="feedmon-offline",
+                            daemon=True)
+            p.start()
+            child.close()
+            children.append((p, conn))
+        results: list[dict] = []
+        drains: dict[str, tuple[tuple | None, list[tuple]]] = {}
+
+        def stream(conn) -> Iterator[tuple[tuple, str, list[tuple]]]:
+            for msg in _read_ahead(conn):
+                if msg is None:
+                    raise RuntimeError("an offline worker process ended without finishing")
+                view, pos = memoryview(msg), 0
+                while pos < len(view):
+                    tag = view[pos:pos + 1].tobytes()
+                    pos += 1
+                    if tag == b"I":
+                        key = _KEY.unpack_from(view, pos)
+                        pos += _KEY.size
+                        name = names[key[1]]
+                        entries, pos = _unpack_entries(view, pos, name)
+                        yield key, name, entries
+                    elif tag == b"D":
+                        idx, has_key = struct.unpack_from("<iB", view, pos)
+                        pos += 5
+                        key = None
+                        if has_key:
+                            key = _KEY.unpack_from(view, pos)
+                            pos += _KEY.size
+                        entries, pos = _unpack_entries(view, pos, names[idx])
+                        drains[names[idx]] = (key, entries)
+                    elif tag == b"F":
+                        results.append(_read_final(view, pos, axes))
+                        return
+                    else:
+                        err = json.loads(view[pos:].tobytes())
+                        cls = {"OSError": OSError, "TrialFileError": ValueError, "ValueError": ValueError}.get(
+                            err["type"], RuntimeError)
+                        raise cls(err["message"])
+
+        for _key, _name, entries in heapq.merge(*(stream(c) for _, c in children), key=lambda x: x[0]):
+            _write(w, entries)
+        _write_drain(w, {n: e for n, (_, e) in drains.items()}, {n: k for n, (k, _) in drains.items()})
+        for p, _ in children:
+            p.join(30)
+    finally:
+        for p, conn in children:
+            if p.is_alive():
+                p.kill()
+                p.join(5)
+            conn.close()
+    return {k: sum(r[k] for r in results) for k in ("samples", "estimates", "truth", "health")}
+
+
+#: pipe messages of one worker read ahead (each up to ~_SEND_BYTES): a worker whose axes run ahead in
+#: time is not held by the merge, which waits for the others (about 64 MiB per worker at most)
+_READ_AHEAD = 256
+
+
+def _read_ahead(conn) -> Iterator[bytes | None]:
+    """The pipe messages of a worker, read on a thread of their own into a bounded queue, until the
+    worker closes the pipe (then None)."""
+    q: queue.Queue = queue.Queue(maxsize=_READ_AHEAD)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        while True:
+            try:
+                msg = conn.recv_bytes()
+            except (EOFError, OSError):
+                put(None)
+                return
+            if not put(msg):
+                return
+
+    th = threading.Thread(target=run, name="offline-merge-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            msg = q.get()
+            yield msg
+            if msg is None:
+                return
+    finally:
+        stop.set()
+
+
+def _log_format() -> str | None:
+    """The format of this process' log lines, for a child to log alike (None: not configured)."""
+    import logging
+
+    root = logging.getLogger()
+    return getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter else None
+
+
+def _read_final(view: memoryview, pos: int, axes: dict[str, AxisRuntime]) -> dict:
+    """The child's counters and tracker states, applied to the parent's axes."""
+    (size,) = struct.unpack_from("<I", view, pos)
+    pos += 4
+    doc = json.loads(view[pos:pos + size].tobytes())
+    pos += size
+    for name, a in doc["axes"].items():
+        (nz,) = struct.unpack_from("<Q", view, pos)
+        pos += 8
+        with np.load(io.BytesIO(view[pos:pos + nz].tobytes()), allow_pickle=False) as z:
+            snap = {k: z[k] for k in z.files}
+        pos += nz
+        ax = axes[name]
+        ax.estimator.restore(snap)
+        ax.estimator.counters.update(a["estimator"])
+        ax.status.counters.update(a["status"])
+        ax.status.blocks = a["blocks"]
+        ax.status.last_seq, ax.status.last_t = a["last_seq"], a["last_t"]
+        ax.status.health, ax.status.health_changes = a["health"], a["health_changes"]
+    return doc
+
+
+def _child_main(conn, spec_json: str, axes: dict | None = None) -> None:
+    """An offline worker: read its axes, estimate, encode, send (module docstring). ``axes``: the
+    parent's (forked), else built from the model files."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops it (and the pipe closing does)
+    try:
+        _child(conn, json.loads(spec_json), axes)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
+        try:
+            conn.send_bytes(b"E" + json.dumps({"type": type(exc).__name__, "message": str(exc)}).encode())
+        except (OSError, ValueError):
+            pass
+    finally:
+        conn.close()
+
+
+def _child(conn, spec: dict, axes: dict | None = None) -> None:
+    import logging
+
+    from feedio.mcapio import TrialFileError
+    from monitor.axes import load_axes
+
+    if spec.get("log_format"):
+        from monitor.status import EscapingFormatter
+
+        handler = logging.StreamHandler()
+        handler.setFormatter(EscapingFormatter(spec["log_format"]))
+        logging.getLogger().addHandler(handler)
+        logging.getLogger().setLevel(logging.INFO)
+
+    if axes is None:
+        axes = load_axes([spec["models"][n] for n in spec["axes"]])
+        for ax in axes.values():
+            if ax.status.model_sha256 != spec["sha256"][ax.status.name]:
+                raise TrialFileError(f"model file {ax.status.model_path} changed after the run started; run again")
+    by_name = {f"{m}/{a}": ax for (m, a), ax in axes.items()}
+    pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits))
+    enc = _Encoder({tuple(k) for k in spec["has_truth"]})
+    index = spec["index"]
+    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
+    buf: list[bytes] = []
+    size = [0]
+
+    def send(part: list[bytes], force: bool = False) -> None:
+        buf.extend(part)
+        size[0] += sum(len(x) for x in part)
+        if size[0] >= _SEND_BYTES or force:
+            conn.send_bytes(b"".join(buf))
+            buf.clear()
+            size[0] = 0
+
+    def item(key, entries) -> None:
+        part = [b"I", _KEY.pack(*key)]
+        _pack_entries(entries, part)
+        send(part)
+
+    with _WriterThread() as out:
+        for key, name, kind, lt, block in _prefetch(_merged_blocks(spec["trial"], spec["axes"], index)):
+            if kind == "truth":
+                counts["truth"] += 1
+                out.put(lambda k=key, n=name, b=block, t=lt: item(k, enc.truth(k, n, b, t)))
+                continue
+            counts["samples"] += len(block.t)
+            res = pipe.estimate(block)
+            if res.ax is None:
+                continue
+            if res.est is not None:
+                counts["estimates"] += len(res.est)
+            counts["health"] += len(res.health)
+            out.put(lambda k=key, b=block, t=lt, r=res: item(k, enc.samples(k, b, t, r)))
+
+        def finish() -> None:
+            drained = enc.drain()
+            for name in spec["axes"]:
+                key = enc.touched.get(name)
+                part = [b"D", struct.pack("<iB", index[name], key is not None)]
+                if key is not None:
+                    part.append(_KEY.pack(*key))
+                _pack_entries(drained.get(name, []), part)
+                send(part)
+            doc = {**counts, "axes": {}}
+            snaps = []
+            for name in spec["axes"]:
+                ax = by_name[name]
+                doc["axes"][name] = {"estimator": dict(ax.estimator.counters), "status": dict(ax.status.counters),
+                                     "blocks": ax.status.blocks, "last_seq": ax.status.last_seq,
+                                     "last_t": ax.status.last_t, "health": ax.status.health,
+                                     "health_changes": ax.status.health_changes}
+                z = io.BytesIO()
+                np.savez(z, **ax.estimator.snapshot())
+                snaps.append(z.getvalue())
+            body = json.dumps(doc).encode()
+            part = [b"F", struct.pack("<I", len(body)), body]
+            for snap in snaps:
+                part += (struct.pack("<Q", len(snap)), snap)
+            send(part, force=True)
+
+        out.put(finish)

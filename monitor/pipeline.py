@@ -14,20 +14,34 @@ Every refusal is counted (status counter in brackets) and logged once per burst:
 
 Counts land on the axis the key (or the block) names when it has a model, else in the
 monitor-wide counters.
+
+What :meth:`Pipeline.estimate` returns (:class:`Estimated`) is what the live daemon publishes
+and both paths log: the axis, its estimate rows of the block (:class:`~monitor.estimator.EstimateRows`,
+columns; the schema object and its JSON are made once, by whoever needs them first) and
+``health``: the :class:`~feedio.schema.Health` reports the block produced (about one per second
+of data per axis; also in :attr:`Pipeline.last_health`), which the daemon publishes on
+``<prefix>/<machine>/<axis>/health`` and hands to the sinks (``offer_health``), and the offline
+runner writes on ``/<machine>/<axis>/health`` — produced here, next to the estimator whose state
+they describe, so that live and offline give the same messages.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import Counter
+from typing import NamedTuple
+
+import numpy as np
 
 from feedio import schema as S
 from feedio.limits import DEFAULT, NAME_RE, InputLimits
+from kernels.online import COUNTERS
 
 from .axes import AxisRuntime
+from .estimator import EstimateRows
 from .status import BoundedCounter, BurstLog
 
-__all__ = ["Pipeline"]
+__all__ = ["Pipeline", "Estimated"]
 
 log = logging.getLogger("monitor.pipeline")
 
@@ -47,6 +61,18 @@ _LOGGED_REASONS = (
 )
 
 
+class Estimated(NamedTuple):
+    """Result of :meth:`Pipeline.estimate` (see the module docstring)."""
+
+    ax: AxisRuntime | None  #: the axis the block was routed to (None: refused, no model or too long)
+    est: EstimateRows | None = None  #: its estimate rows (None: no row, every sample dropped)
+    health: list[S.Health] | tuple = ()  #: the health reports the block produced (oldest first)
+
+
+_REFUSED = Estimated(None)
+_NO_HEALTH = ()
+
+
 class Pipeline:
     """Decode → check the key → route → estimate. No I/O; one thread only."""
 
@@ -62,6 +88,9 @@ class Pipeline:
         self._key_prefix = f"{prefix}/"
         self._axis_by_key = {f"{prefix}/{m}/{a}/{kind}": ax for (m, a), ax in axes.items()
                              for kind in ("samples", "truth")}
+        # positions of the logged reasons in the estimator's per-block counts (all of them are counted there)
+        self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS]) \
+            if all(k in COUNTERS for k, _ in _LOGGED_REASONS) else None
         #: the health reports of the block :meth:`estimate` handled last (for Zenoh and the sinks)
         self.last_health: list[S.Health] = []
 
@@ -103,9 +132,9 @@ class Pipeline:
             return None
         return block
 
-    def estimate(self, block: S.SampleBlock) -> tuple[AxisRuntime | None, S.EstimateBlock | None]:
-        """Route ``block`` to its axis' estimator. ``(None, None)``: refused (no model for the axis, or
-        longer than ``max_block_samples``); ``(ax, None)``: no estimate row (every sample dropped, or
+    def estimate(self, block: S.SampleBlock) -> Estimated:
+        """Route ``block`` to its axis' estimator. ``ax`` None: refused (no model for the axis, or
+        longer than ``max_block_samples``); ``est`` None: no estimate row (every sample dropped, or
         the estimator could not use the block)."""
         ax = self.axes.get((block.machine, block.axis))
         n = len(block.t)
@@ -118,40 +147,50 @@ class Pipeline:
                        "no model for axis %s: dropping its samples (have models for %s)%s", name,
                        ", ".join(f"{m}/{a}" for m, a in self.axes) or "none",
                        "" if listed else f"; more than {self.no_model.limit} such axes: counted in no_model_overflow")
-            return None, None
+            return _REFUSED
         st = ax.status
         st.blocks += 1
         if n > self.limits.max_block_samples:
             st.counters["too_large"] += 1
             self.burst(f"too_large:{st.name}", "axis %s: refusing a block of %d samples (max_block_samples = %d)",
                        st.name, n, self.limits.max_block_samples)
-            return None, None
+            return _REFUSED
         c = ax.estimator.counters
-        before = [c.get(k, 0) for k, _ in _LOGGED_REASONS]
+        before = [c.get(k, 0) for k, _ in _LOGGED_REASONS] if self._logged_idx is None else None
         try:
-            est = ax.estimator.process(block)
+            est = ax.estimator.process_rows(block)
         except ValueError as exc:  # e.g. the model's form needs a column the block lacks
             self.burst(f"error:{st.name}", "axis %s: block dropped: %s", st.name, str(exc))
-            return ax, None
+            return Estimated(ax)
         except Exception as exc:  # noqa: BLE001 - never fatal; counted and logged
             st.counters["estimator_error"] += n
             self.burst(f"error:{st.name}", "axis %s: estimator failed on a block: %s: %s", st.name,
                        type(exc).__name__, str(exc), level=logging.ERROR)
-            return ax, None
-        for (k, what), b in zip(_LOGGED_REASONS, before):
-            d = c.get(k, 0) - b
-            if d:  # the estimator only counts; say it once per burst (per reason and axis)
-                self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name, d, what, k)
+            return Estimated(ax)
+        # the estimator only counts; say it once per burst (per reason and axis)
+        if before is None:
+            bc = ax.estimator.block_counts[self._logged_idx]
+            if bc.any():
+                for (k, what), d in zip(_LOGGED_REASONS, bc.tolist()):
+                    if d:
+                        self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name, d,
+                                   what, k)
+        else:
+            for (k, what), b in zip(_LOGGED_REASONS, before):
+                if c.get(k, 0) != b:
+                    self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name,
+                               c.get(k, 0) - b, what, k)
         if est is not None:
-            st.last_seq = est.seq + len(est.t) - 1
-            st.last_t = est.t[-1]
-        self._health(ax)
-        return ax, est
+            st.last_seq = est.seq + len(est) - 1
+            st.last_t = float(est.t[-1])
+        return Estimated(ax, est, self._health(ax))
 
-    def _health(self, ax: AxisRuntime) -> None:
-        """Collect the axis' health reports into :attr:`last_health`, update its status and log every
-        change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
+    def _health(self, ax: AxisRuntime) -> list[S.Health] | tuple:
+        """Collect the axis' health reports into :attr:`last_health` (and return them), update its
+        status and log every change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
         reports = ax.estimator.take_health()
+        if not reports:
+            return _NO_HEALTH
         self.last_health = reports
         st = ax.status
         for h in reports:
@@ -160,3 +199,4 @@ class Pipeline:
                 why = "; ".join(h.reasons) or "no reason given"
                 log.log(logging.INFO if h.state == "ok" else logging.WARNING,
                         "axis %s: health %s → %s at t = %.3f s (seq %d): %s", st.name, was, h.state, h.t, h.seq, why)
+        return reports

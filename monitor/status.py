@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["LatencyRing", "BurstLog", "BoundedCounter", "AxisStatus", "DROP_REASONS", "format_status",
-           "safe_text", "EscapingFormatter"]
+__all__ = ["LatencyRing", "StageRing", "STAGES", "BurstLog", "BoundedCounter", "AxisStatus", "DROP_REASONS",
+           "format_status", "safe_text", "EscapingFormatter"]
 
 #: counter names that mean "input produced no (or a NaN) estimate row"; units in the README
 DROP_REASONS = (
@@ -132,6 +132,66 @@ class LatencyRing:
                 "count": int(self._n), "window": int(v.size)}
 
 
+#: the stages of a message inside the monitor, in order (µs each; see :class:`StageRing`)
+STAGES = ("queue", "decode", "estimate", "encode", "publish", "sinks")
+
+
+class StageRing:
+    """Fixed-size ring of per-message stage times (µs), one row per stage of :data:`STAGES`:
+
+    * ``queue``: from the arrival in the Zenoh callback to the start of decoding: the callback's
+      own bookkeeping (size check, lock, copy of the payload) and, for a message that went through
+      the input queue, its wait there and the hand-over to the estimator thread;
+    * ``decode``: JSON → :class:`~feedio.schema.SampleBlock`, schema and key checks;
+    * ``estimate``: routing and the estimator (the compiled tracker loop and the Python around it);
+    * ``encode``: the :class:`~feedio.schema.EstimateBlock` and its JSON;
+    * ``publish``: the Zenoh ``put``;
+    * ``sinks``: handing the input and the estimate to the sinks (after the publish; not part of
+      the latency).
+
+    :meth:`record` writes one column in place (O(1), no allocation); percentiles are computed on
+    demand over the last ``size`` messages."""
+
+    def __init__(self, size: int = 4096) -> None:
+        if size < 1:
+            raise ValueError(f"stage ring size must be ≥ 1, got {size}")
+        self._buf = np.zeros((len(STAGES), int(size)), dtype=np.float64)
+        self._n = 0
+
+    def record(self, queue: float, decode: float, estimate: float, encode: float, publish: float,
+               sinks: float) -> None:
+        """One message's stage times in seconds."""
+        i = self._n % self._buf.shape[1]
+        b = self._buf
+        b[0, i] = queue * 1e6
+        b[1, i] = decode * 1e6
+        b[2, i] = estimate * 1e6
+        b[3, i] = encode * 1e6
+        b[4, i] = publish * 1e6
+        b[5, i] = sinks * 1e6
+        self._n += 1
+
+    @property
+    def count(self) -> int:
+        return self._n
+
+    def values(self) -> np.ndarray:
+        """Copy of the recorded stage times, shape ``(len(STAGES), window)`` (µs, unordered)."""
+        return self._buf[:, :min(self._n, self._buf.shape[1])].copy()
+
+    @staticmethod
+    def summarize(values: np.ndarray) -> dict[str, dict[str, float | None]]:
+        """``{stage: {"p50", "p99"}}`` (µs, None without values) of a ``values()`` array."""
+        if values.shape[1] == 0:
+            return {s: {"p50": None, "p99": None} for s in STAGES}
+        pct = np.percentile(values, [50.0, 99.0], axis=1)
+        return {s: {"p50": round(float(pct[0, k]), 1), "p99": round(float(pct[1, k]), 1)}
+                for k, s in enumerate(STAGES)}
+
+    def summary(self) -> dict[str, dict[str, float | None]]:
+        return self.summarize(self.values())
+
+
 class BurstLog:
     """Log once per burst: the first event is logged, later ones counted until ``quiet`` s without events.
 
@@ -175,6 +235,7 @@ class AxisStatus:
     model_sha256: str
     counters: Counter = field(default_factory=Counter)  # malformed, input_queue_full, estimator_error, ...
     latency: LatencyRing = field(default_factory=LatencyRing)
+    stages: StageRing = field(default_factory=StageRing)
     state: str = "fresh"  # fresh | restored | ignored (mismatch) | unreadable
     state_path: str | None = None
     last_seq: int | None = None
@@ -232,6 +293,7 @@ class AxisStatus:
             "dropped_total": int(sum(drops.values())),
             "counters": {k: int(v) for k, v in sorted(c.items())},
             "latency_us": self.latency.summary(),
+            "stages_us": self.stages.summary(),
             "dict_size": int(dict_size),
             "last_seq": self.last_seq,
             "last_t": self.last_t,
@@ -313,6 +375,16 @@ def format_status(status: dict[str, Any], console=None) -> None:
                   _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")),
                   _cell(_dict(a.get("health")).get("state", "–")))
     console.print(t)
+    if any(_dict(_dict(a).get("stages_us")) for a in axes.values()):
+        st = Table(title="latency by stage, µs (p50 / p99): queue, decode, estimate, encode, publish, then sinks")
+        st.add_column("axis")
+        for stage in STAGES:
+            st.add_column(stage, justify="right")
+        for name, a in axes.items():
+            stages = _dict(_dict(a).get("stages_us"))
+            st.add_row(_cell(name), *(f"{_fmt_us(_dict(stages.get(k)).get('p50'))} / "
+                                      f"{_fmt_us(_dict(stages.get(k)).get('p99'))}" for k in STAGES))
+        console.print(st)
     for name, a in axes.items():
         m = _dict(_dict(a).get("model"))
         console.print(_cell(f"  {name}: model {m.get('path')} sha256 {m.get('sha256')}", 1000))

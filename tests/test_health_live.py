@@ -24,7 +24,7 @@ from monitor.axes import live_meta, load_axes
 from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator, StateError
 from monitor.model_file import AxisModel, TrackerConfig, save_model
-from monitor.sinks.mcap_sink import McapSink
+from monitor.sinks.mcap_sink import McapProcessSink, McapSink
 from monitor.state import StateStore
 from monitor.status import format_status
 from replay.scenarios import load_scenario
@@ -56,11 +56,14 @@ def _blocks(res, size=50):
             for i in range(0, n, size)]
 
 
-def test_live_monitor_publishes_health_logs_it_and_shows_it_in_status(shaker, tmp_path):
+@pytest.mark.parametrize("sink_class", [McapSink, McapProcessSink])
+def test_live_monitor_publishes_health_logs_it_and_shows_it_in_status(shaker, tmp_path, sink_class):
+    """Health on Zenoh, in the status and in the MCAP log — with the sink in the monitor's process and
+    with the one ``feedmon run --mcap`` uses (its own process, fed with encoded messages)."""
     d, res, model = shaker
     axes = load_axes([model])
     ax = next(iter(axes.values()))
-    sink = McapSink(tmp_path / "log.mcap", metas=[live_meta(ax)])
+    sink = sink_class(tmp_path / "log.mcap", metas=[live_meta(ax)])
     endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
     got: queue.Queue = queue.Queue()
     with T.open_session(listen=endpoint) as ms, T.open_session(connect=endpoint) as s:

@@ -75,7 +75,7 @@ def test_monitor_counts_malformed_no_model_and_queue_full(work):
         mon._on_sample(fake)  # not started: stays queued
         mon._on_sample(fake)  # queue full: dropped and counted
         assert mon.status()["axes"]["linear-drive/Z"]["drops"] == {"input_queue_full": 1}
-        mon._q.get_nowait()
+        mon._queue.popleft()
         mon._bytes_out += 1
         mon.start()
         try:

@@ -44,12 +44,37 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
 Items: :class:`SampleBlock`, :class:`EstimateBlock`, ``(machine, axis, TruthBlock)``
 (see :meth:`McapSink.offer_truth`) or :class:`Health` (:meth:`McapSink.offer_health`, channel
 ``/<machine>/<axis>/health``).
+
+In its own process
+------------------
+The live monitor runs the MCAP log in a child process (:class:`McapProcessSink`), so that
+decoding, pairing, JSON encoding, zstd compression and file I/O never hold the monitor's
+interpreter lock. The monitor hands it the bytes it already has — each sample block as
+received from Zenoh, each estimate block as published (``offer_encoded``) — no pickling, no
+second encoding; its worker thread sends what gathered (about every 50 ms) in one write to a
+pipe. The child decodes them (the schema checks again: what is logged went through the same
+decoder as before) and runs a :class:`McapSink`, so the file is the same as with the sink
+in-process. Wire format: frames ``tag (1 byte), received_ns (int64), head length (u32),
+payload length (u32), head, payload`` back to back in one pipe message; tags ``S`` sample
+block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``), ``H`` health report
+(as published on ``<prefix>/<machine>/<axis>/health``); a pipe message
+``Q`` finishes. The child reports its :meth:`McapSink.status` whenever it changes (at most every
+``report_interval`` s) and once at the end; the parent's status merges it (files, failures,
+drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
+the pipe closes and it finishes the file anyway), logs like the monitor (same format) and runs
+at ``nice`` 10, as the Rerun process: on a busy machine the estimator gets the CPU first.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import math
+import multiprocessing
 import os
+import signal
+import struct
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -61,7 +86,7 @@ from feedio.scalars import HOLD_NS, ScalarsPairer
 
 from .queued import QueuedSink
 
-__all__ = ["McapSink", "infer_meta"]
+__all__ = ["McapSink", "McapProcessSink", "infer_meta"]
 
 
 def infer_meta(machine: str, axis: str, block: Any) -> S.TrialMeta:
@@ -320,13 +345,10 @@ class McapSink(QueuedSink):
             )
 
     def _write_scalars(self, ready: list) -> None:
-        by_axis: dict[tuple[str, str], list] = {}
-        for machine, axis, ns, sc in ready:
-            by_axis.setdefault((machine, axis), []).append((ns, sc))
-        for (machine, axis), items in by_axis.items():
-            w = self._ensure_axis(machine, axis, None)
-            self._call(w.write_scalars, machine, axis, items)
-            self.scalars_written += len(items)
+        for batch in ready:
+            w = self._ensure_axis(batch.machine, batch.axis, None)
+            self._call(w.write_scalars_batch, batch)
+            self.scalars_written += len(batch)
 
     def tick(self, now: float) -> None:
         if self._held and now - self._held_since >= self.discover_seconds:
@@ -355,3 +377,256 @@ class McapSink(QueuedSink):
         if self._writer is None and not self.files and self._metas:
             self._open()  # a run without data still leaves a valid (empty) file
         self._close_writer()
+
+
+# ==============================================================================================
+# the MCAP log in a child process
+# ==============================================================================================
+_FRAME = struct.Struct("<cqII")  # tag, received_ns, head length, payload length
+_SEND_BYTES = 8 * 2**20  # a pipe message holds the frames of up to about this many bytes
+
+
+class McapProcessSink(QueuedSink):
+    """A :class:`McapSink` run in a child process, fed with encoded messages (module docstring).
+
+    Same arguments as :class:`McapSink` (``metas`` required: the child cannot ask for them),
+    plus ``max_bytes`` (the queue's bound in payload bytes, besides ``maxsize`` items),
+    ``start_timeout`` (s to wait for the child to start), ``report_interval`` (s between
+    the child's status reports) and ``nice`` (the child's niceness increment). :meth:`status`
+    adds the child's counters: ``written``, ``failures`` (with undecodable frames), ``dropped``
+    (with the child's own queue drops), ``last_error``, ``state`` and the MCAP fields (``files``,
+    ``current_file``, ``incomplete_files``, ``messages_lost``, ``flush_failures``,
+    ``pending_bytes``, ``scalars_written``).
+    """
+
+    def __init__(self, path: str | os.PathLike, rotate_bytes: int | None = None, rotate_seconds: float | None = None,
+                 *, metas: S.TrialMeta | Sequence[S.TrialMeta], flush_seconds: float = 0.5, maxsize: int = 4096,
+                 max_bytes: int = 64 * 2**20, name: str = "mcap", scalars: bool = True,
+                 max_pending_bytes: int | None = None, start_timeout: float = 60.0, report_interval: float = 0.5,
+                 nice: int = 10) -> None:
+        path = Path(path)
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"directory of the MCAP log {str(path)!r} does not exist")
+        ms = [metas] if isinstance(metas, S.TrialMeta) else list(metas)
+        if not ms:
+            raise ValueError("McapProcessSink needs the TrialMeta of the axes")
+        options = {"flush_seconds": float(flush_seconds), "maxsize": int(maxsize), "scalars": bool(scalars),
+                   "max_pending_bytes": max_pending_bytes}
+        root = logging.getLogger()
+        fmt = getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter \
+            else None
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=True)
+        self._proc = ctx.Process(target=_child_main, name="feedmon-mcap", daemon=True,
+                                 args=(child, os.fspath(path), rotate_bytes, rotate_seconds,
+                                       [S.encode(m) for m in ms], options, float(report_interval), fmt, int(nice)))
+        self._proc.start()
+        child.close()
+        hello = self._receive(start_timeout)
+        if hello is None or "error" in hello:
+            self._proc.kill()
+            why = "did not start in time" if hello is None else hello["error"]
+            raise OSError(f"MCAP sink: the logging process {why}")
+        self.path = path
+        self.child_status: dict[str, Any] = {}
+        self.max_bytes = int(max_bytes)
+        self._queued_bytes = 0
+        super().__init__(maxsize, name=name)
+
+    def _receive(self, timeout: float) -> dict | None:
+        try:
+            if self._conn.poll(timeout):
+                return json.loads(self._conn.recv_bytes())
+        except (EOFError, OSError, ValueError):
+            pass
+        return None
+
+    # ---- producer side ---------------------------------------------------------------------
+    def offer_encoded(self, tag: bytes, payload: bytes, received_ns: int, head: bytes = b"") -> bool:
+        """Queue one encoded message: ``tag`` ``b"S"`` (a SampleBlock as received), ``b"E"`` (an
+        EstimateBlock as published) or ``b"T"`` (a TruthBlock, ``head`` = ``b"machine\\0axis"``);
+        ``received_ns`` its log time (ns since the epoch). Refused and counted (``dropped``) when the
+        queue holds ``maxsize`` items or ``max_bytes`` payload bytes."""
+        size = len(payload) + len(head)
+        with self._lock:
+            if self._queued_bytes + size > self.max_bytes:
+                self.dropped += 1
+                return False
+            self._queued_bytes += size
+        if super().offer((tag, int(received_ns), head, payload)):
+            return True
+        with self._lock:
+            self._queued_bytes -= size
+        return False
+
+    def offer(self, item: Any, received_ns: int | None = None) -> bool:
+        """Queue a :class:`SampleBlock`, :class:`EstimateBlock` or :class:`Health` (encoded here)."""
+        rx = time.time_ns() if received_ns is None else int(received_ns)
+        if isinstance(item, S.SampleBlock):
+            return self.offer_encoded(b"S", S.encode(item), rx)
+        if isinstance(item, S.EstimateBlock):
+            return self.offer_encoded(b"E", S.encode(item), rx)
+        if isinstance(item, S.Health):
+            return self.offer_encoded(b"H", S.encode(item), rx)
+        raise TypeError(f"McapProcessSink accepts SampleBlock, EstimateBlock or Health, got {type(item).__name__}")
+
+    def offer_truth(self, machine: str, axis: str, block: S.TruthBlock, received_ns: int | None = None) -> bool:
+        """Queue a :class:`TruthBlock` of ``machine/axis``."""
+        rx = time.time_ns() if received_ns is None else int(received_ns)
+        return self.offer_encoded(b"T", S.encode(block), rx, f"{machine}\0{axis}".encode())
+
+    def offer_health(self, machine: str, axis: str, report: S.Health, received_ns: int | None = None) -> bool:
+        """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; see
+        :meth:`McapSink.offer_health`)."""
+        return self.offer(report, received_ns)
+
+    # ---- status ----------------------------------------------------------------------------
+    def status(self):
+        st = super().status()
+        c = self.child_status
+        if c:
+            st["written"] = int(c.get("written", 0))
+            st["failures"] += int(c.get("failures", 0)) + int(c.get("undecodable", 0))
+            st["dropped"] += int(c.get("dropped", 0))
+            st["pending"] += int(c.get("pending", 0))
+            if c.get("last_error"):
+                st["last_error"] = c["last_error"]
+            if c.get("state") == "failed" and st["state"] == "ok":
+                st["state"] = "failed"
+            st["recoveries"] = int(c.get("recoveries", 0))
+            st["failed_since"] = c.get("failed_since")
+        return st
+
+    def extra_status(self) -> dict[str, Any]:
+        c = self.child_status
+        out = {k: c.get(k, d) for k, d in (("files", []), ("current_file", None), ("incomplete_files", []),
+                                           ("messages_lost", 0), ("flush_failures", 0), ("pending_bytes", 0),
+                                           ("scalars_written", 0))}
+        out.update(process_alive=self._proc.is_alive(), pid=self._proc.pid, undecodable=int(c.get("undecodable", 0)),
+                   queued_bytes=self._queued_bytes)
+        return out
+
+    # ---- worker side (a thread of the monitor process) ----------------------------------------
+    def handle_batch(self, items: Sequence[Any]) -> None:
+        parts: list[bytes] = []
+        size = 0
+        try:
+            for tag, rx, head, payload in items:
+                parts += (_FRAME.pack(tag, rx, len(head), len(payload)), head, payload)
+                size += len(head) + len(payload) + _FRAME.size
+                if size >= _SEND_BYTES:  # one pipe message of at most about this much
+                    self._conn.send_bytes(b"".join(parts))
+                    parts, size = [], 0
+            if parts:
+                self._conn.send_bytes(b"".join(parts))
+        finally:
+            with self._lock:
+                self._queued_bytes -= sum(len(h) + len(p) for _, _, h, p in items)
+
+    def _take_reports(self, timeout: float = 0.0) -> bool:
+        """Read the child's status reports waiting on the pipe; True once the final one arrived."""
+        while True:
+            msg = self._receive(timeout)
+            if msg is None:
+                return False
+            self.child_status = msg
+            if msg.get("final"):
+                return True
+
+    def tick(self, now: float) -> None:
+        self._take_reports()
+
+    def finish(self) -> None:
+        try:
+            self._conn.send_bytes(b"Q")
+            self._take_reports(120.0)
+        finally:
+            self._proc.join(10.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+            self._conn.close()
+
+
+def _reporter(conn, sink: McapSink, stop: threading.Event, interval: float, extra: dict) -> None:
+    """Child thread: send the sink's status to the parent whenever it changed (at most every ``interval`` s)."""
+    last = None
+    while not stop.wait(interval):
+        st = {**sink.status(), **extra}
+        key = json.dumps(st, default=str, sort_keys=True)
+        if key != last:
+            last = key
+            try:
+                conn.send_bytes(key.encode())
+            except (OSError, ValueError):
+                return
+
+
+def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report_interval, log_format, nice) -> None:
+    """The logging process: pipe → decode → :class:`McapSink`."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.nice(nice)
+    except OSError:
+        pass
+    if log_format:
+        from monitor.status import EscapingFormatter
+
+        handler = logging.StreamHandler()
+        handler.setFormatter(EscapingFormatter(log_format))
+        logging.getLogger().addHandler(handler)
+        logging.getLogger().setLevel(logging.INFO)
+    try:
+        sink = McapSink(path, rotate_bytes, rotate_seconds, metas=[S.decode_meta(m) for m in metas],
+                        **{k: v for k, v in options.items() if v is not None})
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
+        conn.send_bytes(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
+        return
+    conn.send_bytes(b"{}")
+    counts = {"undecodable": 0}
+    stop = threading.Event()
+    reporter = threading.Thread(target=_reporter, args=(conn, sink, stop, report_interval, counts),
+                                name="mcap-report", daemon=True)
+    reporter.start()
+    frame = _FRAME.size
+    while True:
+        try:
+            msg = conn.recv_bytes()
+        except (EOFError, OSError):  # the monitor is gone: finish the file anyway
+            break
+        if msg == b"Q":
+            break
+        view, pos, end = memoryview(msg), 0, len(msg)
+        while pos < end:
+            try:
+                tag, rx, nh, npl = _FRAME.unpack_from(view, pos)
+            except struct.error:
+                counts["undecodable"] += 1
+                break
+            head = bytes(view[pos + frame:pos + frame + nh])
+            payload = view[pos + frame + nh:pos + frame + nh + npl]
+            pos += frame + nh + npl
+            try:
+                if tag == b"S":
+                    sink.offer(S.decode_samples(payload), received_ns=rx)
+                elif tag == b"E":
+                    sink.offer(S.decode_estimates(payload), received_ns=rx)
+                elif tag == b"T":
+                    machine, axis = head.decode().split("\0", 1)
+                    sink.offer_truth(machine, axis, S.decode_truth(payload), received_ns=rx)
+                elif tag == b"H":
+                    sink.offer(S.decode_health(payload), received_ns=rx)
+                else:
+                    counts["undecodable"] += 1
+            except (S.SchemaError, ValueError):
+                counts["undecodable"] += 1
+    finished = sink.close(60.0)
+    stop.set()
+    reporter.join(5.0)
+    try:
+        conn.send_bytes(json.dumps({**sink.status(), **counts, "final": True}, default=str).encode())
+    except (OSError, ValueError):
+        pass
+    if not finished:
+        conn.close()
+        os._exit(1)
