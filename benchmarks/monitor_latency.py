@@ -92,9 +92,9 @@ def _trial(path: Path, duration: float, seed: int = 7, scenario: str = "shaker-c
 
 
 def _model(trial: Path, path: Path, budget: int | None = None, axis: str | None = None) -> None:
-    from test_run_e2e import model_from_truth
+    from truth_models import model_from_truth
 
-    model_from_truth(trial, path)
+    model_from_truth(trial, path, budget=100)
     text = path.read_text()
     if budget is not None:  # a smaller dictionary: what the monitor around the tracker sustains
         text = text.replace("budget = 100", f"budget = {budget}")

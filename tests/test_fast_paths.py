@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
+from live_monitor import Live
 from mcap.reader import make_reader
-from test_bad_input import AXIS, PREFIX, ListSink, blocks_of, make_model, rows
+from test_bad_input import AXIS, ListSink, blocks_of, rows
+from truth_models import model_from_truth, truth_workdir
 
 from feedio import schema as S
-from feedio import transport as T
 from feedio.mcapio import TrialWriter, iter_blocks, read_trial
 from monitor.axes import live_meta, load_axes, warm_up
-from monitor.daemon import INLINE_BYTES, Monitor
+from monitor.daemon import INLINE_BYTES
 from monitor.estimator import EstimateRows
 from monitor.offline import run_offline
 from monitor.pipeline import Pipeline
@@ -33,15 +33,10 @@ from monitor.status import STAGES, StageRing, format_status
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
-KEY = T.samples_key(PREFIX, "linear-drive", "Z")
-
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    d = tmp_path_factory.mktemp("fast_paths")
-    write_trial(simulate(load_scenario("shaker-constant", duration=3.0), seed=11), d / "trial.mcap")
-    make_model(d / "trial.mcap", d / "z.model.toml")
-    return d
+    return truth_workdir(tmp_path_factory, "fast_paths", duration=3.0, seed=11)
 
 
 @pytest.fixture(scope="module")
@@ -94,29 +89,6 @@ def test_stage_ring_is_fixed_size_and_summarises_each_stage():
 
 
 # ---- the live monitor: inline and queued -----------------------------------------------------------
-class _Live:
-    def __init__(self, axes, **kw):
-        self.endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
-        self.ms = T.open_session(listen=self.endpoint)
-        self.monitor = Monitor(axes, self.ms, prefix=PREFIX, **kw)
-        self.monitor.start()
-        self.s = T.open_session(connect=self.endpoint)
-        self.pub = self.s.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        assert T.wait_for_matching(self.pub, 10.0)
-
-    def wait(self, pred, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred(self.monitor):
-            assert time.monotonic() < deadline, self.monitor.status()
-            time.sleep(0.01)
-
-    def close(self) -> list[str]:
-        problems = self.monitor.stop()
-        self.s.close()
-        self.ms.close()
-        return problems
-
-
 @pytest.mark.parametrize("inline_bytes", [1 << 20, 0], ids=["in-callback", "queued"])
 def test_live_estimates_equal_the_pipeline_whether_in_the_callback_or_queued(work, trial, inline_bytes):
     """One-sample messages: estimated in the Zenoh callback when it is idle (inline_bytes large) or all
@@ -125,7 +97,7 @@ def test_live_estimates_equal_the_pipeline_whether_in_the_callback_or_queued(wor
     axes = load_axes([work / "z.model.toml"])
     warm_up(axes)
     sink = ListSink()
-    live = _Live(axes, sinks=[sink], inline_bytes=inline_bytes)
+    live = Live(axes, sinks=[sink], inline_bytes=inline_bytes)
     blocks = blocks_of(trial, 0, 300, 1)
     try:
         for b in blocks:
@@ -170,7 +142,7 @@ def test_large_blocks_queue_behind_the_message_in_progress_and_are_all_estimated
     warm_up(axes)
     big = [S.encode(b) for b in blocks_of(trial, 0, 998, 499)]
     assert all(len(p) > INLINE_BYTES for p in big), [len(p) for p in big]
-    live = _Live(axes)
+    live = Live(axes)
     try:
         for p in big:
             live.pub.put(p)
@@ -318,7 +290,7 @@ def two_axes(tmp_path_factory):
             if name == "Y" and y == 7:
                 w.write_samples(blk)  # re-sent
     for name, src in (("X", d / "a.mcap"), ("Y", d / "b.mcap")):
-        make_model(src, d / f"{name}.model.toml")
+        model_from_truth(src, d / f"{name}.model.toml")
         tr = read_trial(src)
         text = (d / f"{name}.model.toml").read_text()
         text = text.replace(f'axis = "{tr.axis}"', f'axis = "{name}"').replace(

@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import zenoh
+from live_monitor import KEY, Live
 from test_bad_input import AXIS, PREFIX, ListSink, blocks_of
 from truth_models import model_from_truth
 
@@ -26,8 +27,6 @@ from monitor.sinks.mcap_sink import McapSink
 from monitor.state import StateStore
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
-
-KEY = T.samples_key(PREFIX, "linear-drive", "Z")
 
 
 @pytest.fixture(scope="module")
@@ -60,30 +59,6 @@ def _big_blocks(trial, count: int) -> list[bytes]:
     return [S.encode(S.SampleBlock(machine=trial.machine, axis=trial.axis, seq=k * n,
                                    t=(trial.t + k * span).tolist(), v_ref=trial.v_ref.tolist(),
                                    v_meas=trial.v_meas.tolist())) for k in range(count)]
-
-
-class Live:
-    """A Monitor on a listening session plus a publishing session, matched."""
-
-    def __init__(self, axes, **kw):
-        self.endpoint = f"tcp/127.0.0.1:{T.free_tcp_port()}"
-        self.ms = T.open_session(listen=self.endpoint)
-        self.monitor = Monitor(axes, self.ms, prefix=PREFIX, **kw)
-        self.monitor.start()
-        self.s = T.open_session(connect=self.endpoint)
-        self.pub = self.s.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        assert T.wait_for_matching(self.pub, 10.0)
-
-    def wait(self, pred, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred(self.monitor):
-            assert time.monotonic() < deadline, self.monitor.status()
-            time.sleep(0.01)
-
-    def close(self):
-        self.monitor.stop()
-        self.s.close()
-        self.ms.close()
 
 
 # ---- the input queue ----------------------------------------------------------------------------

@@ -70,11 +70,9 @@ from __future__ import annotations
 import json
 import logging
 import math
-import multiprocessing
 import os
 import signal
 import struct
-import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -84,6 +82,7 @@ from feedio import schema as S
 from feedio.mcapio import TrialWriter
 from feedio.scalars import HOLD_NS, ScalarsPairer
 
+from .child import ChildProcessSink, send_final, start_reporter
 from .queued import QueuedSink
 
 __all__ = ["McapSink", "McapProcessSink", "infer_meta"]
@@ -386,7 +385,7 @@ _FRAME = struct.Struct("<cqII")  # tag, received_ns, head length, payload length
 _SEND_BYTES = 8 * 2**20  # a pipe message holds the frames of up to about this many bytes
 
 
-class McapProcessSink(QueuedSink):
+class McapProcessSink(ChildProcessSink):
     """A :class:`McapSink` run in a child process, fed with encoded messages (module docstring).
 
     Same arguments as :class:`McapSink` (``metas`` required: the child cannot ask for them),
@@ -415,31 +414,14 @@ class McapProcessSink(QueuedSink):
         root = logging.getLogger()
         fmt = getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter \
             else None
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe(duplex=True)
-        self._proc = ctx.Process(target=_child_main, name="feedmon-mcap", daemon=True,
-                                 args=(child, os.fspath(path), rotate_bytes, rotate_seconds,
-                                       [S.encode(m) for m in ms], options, float(report_interval), fmt, int(nice)))
-        self._proc.start()
-        child.close()
-        hello = self._receive(start_timeout)
-        if hello is None or "error" in hello:
-            self._proc.kill()
-            why = "did not start in time" if hello is None else hello["error"]
-            raise OSError(f"MCAP sink: the logging process {why}")
+        self._spawn(_child_main, "feedmon-mcap", (os.fspath(path), rotate_bytes, rotate_seconds,
+                                                  [S.encode(m) for m in ms], options, float(report_interval),
+                                                  fmt, int(nice)),
+                    start_timeout, "MCAP sink: the logging process")
         self.path = path
-        self.child_status: dict[str, Any] = {}
         self.max_bytes = int(max_bytes)
         self._queued_bytes = 0
         super().__init__(maxsize, name=name)
-
-    def _receive(self, timeout: float) -> dict | None:
-        try:
-            if self._conn.poll(timeout):
-                return json.loads(self._conn.recv_bytes())
-        except (EOFError, OSError, ValueError):
-            pass
-        return None
 
     # ---- producer side ---------------------------------------------------------------------
     def offer_encoded(self, tag: bytes, payload: bytes, received_ns: int, head: bytes = b"") -> bool:
@@ -523,42 +505,7 @@ class McapProcessSink(QueuedSink):
             with self._lock:
                 self._queued_bytes -= sum(len(h) + len(p) for _, _, h, p in items)
 
-    def _take_reports(self, timeout: float = 0.0) -> bool:
-        """Read the child's status reports waiting on the pipe; True once the final one arrived."""
-        while True:
-            msg = self._receive(timeout)
-            if msg is None:
-                return False
-            self.child_status = msg
-            if msg.get("final"):
-                return True
-
-    def tick(self, now: float) -> None:
-        self._take_reports()
-
-    def finish(self) -> None:
-        try:
-            self._conn.send_bytes(b"Q")
-            self._take_reports(120.0)
-        finally:
-            self._proc.join(10.0)
-            if self._proc.is_alive():
-                self._proc.kill()
-            self._conn.close()
-
-
-def _reporter(conn, sink: McapSink, stop: threading.Event, interval: float, extra: dict) -> None:
-    """Child thread: send the sink's status to the parent whenever it changed (at most every ``interval`` s)."""
-    last = None
-    while not stop.wait(interval):
-        st = {**sink.status(), **extra}
-        key = json.dumps(st, default=str, sort_keys=True)
-        if key != last:
-            last = key
-            try:
-                conn.send_bytes(key.encode())
-            except (OSError, ValueError):
-                return
+    finish_timeout = 120.0
 
 
 def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report_interval, log_format, nice) -> None:
@@ -584,10 +531,7 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
         return
     conn.send_bytes(b"{}")
     counts = {"undecodable": 0}
-    stop = threading.Event()
-    reporter = threading.Thread(target=_reporter, args=(conn, sink, stop, report_interval, counts),
-                                name="mcap-report", daemon=True)
-    reporter.start()
+    reporter = start_reporter(conn, sink, report_interval, counts, "mcap-report")
     frame = _FRAME.size
     while True:
         try:
@@ -621,12 +565,7 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
             except (S.SchemaError, ValueError):
                 counts["undecodable"] += 1
     finished = sink.close(60.0)
-    stop.set()
-    reporter.join(5.0)
-    try:
-        conn.send_bytes(json.dumps({**sink.status(), **counts, "final": True}, default=str).encode())
-    except (OSError, ValueError):
-        pass
+    send_final(conn, sink, counts, reporter)
     if not finished:
         conn.close()
         os._exit(1)

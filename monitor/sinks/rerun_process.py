@@ -21,17 +21,15 @@ machine the monitor's estimator thread gets the CPU first.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import signal
-import threading
 from typing import Any
 
 import msgspec
 
 from feedio import schema as S
 
-from .queued import QueuedSink
+from .child import ChildProcessSink, send_final, start_reporter
 
 __all__ = ["RerunProcessSink", "check_outputs"]
 
@@ -46,7 +44,7 @@ def check_outputs(rrd_path, serve_port) -> None:
         raise ValueError(f"serve_port must be a TCP port (1-65535), got {serve_port}")
 
 
-class RerunProcessSink(QueuedSink):
+class RerunProcessSink(ChildProcessSink):
     """A :class:`RerunSink` run in a child process (same arguments, same entities and blueprint).
 
     Its :meth:`status` adds what went wrong inside the child to the sink's own counters: the
@@ -69,29 +67,11 @@ class RerunProcessSink(QueuedSink):
                  **rerun_options) -> None:
         check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe(duplex=True)
-        self._proc = ctx.Process(target=_child_main, name="feedmon-rerun", daemon=True,
-                                 args=(child, self.rrd_path, serve_port, memory_limit, rerun_options,
-                                       float(report_interval)))
-        self._proc.start()
-        child.close()
-        hello = self._receive(start_timeout)
-        if hello is None or "error" in hello:
-            self._proc.kill()
-            why = "did not start in time" if hello is None else hello["error"]
-            raise OSError(f"Rerun sink: the recording process {why}")
+        hello = self._spawn(_child_main, "feedmon-rerun", (self.rrd_path, serve_port, memory_limit, rerun_options,
+                                                           float(report_interval)),
+                            start_timeout, "Rerun sink: the recording process")
         self.server_uri: str | None = hello.get("server_uri")
-        self.child_status: dict[str, Any] = {}
         super().__init__(maxsize, name=name)
-
-    def _receive(self, timeout: float) -> dict | None:
-        try:
-            if self._conn.poll(timeout):
-                return json.loads(self._conn.recv_bytes())
-        except (EOFError, OSError, ValueError):
-            pass
-        return None
 
     # ---- producer side ---------------------------------------------------------------------
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
@@ -141,42 +121,10 @@ class RerunProcessSink(QueuedSink):
             raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
                             f"events and health reports, got {type(item).__name__}")
 
-    def _take_reports(self, timeout: float = 0.0) -> bool:
-        """Read the child's status reports waiting on the pipe; True once the final one arrived."""
-        while True:
-            msg = self._receive(timeout)
-            if msg is None:
-                return False
-            self.child_status = msg
-            if msg.get("final"):
-                return True
 
-    def tick(self, now: float) -> None:
-        self._take_reports()
-
-    def finish(self) -> None:
-        try:
-            self._conn.send_bytes(b"Q")
-            self._take_reports(60.0)
-        finally:
-            self._proc.join(10.0)
-            if self._proc.is_alive():
-                self._proc.kill()
-            self._conn.close()
-
-
-def _reporter(conn, sink, stop: threading.Event, interval: float, extra: dict) -> None:
-    """Child thread: send the sink's status to the parent whenever it changed (at most every ``interval`` s)."""
-    last = None
-    while not stop.wait(interval):
-        st = {**sink.status(), **extra}
-        key = (st["failures"], st["dropped"], st["state"], st.get("broken"), st["undecodable"])
-        if key != last:
-            last = key
-            try:
-                conn.send_bytes(json.dumps(st, default=str).encode())
-            except (OSError, ValueError):
-                return
+def _report_key(st: dict) -> tuple:
+    """What makes the recording process report: its error counts and state, not every message written."""
+    return st["failures"], st["dropped"], st["state"], st.get("broken"), st["undecodable"]
 
 
 def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5) -> None:
@@ -196,10 +144,7 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interv
         return
     conn.send_bytes(json.dumps({"server_uri": sink.server_uri}).encode())
     counts = {"undecodable": 0}
-    stop = threading.Event()
-    reporter = threading.Thread(target=_reporter, args=(conn, sink, stop, report_interval, counts),
-                                name="rerun-report", daemon=True)
-    reporter.start()
+    reporter = start_reporter(conn, sink, report_interval, counts, "rerun-report", key=_report_key)
     while True:
         try:
             msg = conn.recv_bytes()
@@ -227,12 +172,7 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interv
         except (S.SchemaError, ValueError, KeyError, TypeError):
             counts["undecodable"] += 1
     finished = sink.close(30.0)
-    stop.set()
-    reporter.join(5.0)
-    try:
-        conn.send_bytes(json.dumps({**sink.status(), **counts, "final": True}, default=str).encode())
-    except (OSError, ValueError):
-        pass
+    send_final(conn, sink, counts, reporter)
     if not finished or sink.broken:
         # Rerun's writer is stuck (e.g. the disk is full): its exit handlers would wait for ever
         conn.close()

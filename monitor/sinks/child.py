@@ -1,0 +1,111 @@
+"""Sinks whose work runs in a spawned child process (the MCAP log, the Rerun recording): one
+definition of the parent's side — start and handshake, the child's status reports over the pipe,
+finishing — and of the child's status reporter.
+
+Protocol: the parent spawns ``target(conn, *args)``; the child answers first with a JSON object
+(``{"error": …}`` when it could not start), then sends JSON status reports whenever its status
+changed, and a last one with ``"final": true`` after the parent's ``b"Q"``.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from .queued import QueuedSink
+
+__all__ = ["ChildProcessSink", "start_reporter", "send_final"]
+
+
+class ChildProcessSink(QueuedSink):
+    """A :class:`QueuedSink` whose worker thread feeds a child process over a pipe; ``child_status``
+    holds the child's last report. Subclasses call :meth:`_spawn` before ``super().__init__``."""
+
+    finish_timeout = 60.0  # s the parent waits for the child's final report
+
+    def _spawn(self, target, name: str, args: tuple, start_timeout: float, what: str) -> dict[str, Any]:
+        """Start ``target(conn, *args)`` in a spawned process and wait for its first message; raises
+        ``OSError`` naming ``what`` when it does not come in ``start_timeout`` s or reports an error."""
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=True)
+        self._proc = ctx.Process(target=target, name=name, daemon=True, args=(child, *args))
+        self._proc.start()
+        child.close()
+        hello = self._receive(start_timeout)
+        if hello is None or "error" in hello:
+            self._proc.kill()
+            why = "did not start in time" if hello is None else hello["error"]
+            raise OSError(f"{what} {why}")
+        self.child_status: dict[str, Any] = {}
+        return hello
+
+    def _receive(self, timeout: float) -> dict | None:
+        try:
+            if self._conn.poll(timeout):
+                return json.loads(self._conn.recv_bytes())
+        except (EOFError, OSError, ValueError):
+            pass
+        return None
+
+    def _take_reports(self, timeout: float = 0.0) -> bool:
+        """Read the child's status reports waiting on the pipe; True once the final one arrived."""
+        while True:
+            msg = self._receive(timeout)
+            if msg is None:
+                return False
+            self.child_status = msg
+            if msg.get("final"):
+                return True
+
+    def tick(self, now: float) -> None:
+        self._take_reports()
+
+    def finish(self) -> None:
+        try:
+            self._conn.send_bytes(b"Q")
+            self._take_reports(self.finish_timeout)
+        finally:
+            self._proc.join(10.0)
+            if self._proc.is_alive():
+                self._proc.kill()
+            self._conn.close()
+
+
+def _report(conn, sink, stop: threading.Event, interval: float, extra: dict,
+            key: Callable[[dict], Any] | None) -> None:
+    """Child thread: send the sink's status (with ``extra``) whenever ``key(status)`` changed (the
+    whole status by default), at most every ``interval`` s."""
+    last = None
+    while not stop.wait(interval):
+        st = {**sink.status(), **extra}
+        text = json.dumps(st, default=str, sort_keys=True)
+        k = text if key is None else key(st)
+        if k != last:
+            last = k
+            try:
+                conn.send_bytes(text.encode())
+            except (OSError, ValueError):
+                return
+
+
+def start_reporter(conn, sink, interval: float, extra: dict, name: str,
+                   key: Callable[[dict], Any] | None = None) -> tuple[threading.Event, threading.Thread]:
+    """Start the child's status reporter thread; returns ``(stop, thread)`` for :func:`send_final`."""
+    stop = threading.Event()
+    thread = threading.Thread(target=_report, args=(conn, sink, stop, interval, extra, key), name=name, daemon=True)
+    thread.start()
+    return stop, thread
+
+
+def send_final(conn, sink, extra: dict, reporter: tuple[threading.Event, threading.Thread]) -> None:
+    """Child side, after the sink closed: stop the reporter and send the final status."""
+    stop, thread = reporter
+    stop.set()
+    thread.join(5.0)
+    try:
+        conn.send_bytes(json.dumps({**sink.status(), **extra, "final": True}, default=str).encode())
+    except (OSError, ValueError):
+        pass
