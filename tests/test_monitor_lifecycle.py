@@ -87,19 +87,19 @@ def test_input_queue_bounded_in_bytes_and_messages_and_size_checked_first(work):
 
 
 # ---- shutdown ----------------------------------------------------------------------------------
-class _GateSink(ListSink):
-    """A sink whose ``offer`` waits until the gate opens: holds the estimator thread so that work
-    is still queued when the test stops the monitor (no timing involved)."""
+class _HeldSink(ListSink):
+    """A sink whose ``offer`` waits until ``release`` is set (at most ``hold`` s): holds the estimator
+    thread so that work is still queued when the test stops the monitor (no timing involved), or,
+    held past the monitor's stop deadline, a sink that breaks its never-block promise."""
 
-    name = "gate"
-
-    def __init__(self):
+    def __init__(self, name: str, hold: float):
         super().__init__()
-        self.entered, self.gate = threading.Event(), threading.Event()
+        self.name, self.hold = name, hold
+        self.entered, self.release = threading.Event(), threading.Event()
 
     def offer(self, item):
         self.entered.set()
-        self.gate.wait(120)
+        self.release.wait(self.hold)
         return super().offer(item)
 
 
@@ -107,7 +107,7 @@ class _GateSink(ListSink):
 def test_stop_saves_state_only_after_the_estimator_stopped_and_counts_discards(work, trial, tmp_path, drain):
     axes = _axes(work)
     ax = axes[("linear-drive", "Z")]
-    sink = _GateSink()
+    sink = _HeldSink("gate", hold=120.0)
     live = Live(axes, sinks=[sink], state=StateStore(tmp_path), drain_seconds=drain, finish_seconds=60.0)
     result: dict = {}
     try:
@@ -121,11 +121,11 @@ def test_stop_saves_state_only_after_the_estimator_stopped_and_counts_discards(w
         # drained: the queue is worked off after the gate opens; discarded: it is emptied first
         live.wait(lambda m: m.state == "stopping"
                   and (drain > 0 or m.status()["input"]["shutdown_discarded"] == len(blocks) - 1))
-        sink.gate.set()
+        sink.release.set()
         stopper.join(120)
         assert not stopper.is_alive()
     finally:
-        sink.gate.set()
+        sink.release.set()
         live.close()
     assert result["problems"] == [] and live.monitor.state == "stopped"
     assert not live.monitor._thread.is_alive()
@@ -141,26 +141,11 @@ def test_stop_saves_state_only_after_the_estimator_stopped_and_counts_discards(w
     assert saved == ax.estimator.trained == a["trained"] > 0  # the state of the stopped estimator, not a moment of it
 
 
-class _StuckSink(ListSink):
-    """A sink whose ``offer`` blocks until released (a sink that breaks its never-block promise)."""
-
-    name = "stuck"
-
-    def __init__(self):
-        super().__init__()
-        self.entered, self.release = threading.Event(), threading.Event()
-
-    def offer(self, item):
-        self.entered.set()
-        self.release.wait(60)
-        return super().offer(item)
-
-
 def test_stuck_estimator_stop_finishes_without_saving_state(work, trial, tmp_path):
     """Large blocks go through the input queue to the estimator thread, which a sink breaking its
     never-block promise holds: the monitor keeps receiving and counting; stop gives up on the block
     in progress, discards the queue and saves no state."""
-    sink = _StuckSink()
+    sink = _HeldSink("stuck", hold=60.0)
     live = Live(_axes(work), sinks=[sink], state=StateStore(tmp_path), drain_seconds=0.2, finish_seconds=0.2)
     try:
         for b in _big_blocks(trial, 3):
