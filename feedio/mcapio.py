@@ -61,7 +61,7 @@ import numpy as np
 from feedio import schema as S
 
 from .mcapfile import DEFAULT_LIMITS, Limits, McapFile, TrialFileError, json_depth
-from .mcapwriter import McapWriter
+from .mcapwriter import MESSAGE_HEADER, McapWriter
 
 __all__ = [
     "TrialFileError",
@@ -565,7 +565,7 @@ class TrialWriter:
 
     def _add_scalar_records(self, cid: int, records, sizes: np.ndarray, lt: np.ndarray, t: np.ndarray) -> None:
         n = int(sizes.size)
-        if int(sizes.max()) - 31 > MAX_MESSAGE_BYTES:
+        if int(sizes.max()) - MESSAGE_HEADER > MAX_MESSAGE_BYTES:
             raise ValueError(f"{self.path}: a scalars message is larger than {MAX_MESSAGE_BYTES} bytes")
         t0 = self._chunk_t0 if self._chunk_t0 is not None and math.isfinite(self._chunk_t0) else float(t[0])
         if float(t.max()) - t0 < self._chunk_seconds and self._writer.records_fitting(sizes) == n \

@@ -113,7 +113,7 @@ class ScalarsBatch:
                                             **{k: v for k, v in zip(VALUES, row) if v == v}))
         return out
 
-    def records(self, channel_id: int, *, header: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def records(self, channel_id: int) -> tuple[np.ndarray, np.ndarray]:
         """The MCAP message records of the batch on channel ``channel_id`` back to back (uint8:
         31-byte header — sequence ``seq mod 2³²``, log and publish time ``log_ns`` — then the JSON
         of :class:`~feedio.schema.DisturbanceScalars`), and the size of each record."""
@@ -123,7 +123,7 @@ class ScalarsBatch:
         sizes = np.empty(n, dtype=np.int64)
         out = _build_records(buf, len(FIELDS), n, _KEY_BYTES, _KEY_OFFSETS, channel_id,
                              np.ascontiguousarray(self.seq, dtype=np.int64),
-                             np.ascontiguousarray(self.log_ns, dtype=np.int64), header, sizes)
+                             np.ascontiguousarray(self.log_ns, dtype=np.int64), sizes)
         return out, sizes
 
 
@@ -134,11 +134,11 @@ def _put_le(out, pos, value, nbytes):
 
 
 @njit(cache=True, nogil=True)
-def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns, header, sizes):
+def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns, sizes):
     """Assemble message records from ``text`` = ``msgspec`` JSON of ``n_fields`` lists of ``n``
     numbers each (``[[…],[…],…]``: numbers and ``null``, no strings, so ``,`` and ``]`` only
     separate tokens). Message i is ``{"t":…,"seq":…,"flags":…`` followed by ``,"name":value``
-    for every later field whose token is not ``null``, then ``}``; with ``header`` each is
+    for every later field whose token is not ``null``, then ``}``; each is
     preceded by the 31 bytes of an MCAP message record (opcode 5, record length, channel id,
     sequence = seq mod 2³², log time, publish time = log time). ``sizes`` receives the record
     sizes; returns the records back to back."""
@@ -154,7 +154,7 @@ def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns
             stop[f, i] = pos
             pos += 1                           # the ',' or ']' after it
         pos += 1                               # ',' between the lists (or the final ']')
-    hsize = 31 if header else 0
+    hsize = MESSAGE_HEADER
     total = 0
     for i in range(n):
         size = hsize + 1                       # the closing '}'
@@ -168,14 +168,13 @@ def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns
     out = np.empty(total, dtype=np.uint8)
     p = 0
     for i in range(n):
-        if header:
-            out[p] = 5
-            _put_le(out, p + 1, sizes[i] - 9, 8)          # record length: after opcode and length
-            _put_le(out, p + 9, channel_id, 2)
-            _put_le(out, p + 11, seq[i] & 0xFFFFFFFF, 4)
-            _put_le(out, p + 15, log_ns[i], 8)
-            _put_le(out, p + 23, log_ns[i], 8)
-            p += 31
+        out[p] = 5
+        _put_le(out, p + 1, sizes[i] - 9, 8)              # record length: after opcode and length
+        _put_le(out, p + 9, channel_id, 2)
+        _put_le(out, p + 11, seq[i] & 0xFFFFFFFF, 4)
+        _put_le(out, p + 15, log_ns[i], 8)
+        _put_le(out, p + 23, log_ns[i], 8)
+        p += MESSAGE_HEADER
         for f in range(n_fields):
             a, b = start[f, i], stop[f, i]
             if f >= 3 and b - a == 4 and text[a] == 110:
@@ -191,7 +190,7 @@ def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns
     return out
 
 
-assert MESSAGE_HEADER == 31
+assert MESSAGE_HEADER == 31  # the record layout written by _build_records
 
 
 # ---- the pairer ---------------------------------------------------------------------------------
@@ -261,11 +260,6 @@ class ScalarsPairer:
         if st is None:
             st = self._axes[(machine, axis)] = _Axis()
         return st
-
-    def waiting(self, machine: str, axis: str) -> int:
-        """Samples of ``machine/axis`` waiting for their next row or truth."""
-        st = self._axes.get((machine, axis))
-        return 0 if st is None else st.pending
 
     # -- input ----------------------------------------------------------------------------------
     def add_estimates(self, block: S.EstimateBlock, last_ns: int) -> list[ScalarsBatch]:

@@ -368,11 +368,15 @@ class Health(msgspec.Struct, forbid_unknown_fields=True):
         check_name(self.axis, "Health field 'axis'")
         if not (math.isfinite(self.t) and 0.0 <= self.t <= T_MAX):
             raise ValueError(f"Health field 't' is {self.t!r}; controller time must be finite, 0 <= t <= {T_MAX:g} s")
-        for name in ("inertia", "inertia_se", "damping", "damping_se", "coulomb", "coulomb_se", "coulomb_pos",
-                     "coulomb_pos_se", "coulomb_neg", "coulomb_neg_se", "offset", "offset_se", "nu2"):
+        for name in _HEALTH_NUMBERS:
             value = getattr(self, name)
             if value is not None and not math.isfinite(value):
                 raise ValueError(f"Health field '{name}' is {value!r}; give a finite number or null")
+
+
+#: the optional numbers of a Health report (each finite or null), from its field list
+_HEALTH_NUMBERS = tuple(f for f in Health.__struct_fields__
+                        if f not in ("machine", "axis", "seq", "t", "state", "reasons", "adaptation"))
 
 
 def decode_health(data: bytes | str, *, what: str = "health report") -> Health:

@@ -167,6 +167,8 @@ class Monitor:
         self.publish_errors = 0
         self._encoded = [s for s in self.sinks if hasattr(s, "offer_encoded")]
         self._plain = [s for s in self.sinks if not hasattr(s, "offer_encoded")]
+        self._health_offers = [s.offer_health for s in self.sinks if hasattr(s, "offer_health")]
+        self._truth_offers = [s.offer_truth for s in self._plain if hasattr(s, "offer_truth")]
         # status queryable (Zenoh threads), under _status_lock
         self._status_lock = threading.Lock()
         self._status_doc: bytes | None = None
@@ -374,10 +376,8 @@ class Monitor:
                 self.publish_errors += 1
                 self.pipeline.burst(f"publish_health:{ax.status.name}", "publishing the health of %s failed: %s",
                                     ax.status.name, str(exc))
-            for sink in self.sinks:
-                offer = getattr(sink, "offer_health", None)
-                if offer is not None:
-                    offer(h.machine, h.axis, h)
+            for offer in self._health_offers:
+                offer(h.machine, h.axis, h)
 
     def _handle_truth(self, key: str, payload: bytes, rx_ns: int) -> None:
         ax = self.pipeline.axis_of_key(key)
@@ -393,14 +393,10 @@ class Monitor:
             return
         self.truth_blocks += 1
         m, a = ax.model.machine, ax.model.axis
-        for sink in self.sinks:
-            enc = getattr(sink, "offer_encoded", None)
-            if enc is not None:
-                enc(b"T", payload, rx_ns, f"{m}\0{a}".encode())
-                continue
-            offer = getattr(sink, "offer_truth", None)
-            if offer is not None:
-                offer(m, a, block)
+        for sink in self._encoded:
+            sink.offer_encoded(b"T", payload, rx_ns, f"{m}\0{a}".encode())
+        for offer in self._truth_offers:
+            offer(m, a, block)
 
     # ---- shutdown ----------------------------------------------------------------------------
     def _problem(self, msg: str, *args: Any) -> None:

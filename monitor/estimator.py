@@ -67,6 +67,7 @@ from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a
 from feedio.schema import REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
 from kernels import health as hl
+from kernels.beta_tracker import PHYSICAL as PHYSICAL_PARAMS  # the order of the report rows' θ and s.e.
 from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
@@ -101,25 +102,34 @@ class EstimateRows:
     :meth:`block` makes the :class:`~feedio.schema.EstimateBlock` (once), :meth:`scalar_columns`
     the per-sample columns of :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
 
-    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "_block", "_json")
+    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "_cols", "_block", "_json")
 
     def __init__(self, machine: str, axis: str, seq: int, t: np.ndarray, v_meas: np.ndarray, rows: np.ndarray,
                  irows: np.ndarray, force: np.ndarray | None) -> None:
         self.machine, self.axis, self.seq = machine, axis, seq
         self.t, self.v_meas, self.rows, self.irows, self.force = t, v_meas, rows, irows, force
+        self._cols: list[list] | None = None
         self._block: EstimateBlock | None = None
         self._json: bytes | None = None
 
     def __len__(self) -> int:
         return int(self.t.size)
 
+    def _columns(self) -> list[list]:
+        """The columns after machine, axis and seq as lists, in EstimateBlock field order (made once,
+        shared by :meth:`block` and :meth:`json`)."""
+        if self._cols is None:
+            cols = [self.t.tolist(), self.v_meas.tolist(), *self.rows.tolist(), *self.irows.tolist()]
+            if self.force is not None:
+                cols += self.force.tolist()
+            self._cols = cols
+        return self._cols
+
     def block(self) -> EstimateBlock:
         """The :class:`~feedio.schema.EstimateBlock` (made on the first call; the columns of
         :data:`~kernels.online.ROWS` and :data:`~kernels.online.IROWS` are its fields in that order)."""
         if self._block is None:
-            force = () if self.force is None else self.force.tolist()
-            self._block = EstimateBlock(self.machine, self.axis, self.seq, self.t.tolist(), self.v_meas.tolist(),
-                                        *self.rows.tolist(), *self.irows.tolist(), *force)
+            self._block = EstimateBlock(self.machine, self.axis, self.seq, *self._columns())
         return self._block
 
     def json(self) -> bytes:
@@ -127,10 +137,7 @@ class EstimateRows:
         from the columns with one ``msgspec`` call, without the schema object (the live monitor
         publishes it before anything else). Names match ``NAME_PATTERN`` (no character to escape)."""
         if self._json is None:
-            cols = [self.t.tolist(), self.v_meas.tolist(), *self.rows.tolist(), *self.irows.tolist()]
-            if self.force is not None:
-                cols += self.force.tolist()
-            parts = _json.encode(cols)[2:-2].split(b"],[")  # "[[c0],[c1],…]" -> c0, c1, …
+            parts = _json.encode(self._columns())[2:-2].split(b"],[")  # "[[c0],[c1],…]" -> c0, c1, …
             body = [f'{{"machine":"{self.machine}","axis":"{self.axis}","seq":{self.seq}'.encode()]
             for key, part in zip(_COLUMN_KEYS, parts):
                 body += (key, b"[", part, b"]")
@@ -370,19 +377,19 @@ class AxisEstimator:
     def _health(self, machine: str, axis: str, row: np.ndarray) -> Health:
         """A :class:`Health` message from one report row of the compiled loop (:data:`kernels.online.TICK`)."""
         k = online
-        level = row[k.K_LEVEL:k.K_LEVEL + 6].astype(np.int64)
-        reasons = describe(level, row[k.K_Z:k.K_Z + 5], row[k.K_REL:k.K_REL + 5], float(row[k.K_NU2]),
+        level = row[k.K_LEVEL:k.K_LEVEL + hl.N_REASON].astype(np.int64)
+        n_par = len(hl.PARAMS)
+        reasons = describe(level, row[k.K_Z:k.K_Z + n_par], row[k.K_REL:k.K_REL + n_par], float(row[k.K_NU2]),
                            float(row[k.K_EWMAX]))
         if self.mode != "off":  # estimated, but the data do not determine it: flagged, not tested for drift
-            weak = [f"{name} (s.e. {row[k.K_SE + i]:.3g})" for i, name in
-                    ((0, "inertia"), (1, "damping"), (2, "coulomb_pos"), (3, "coulomb_neg"), (5, "offset"))
-                    if math.isfinite(row[k.K_THETA + i]) and row[k.K_DET + hl.PHYS_INDEX.index(i)] == 0.0]
+            weak = [f"{name} (s.e. {row[k.K_SE + i]:.3g})" for d, (i, name) in enumerate(zip(hl.PHYS_INDEX, hl.PARAMS))
+                    if math.isfinite(row[k.K_THETA + i]) and row[k.K_DET + d] == 0.0]
             if weak:
                 reasons.append("not determined by the data, not tested for drift: " + ", ".join(weak))
         reasons += self.notes
         vals: dict[str, float | None] = {}
         absolute = self.mode != "off" and (self.model.form == "force-input" or self.model.loop_gain is not None)
-        for i, name in enumerate(("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offset")):
+        for i, name in enumerate(PHYSICAL_PARAMS):
             x, se = float(row[k.K_THETA + i]), float(row[k.K_SE + i])
             ok = absolute and math.isfinite(x) and math.isfinite(se)
             vals[name] = x if ok else None

@@ -57,6 +57,7 @@ from feedio.limits import DEFAULT, InputLimits
 
 from .axes import AxisRuntime
 from .pipeline import Estimated, Pipeline
+from .status import install_log_format, log_format
 
 __all__ = ["OfflineResult", "run_offline"]
 
@@ -432,7 +433,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                     "models": {n: axes[n].status.model_path for n in group},
                     "sha256": {n: axes[n].status.model_sha256 for n in group},
                     "has_truth": [list(k) for k in has_truth], "limits": msgspec.to_builtins(limits),
-                    "log_format": None if fork else _log_format()}
+                    "log_format": None if fork else log_format()}
             own = {axes[n].key: axes[n] for n in group} if fork else None
             p = ctx.Process(target=_child_main, args=(child, json.dumps(spec), own), name="feedmon-offline",
                             daemon=True)
@@ -530,14 +531,6 @@ def _read_ahead(conn) -> Iterator[bytes | None]:
         stop.set()
 
 
-def _log_format() -> str | None:
-    """The format of this process' log lines, for a child to log alike (None: not configured)."""
-    import logging
-
-    root = logging.getLogger()
-    return getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter else None
-
-
 def _read_final(view: memoryview, pos: int, axes: dict[str, AxisRuntime]) -> dict:
     """The child's counters and tracker states, applied to the parent's axes."""
     (size,) = struct.unpack_from("<I", view, pos)
@@ -578,18 +571,11 @@ def _child_main(conn, spec_json: str, axes: dict | None = None) -> None:
 
 
 def _child(conn, spec: dict, axes: dict | None = None) -> None:
-    import logging
 
     from feedio.mcapio import TrialFileError
     from monitor.axes import load_axes
 
-    if spec.get("log_format"):
-        from monitor.status import EscapingFormatter
-
-        handler = logging.StreamHandler()
-        handler.setFormatter(EscapingFormatter(spec["log_format"]))
-        logging.getLogger().addHandler(handler)
-        logging.getLogger().setLevel(logging.INFO)
+    install_log_format(spec.get("log_format"))
 
     if axes is None:
         axes = load_axes([spec["models"][n] for n in spec["axes"]])

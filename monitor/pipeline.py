@@ -89,8 +89,7 @@ class Pipeline:
         self._axis_by_key = {f"{prefix}/{m}/{a}/{kind}": ax for (m, a), ax in axes.items()
                              for kind in ("samples", "truth")}
         # positions of the logged reasons in the estimator's per-block counts (all of them are counted there)
-        self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS]) \
-            if all(k in COUNTERS for k, _ in _LOGGED_REASONS) else None
+        self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS])
         #: the health reports of the block :meth:`estimate` handled last (for Zenoh and the sinks)
         self.last_health: list[S.Health] = []
 
@@ -155,8 +154,6 @@ class Pipeline:
             self.burst(f"too_large:{st.name}", "axis %s: refusing a block of %d samples (max_block_samples = %d)",
                        st.name, n, self.limits.max_block_samples)
             return _REFUSED
-        c = ax.estimator.counters
-        before = [c.get(k, 0) for k, _ in _LOGGED_REASONS] if self._logged_idx is None else None
         try:
             est = ax.estimator.process_rows(block)
         except ValueError as exc:  # e.g. the model's form needs a column the block lacks
@@ -168,18 +165,11 @@ class Pipeline:
                        type(exc).__name__, str(exc), level=logging.ERROR)
             return Estimated(ax)
         # the estimator only counts; say it once per burst (per reason and axis)
-        if before is None:
-            bc = ax.estimator.block_counts[self._logged_idx]
-            if bc.any():
-                for (k, what), d in zip(_LOGGED_REASONS, bc.tolist()):
-                    if d:
-                        self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name, d,
-                                   what, k)
-        else:
-            for (k, what), b in zip(_LOGGED_REASONS, before):
-                if c.get(k, 0) != b:
-                    self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name,
-                               c.get(k, 0) - b, what, k)
+        bc = ax.estimator.block_counts[self._logged_idx]
+        if bc.any():
+            for (k, what), d in zip(_LOGGED_REASONS, bc.tolist()):
+                if d:
+                    self.burst(f"{k}:{st.name}", "axis %s: %d sample(s) %s (status counter %r)", st.name, d, what, k)
         if est is not None:
             st.last_seq = est.seq + len(est) - 1
             st.last_t = float(est.t[-1])

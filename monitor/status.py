@@ -71,6 +71,23 @@ class EscapingFormatter(logging.Formatter):
         return super().formatMessage(record)
 
 
+def log_format() -> str | None:
+    """The format of this process' log lines, for a child process to log alike (None: not configured)."""
+    root = logging.getLogger()
+    return getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter else None
+
+
+def install_log_format(fmt: str | None) -> None:
+    """In a child process: log INFO and above to stderr with ``fmt`` through :class:`EscapingFormatter`
+    (nothing when ``fmt`` is None)."""
+    if not fmt:
+        return
+    handler = logging.StreamHandler()
+    handler.setFormatter(EscapingFormatter(fmt))
+    logging.getLogger().addHandler(handler)
+    logging.getLogger().setLevel(logging.INFO)
+
+
 class BoundedCounter:
     """Counts per name for at most ``limit`` distinct names; counts of further names go to
     :attr:`overflow`. Written by one thread; :meth:`to_dict` may be called from another."""
@@ -303,8 +320,13 @@ class AxisStatus:
         }
 
 
+def _is_num(v) -> bool:
+    """A real number of a status document (bool is not one)."""
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
 def _fmt_us(v) -> str:
-    return f"{v:,.0f}" if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else "–"
+    return f"{v:,.0f}" if _is_num(v) and math.isfinite(v) else "–"
 
 
 def _cell(value: Any, limit: int = 200):
@@ -324,7 +346,7 @@ def _counts(value: Any) -> str:
 
 
 def _num(v: Any) -> str:
-    return f"{v:.3f}" if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else "–"
+    return f"{v:.3f}" if _is_num(v) and math.isfinite(v) else "–"
 
 
 def _health_values(h: dict) -> str:
@@ -332,10 +354,10 @@ def _health_values(h: dict) -> str:
     parts = []
     for key, unit in (("inertia", "kg"), ("damping", "N·s/m"), ("coulomb", "N"), ("offset", "N")):
         v, se = h.get(key), h.get(f"{key}_se")
-        if isinstance(v, int | float) and not isinstance(v, bool) and isinstance(se, int | float):
+        if _is_num(v) and _is_num(se):
             parts.append(f"{key} {v:.4g} ± {se:.2g} {unit}")
     nu2 = h.get("nu2")
-    if isinstance(nu2, int | float) and not isinstance(nu2, bool):
+    if _is_num(nu2):
         parts.append(f"mean ν² {nu2:.2f}")
     return ", ".join(parts) + f"; β adaptation {h.get('adaptation')}"
 
@@ -355,7 +377,7 @@ def format_status(status: dict[str, Any], console=None) -> None:
     status = _dict(status)
     mon, inp = _dict(status.get("monitor")), _dict(status.get("input"))
     up = mon.get("uptime_s")
-    up = f"{up:.1f}" if isinstance(up, int | float) and not isinstance(up, bool) else "?"
+    up = f"{up:.1f}" if _is_num(up) else "?"
     head = Text("feedmon monitor", style="bold")
     head.append(safe_text(
         f" pid {mon.get('pid')} on {mon.get('host')}, prefix {mon.get('prefix')!r}, {mon.get('state')}, up {up} s; "

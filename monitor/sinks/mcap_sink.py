@@ -68,7 +68,6 @@ at ``nice`` 10, as the Rerun process: on a busy machine the estimator gets the C
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import signal
@@ -411,9 +410,9 @@ class McapProcessSink(ChildProcessSink):
             raise ValueError("McapProcessSink needs the TrialMeta of the axes")
         options = {"flush_seconds": float(flush_seconds), "maxsize": int(maxsize), "scalars": bool(scalars),
                    "max_pending_bytes": max_pending_bytes}
-        root = logging.getLogger()
-        fmt = getattr(root.handlers[0].formatter, "_fmt", None) if root.handlers and root.handlers[0].formatter \
-            else None
+        from monitor.status import log_format
+
+        fmt = log_format()
         self._spawn(_child_main, "feedmon-mcap", (os.fspath(path), rotate_bytes, rotate_seconds,
                                                   [S.encode(m) for m in ms], options, float(report_interval),
                                                   fmt, int(nice)),
@@ -516,13 +515,9 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
         os.nice(nice)
     except OSError:
         pass
-    if log_format:
-        from monitor.status import EscapingFormatter
+    from monitor.status import install_log_format
 
-        handler = logging.StreamHandler()
-        handler.setFormatter(EscapingFormatter(log_format))
-        logging.getLogger().addHandler(handler)
-        logging.getLogger().setLevel(logging.INFO)
+    install_log_format(log_format)
     try:
         sink = McapSink(path, rotate_bytes, rotate_seconds, metas=[S.decode_meta(m) for m in metas],
                         **{k: v for k, v in options.items() if v is not None})
