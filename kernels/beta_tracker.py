@@ -64,7 +64,11 @@ Why these choices
 * **Excitation awareness.** (5) moves β̂ only along ``Λ⁻¹ζ̃`` and adds information only
   in the direction of ``z̃``: an unexcited direction keeps its estimate (exactly, with
   an uncorrelated prior). Nothing is learned while ``|v_m(k)| ≤ Ω`` (the model has no
-  static friction: at standstill the force balance is stiction), during the tracker's
+  static friction: at standstill the force balance is stiction), nor from the first sample of a
+  run of motion (out of the dead band or after a reversal: the Coulomb column steps there, which
+  the tracker could not foresee, while the drive's real force does not step — stiction before,
+  presliding after; learning from that sample reads the step as "less Coulomb friction", measured
+  −80 % at 15–20 standard errors on the EMPS drive with its correct model), during the tracker's
   warm-up (M trained samples), on samples the caller does not gate in (stale,
   restarted chain), or when adaptation is off. Optionally (``reject``, off by default)
   not on a sample with a very large ``|ν|`` (an abrupt disturbance the tracker could not
@@ -79,8 +83,15 @@ Why these choices
 * **Drift rate trade-off.** ``T_β`` (``memory``, default 10 s of learning samples) is the
   drift setting: a parameter drifting linearly at rate ``ṙ`` (relative per second) is
   followed with a lag of about ``ṙ·T_β``; an excited step decays like ``exp(−t/T_β)``;
-  standard errors scale like ``1/√T_β``. Measured (benchmarks/online_checks.py): +30 %
-  in 120 s (0.25 %/s) → damping lag ≈ 2.5–3 %.
+  standard errors scale like ``1/√T_β``. Measured through ``feedmon run --from`` on the
+  ``shaker-drift`` trial (friction +30 % in 120 s, 0.25 %/s, REML-tuned tracker): largest error
+  from 60 s on damping 5.5 % / Coulomb 6.4 % with T_β = 10 s, 3.3 % / 4.1 % with 5 s. The other
+  side: a parameter excited only in bursts (inertia, at the feed starts of a machining cycle every
+  18 s) is then estimated from the last one or two bursts, and its error is heavier-tailed than its
+  standard error says — over the 24 h soak stream (``benchmarks/soak.py``) T_β = 5 s gave 15 false
+  inertia warnings (−4.8 % at 6.0–6.3 standard errors), 10 s none (largest |z| 4.5). 10 s is the
+  default: no false alarm at nominal conditions first; a plant known to drift fast is served by
+  ``[adaptation] memory``.
 * **Prior.** ``P₀ = P_file + G diag((ρθ₀)²) Gᵀ``: the model file's covariance of β plus a
   drift allowance ρ (default 0.3, relative, on inertia, damping, Coulomb ± and offset —
   Coulomb and offset relative to the friction scale ``max(d_p, c_n, |offset|, 1 N)`` — mapped
@@ -169,8 +180,8 @@ N_PAR = 10
 N_LAY = 5
 #: slots of ``cnt`` (counters and instrument bookkeeping: state)
 (C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE,
- C_SINCE_FORGET, C_QUIET, C_REJECTED) = range(11)
-N_CNT = 11
+ C_SINCE_FORGET, C_QUIET, C_REJECTED, C_RUN) = range(12)
+N_CNT = 12
 #: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction
 (S_SCALE, S_VHAT) = range(2)
 N_SST = 2
@@ -179,6 +190,13 @@ N_SST = 2
 FORGET_EVERY = 16
 #: scale floor of the lazily scaled shadow means (renormalised below it)
 SCALE_FLOOR = 1e-150
+#: samples of a motion run (|v_m| > Ω, one direction) that teach nothing: the first sample after the dead band
+#: or a reversal switches a Coulomb column the tracker could not foresee, while the drive's real force
+#: does not step there (stiction before, presliding after) — learning from it reads that step as
+#: "less Coulomb friction" (measured on the EMPS drive: −80 % at 15–20 standard errors)
+SETTLE = 1
+#: bound of the run counter (it only has to exceed SETTLE)
+RUN_CAP = 1 << 30
 #: default re-basing interval of the *apply* mode (learning samples)
 REBASE_EVERY = 64
 
@@ -529,6 +547,8 @@ def validate_beta_state(bs: BetaState, fresh: BetaState, occupied: np.ndarray) -
     if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_TRAINED, C_SINCE_REBASE, C_SINCE_FORGET,
                  C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1:
         raise ValueError("beta 'cnt' holds impossible counters")
+    if abs(int(c[C_RUN])) > min(int(c[C_TRAINED]), RUN_CAP):
+        raise ValueError("beta 'cnt': the motion run is longer than the samples seen (impossible)")
     if c[C_SINCE_FORGET] >= FORGET_EVERY or (bs.lay[L_REBASE] > 0 and c[C_SINCE_REBASE] >= bs.lay[L_REBASE]):
         raise ValueError("beta 'cnt': a batched step is overdue (impossible)")
 
@@ -965,7 +985,17 @@ def _beta_step(bs, z, e, R, gate, bout):
     cnt[C_TRAINED] += 1
     omega = par[P_OMEGA]
     vk = z[1]
-    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and (vk > omega or vk < -omega)
+    run = cnt[C_RUN]                              # signed run of samples moving one way (0: dead band)
+    if vk > omega:
+        run = run + 1 if run > 0 else 1
+    elif vk < -omega:
+        run = run - 1 if run < 0 else -1
+    else:
+        run = 0
+    if run > RUN_CAP or run < -RUN_CAP:
+        run = RUN_CAP if run > 0 else -RUN_CAP
+    cnt[C_RUN] = run
+    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and (run > SETTLE or run < -SETTLE)
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
     ztg = 0.0
     for i in range(p):

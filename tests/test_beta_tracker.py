@@ -197,6 +197,28 @@ def test_standstill_teaches_nothing():
     assert ob.counters["updates"] == 0 and ob.counters["gated"] > 0
 
 
+def test_first_sample_of_each_run_of_motion_teaches_nothing():
+    """The first sample out of the dead band (a start from standstill, a reversal) steps a Coulomb column
+    the tracker could not foresee while the real force does not step (stiction, presliding): it is gated
+    out; the next sample of the same run learns."""
+    n = 3000
+    t, vr, vm, _ = _drive(n, seed=3)
+    ob = _online(_beta(inertia=330.0), warmup=0)
+    out = ob.track(t, vr, vm)
+    om = DRIVE["omega"]
+    run = np.zeros(n, dtype=np.int64)              # the signed run length the estimator keeps
+    for k in range(n):
+        d = 1 if vm[k] > om else (-1 if vm[k] < -om else 0)
+        run[k] = 0 if d == 0 else (run[k - 1] + d if k and np.sign(run[k - 1]) == d else d)
+    # out["learned"][j] is the step that learned from (z(j−1), v(j)): z(j−1) carries v_m(j−1)
+    first = np.flatnonzero(np.abs(run[:-1]) == 1) + 1
+    later = np.flatnonzero(np.abs(run[:-1]) >= 2) + 1
+    assert first.size >= 4                         # reversals and starts in this stream
+    assert not out["learned"][first].any()
+    assert out["learned"][later].mean() > 0.95
+    assert ob.counters["gated"] >= first.size
+
+
 def test_unexcited_direction_does_not_move_and_its_covariance_stays_bounded():
     """Only positive motion: the −σ_n column is never excited. With a diagonal prior β4 keeps its
     value exactly and its variance never exceeds the prior (no wind-up), while β1 is learned."""

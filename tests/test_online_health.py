@@ -200,17 +200,16 @@ def test_drifting_friction_is_followed_within_5_percent(shaker, simulated):
     seq = np.array([h.seq for h in late])
     truth = {k: _truth_at(trial, seq, k) for k in ("inertia", "damping", "coulomb_pos", "coulomb_neg")}
     truth["coulomb"] = 0.5 * (truth["coulomb_pos"] + truth["coulomb_neg"])
-    # issue 11 asks for 5 %: inertia meets it; with the REML-tuned tracker (which tracks disturbances best)
-    # the GP takes up part of the slow friction drift, and damping and Coulomb peak at 5.4 % and 6.6 %
-    # (β lags ≈ drift rate × memory behind; the thesis' smoother tracker gives 2.9 % / 4.5 % but tracks
-    # the real EMPS pulses at 22 N instead of 13 N). Reported in the closing note; the bounds below still
-    # catch a wrong equation or a stuck β (a fixed β ends 13 % off).
+    # issue 11 asks for 5 %: inertia meets it; damping and Coulomb peak at 5.5 % and 6.4 % with the default
+    # β memory of 10 s (β lags ≈ drift rate × memory; 5 s meets 5 % but gives false inertia warnings over the
+    # 24 h soak stream, see kernels/beta_tracker.py). The bounds below still catch a wrong equation or a stuck
+    # β (a fixed β ends 13 % off).
     for name, bound in (("inertia", 0.05), ("damping", 0.07), ("coulomb", 0.07)):
         got = np.array([getattr(h, name) for h in late])
         assert np.max(np.abs(got / truth[name] - 1)) <= bound, (name, np.max(np.abs(got / truth[name] - 1)))
-    # the reports follow the drift (+20 % of damping from 60 s to the end); whether it is flagged depends on
-    # the drift test's thresholds (6 standard errors: no false alarm in 24 h), not asserted here
-    assert late[-1].damping > 1.15 * late[0].damping
+    # the reports follow the drift (truth +13 % of damping from 60 s to the end, a fixed β 0 %); whether it
+    # is flagged depends on the drift test's thresholds (6 standard errors: no false alarm in 24 h)
+    assert late[-1].damping / late[0].damping > 1.0 + 0.7 * (truth["damping"][-1] / truth["damping"][0] - 1)
 
 
 def test_applied_beta_keeps_the_disturbance_at_least_as_good_as_a_fixed_beta(shaker, simulated):
@@ -258,6 +257,11 @@ def test_emps_inertia_is_recovered_from_a_model_with_beta1_20_percent_off(emps, 
     eM = max(abs(h.inertia / offline["inertia"] - 1) for h in late)
     eFv = max(abs(h.damping / offline["damping"] - 1) for h in late)
     assert eM <= 0.03
+    # the file's inertia is 20 % off and says so; nothing else is reported as a drift (the Coulomb
+    # forces, learnt only from what the tracker cannot predict, are "not determined" on this drive)
+    assert late[-1].state == "alarm" and any(r.startswith("inertia drift") for r in late[-1].reasons)
+    drifts = {r.split(" ")[0] for h in reports for r in h.reasons if " drift " in r}
+    assert drifts == {"inertia"}, drifts
     with capsys.disabled():
         print(f"\n  EMPS β1 +20 %: max |M error| {100 * eM:.2f} %, max |Fv error| {100 * eFv:.1f} % "
               f"(from 10 s of motion; Fv ± {late[-1].damping_se:.0f} N·s/m)")
@@ -271,6 +275,19 @@ def test_emps_pulses_force_next_at_the_documented_alignment(emps):
     ok = np.isfinite(fn)
     rms = float(np.sqrt(np.mean((fn[ok] - force[ok]) ** 2)))
     assert rms <= 15.0 and _corr(fn, force) >= 0.99, (rms, _corr(fn, force))
+
+
+@pytest.mark.parametrize("trial", ["plain", "pulses"])
+def test_emps_with_its_own_model_raises_no_health_warning(emps, trial):
+    """The real drive with the model identified on it: every report ``ok`` (no false drift alarm). The
+    Coulomb step at the end of the dead band and at reversals is not the real drive's force there
+    (stiction, presliding); learning from those samples once gave "Coulomb −80 %" at 15–20 standard
+    errors."""
+    d, model = emps
+    out = _run(d / f"{trial}.mcap", model, d / f"{trial}-health.mcap")
+    reports = _health(out)
+    assert len(reports) >= 20
+    assert [(h.t, h.reasons) for h in reports if h.state != "ok"] == []
 
 
 # ---- settings: model file tables, --config overrides, errors --------------------------------------------------
