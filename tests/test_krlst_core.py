@@ -12,7 +12,7 @@ from numba import literal_unroll, njit
 from kernels import KRLST, LocallyPeriodic, Periodic, Product, SquaredExponential
 from kernels import _krlst_core as core
 from kernels._krlst_simd import ROWS, Stream, sweep
-from kernels.covariance import kernel_phases, kernel_row_phased
+from kernels.covariance import KERNEL_FLOOR, ZeroMeanLocallyPeriodic, kernel_phases, kernel_row_phased
 from kernels.krlst_numpy import NumpyKRLST
 
 TS = 1 / 333
@@ -217,6 +217,33 @@ def test_lag_table_falls_back_off_the_grid():
         assert mis.any()
         nearest = st.tab[np.round(lag[mis]).astype(int)]
         assert np.max(np.abs(nearest - kt[slots][mis])) > 1e-3
+
+
+@pytest.mark.parametrize("kernel, gamma", [(ZeroMeanLocallyPeriodic(0.1, 5.0, 1 / 55), 500.0),
+                                           (LocallyPeriodic(0.1, 0.5, 1 / 55), 5.85)])
+def test_lag_table_ends_with_a_zero_tail_where_the_envelope_is_below_the_floor(kernel, gamma):
+    """A short σ1 (what REML often picks): the table ends with the zero-tail sentinel; every larger lag is
+    below the floor of kernel values, dictionary entries that old get exactly 0 without evaluation, and
+    neither the table nor a row holds a value below the floor (no subnormal arithmetic)."""
+    tr = KRLST(kernel, gamma=gamma, forgetting=0.998, budget=100, jitter=1e-6, grid_step=TS, refine=True)
+    t, y = _stream(6000, seed=4)
+    tr.learn_many(t, y)
+    st = tr.core_state(t[:1])
+    tab = st.tab
+    assert tab[-1] == 0.0 and len(tab) < KRLST.LAG_TABLE_MAX
+    assert np.all((tab == 0.0) | (np.abs(tab) >= KERNEL_FLOOR))
+    beyond = (len(tab) - 1 + np.arange(0, 20000, 7)) * TS
+    assert np.all(np.abs(kernel.lag(beyond)) < KERNEL_FLOOR)
+    slots = st.order[:tr.size]
+    x = t[-1] + TS
+    old = (x - st.X[slots, 0]) / TS > len(tab) - 1
+    assert old.any() and not old.all()                                  # both kinds in the dictionary
+    kt = np.full(st.Q.shape[0], np.nan)
+    _row(st, np.array([x]), kt)
+    ref = kernel(st.X[slots], np.array([[x]]))[:, 0]
+    ref[np.abs(ref) < KERNEL_FLOOR] = 0.0
+    np.testing.assert_allclose(kt[slots], ref, rtol=1e-9, atol=1e-12)   # (numpy's formula vs the compiled one)
+    assert not np.any(kt[slots][old]) and not np.any((kt != 0.0) & (np.abs(kt) < KERNEL_FLOOR))
 
 
 # -- Δ = c·D: the forgetting is a scalar, folded back before it underflows -------------------------------
