@@ -117,8 +117,16 @@ import numpy as np
 from numba import njit
 
 from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep, unowned_array, view
-from .covariance import (KERNEL_FLOOR, KIND_LOCALLY_PERIODIC, KIND_LOCALLY_PERIODIC_ZERO_MEAN, KIND_SE, _i0e_nb,
-                         kernel_phases, kernel_row_phased, kernel_value)
+from .covariance import (
+    KERNEL_FLOOR,
+    KIND_LOCALLY_PERIODIC,
+    KIND_LOCALLY_PERIODIC_ZERO_MEAN,
+    KIND_SE,
+    _i0e_nb,
+    kernel_phases,
+    kernel_row_phased,
+    kernel_value,
+)
 
 # ---- ist: integer state ---------------------------------------------------------------------
 I_N = 0           # dictionary size n
