@@ -263,18 +263,18 @@ R_SIZE, R_REMOVED, R_FLAGS = range(len(IROWS))
 #: columns of a health report (``ticks``, one row per report): the sample it was made at, the
 #: physical parameters of β̂ and their standard errors (:data:`kernels.beta_tracker.PHYSICAL`, NaN
 #: when not estimated), the level per :data:`kernels.health.REASONS`, the drift statistics per
-#: :data:`kernels.health.PARAMS`, the innovation window (mean ν², EWMA peak, EWMA now) and the
+#: :data:`kernels.health.PARAMS`, the innovation window (mean ν², EWMA peak) and the
 #: overall level
 TICK = (("seq", 1), ("t", 1), ("theta", bt.N_PHYS), ("se", bt.N_PHYS), ("level", hl.N_REASON),
         ("z", len(hl.PARAMS)), ("rel", len(hl.PARAMS)), ("determined", len(hl.PARAMS)), ("nu2_mean", 1),
-        ("ewma_max", 1), ("ewma", 1), ("state", 1))
+        ("ewma_max", 1), ("state", 1))
 _TICK_AT = {}
 _at = 0
 for _name, _width in TICK:
     _TICK_AT[_name] = _at
     _at += _width
 N_TICK = _at
-K_SEQ, K_T, K_THETA, K_SE, K_LEVEL, K_Z, K_REL, K_DET, K_NU2, K_EWMAX, K_EWMA, K_STATE = (_TICK_AT[n] for n, _ in TICK)
+K_SEQ, K_T, K_THETA, K_SE, K_LEVEL, K_Z, K_REL, K_DET, K_NU2, K_EWMAX, K_STATE = (_TICK_AT[n] for n, _ in TICK)
 
 
 def new_scratch(p: int) -> np.ndarray:
@@ -414,7 +414,6 @@ def _tick(cfg, bs, hs, s, tj, ticks, k, scr, p):
     wn = acc[hl.A_WN]
     row[K_NU2] = acc[hl.A_WSUM] / wn if wn > 0.0 else np.nan
     row[K_EWMAX] = acc[hl.A_WMAX] if wn > 0.0 else np.nan
-    row[K_EWMA] = acc[hl.A_EWMA]
     top = hl.health_tick(hs, th5, se5)            # resets the window statistics
     row[K_SEQ] = float(s)
     row[K_T] = tj

@@ -19,7 +19,7 @@ What :meth:`Pipeline.estimate` returns (:class:`Estimated`) is what the live dae
 and both paths log: the axis, its estimate rows of the block (:class:`~monitor.estimator.EstimateRows`,
 columns; the schema object and its JSON are made once, by whoever needs them first) and
 ``health``: the :class:`~feedio.schema.Health` reports the block produced (about one per second
-of data per axis; also in :attr:`Pipeline.last_health`), which the daemon publishes on
+of data per axis), which the daemon publishes on
 ``<prefix>/<machine>/<axis>/health`` and hands to the sinks (``offer_health``), and the offline
 runner writes on ``/<machine>/<axis>/health`` — produced here, next to the estimator whose state
 they describe, so that live and offline give the same messages.
@@ -90,8 +90,6 @@ class Pipeline:
                              for kind in ("samples", "truth")}
         # positions of the logged reasons in the estimator's per-block counts (all of them are counted there)
         self._logged_idx = np.array([COUNTERS.index(k) for k, _ in _LOGGED_REASONS])
-        #: the health reports of the block :meth:`estimate` handled last (for Zenoh and the sinks)
-        self.last_health: list[S.Health] = []
 
     def axis_of_key(self, key: str) -> AxisRuntime | None:
         """The modelled axis a ``<prefix>/<machine>/<axis>/samples|truth`` key names (None: no model)."""
@@ -137,7 +135,6 @@ class Pipeline:
         the estimator could not use the block)."""
         ax = self.axes.get((block.machine, block.axis))
         n = len(block.t)
-        self.last_health = []
         if ax is None:
             name = f"{block.machine}/{block.axis}"
             self.counters["no_model_blocks"] += 1
@@ -176,12 +173,11 @@ class Pipeline:
         return Estimated(ax, est, self._health(ax))
 
     def _health(self, ax: AxisRuntime) -> list[S.Health] | tuple:
-        """Collect the axis' health reports into :attr:`last_health` (and return them), update its
+        """Collect the axis' health reports (returned), update its
         status and log every change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
         reports = ax.estimator.take_health()
         if not reports:
             return _NO_HEALTH
-        self.last_health = reports
         st = ax.status
         for h in reports:
             was = st.note_health(h)

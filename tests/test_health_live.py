@@ -122,8 +122,7 @@ def test_a_state_change_is_logged_once_and_reaches_the_rerun_event_log(shaker, t
             if b.t[0] >= 8.0:  # unexplainable: +3e-4 m/s of noise the model does not know
                 noise = 3e-4 * np.random.default_rng(b.seq).standard_normal(len(b.t))
                 b = msgspec.structs.replace(b, v_meas=(np.asarray(b.v_meas) + noise).tolist())
-            pipe.estimate(b)
-            for h in pipe.last_health:
+            for h in pipe.estimate(b).health:
                 states.append(h.state)
                 sink.offer_health(h.machine, h.axis, h)
     assert sink.close(timeout=60) and sink.status()["failures"] == 0
