@@ -94,7 +94,10 @@ def test_absurd_times_and_sequence_numbers_never_reach_the_mcap_log(work, trial)
 
 # ---- message size: counted in the callback, far too large dropped by the transport ------------------
 def test_message_size_limits_in_feedmon_run(work, trial):
-    limit = 64 * 1024
+    # 16 KiB: the messages at the limit fit one Zenoh batch (64 KiB). A fragmented message (≥ 64 KiB) can
+    # cost its peer the messages right after it in Zenoh 1.10 (seen once: 9 blocks after a 64 KiB + 1 B
+    # message never reached the callback), which is Zenoh's and not what this test is about.
+    limit = 16 * 1024
     mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--fresh", "--state-dir", str(work / "st-size"),
                                            "--limit", f"max_message_bytes={limit}"], cwd=work)
     pad = lambda size: _raw(trial, 100)[:-1] + b" " * (size - len(_raw(trial, 100))) + b"}"  # noqa: E731
@@ -112,10 +115,10 @@ def test_message_size_limits_in_feedmon_run(work, trial):
             assert a["drops"] == {"too_large": 1} and st["input"]["too_large"] == 1
             assert a["samples_in"] == 200 and a["gaps"] == 0 and st["limits"]["max_message_bytes"] == limit
 
-            # Well over 2x + 64 KiB, the transport limit (transport/link/rx/max_message_size). Messages of
+            # 8x: over 2x + 64 KiB, the transport limit (transport/link/rx/max_message_size). Messages of
             # that peer may be lost around it (Zenoh clears its reassembly state): that costs the offending
             # peer its own data, never the monitor. Publish fresh blocks until one lands.
-            pub.put(pad(4 * limit))
+            pub.put(pad(8 * limit))
             landed = None
             for b in blocks_of(trial, 200, trial.t.size):
                 pub.put(S.encode(b))
