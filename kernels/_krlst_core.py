@@ -117,16 +117,7 @@ import numpy as np
 from numba import njit
 
 from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep, unowned_array, view
-from .covariance import (
-    KERNEL_FLOOR,
-    KIND_LOCALLY_PERIODIC,
-    KIND_LOCALLY_PERIODIC_ZERO_MEAN,
-    KIND_SE,
-    _i0e_nb,
-    kernel_phases,
-    kernel_row_phased,
-    kernel_value,
-)
+from .covariance import KERNEL_FLOOR, envelope_bound, kernel_phases, kernel_row_phased, kernel_value
 
 # ---- ist: integer state ---------------------------------------------------------------------
 I_N = 0           # dictionary size n
@@ -441,21 +432,13 @@ def build_lag_table(kinds, params, cols, step, nmax, tab):
     """``tab[L] = k(L·Ts)`` for ``L < nmax`` (0 below :data:`~kernels.covariance.KERNEL_FLOOR`, as the
     direct evaluation); returns the length.
 
-    A kernel with a squared-exponential envelope ``exp(−d²/(2σ²))`` (SE, locally periodic, zero-mean
-    locally periodic factors) stays below the floor at every lag from the one where its bound
-    ``B·exp(−d²/(2σ²))`` (σ the narrowest envelope, ``B`` the product of the factors' largest
-    magnitudes) falls below it: the table ends there with one ``0.0``, the *zero tail* sentinel —
+    A kernel with a squared-exponential envelope stays below the floor at every lag from the one where
+    its bound ``B·exp(−d²/(2σ²))`` (:func:`~kernels.covariance.envelope_bound`) falls below it: the
+    table ends there with one ``0.0``, the *zero tail* sentinel —
     :func:`_kernel_row` then takes every lag beyond the table as 0 instead of evaluating it. Any other
     kernel stops at its first 0 (lags beyond are evaluated directly) or at ``nmax`` entries; such a
     table never ends with ``0.0``."""
-    env = math.inf                                 # the narrowest envelope σ
-    bound = 1.0                                    # |k| ≤ bound · exp(−d²/(2 env²))
-    for f in range(kinds.shape[0]):
-        if kinds[f] == KIND_SE or kinds[f] == KIND_LOCALLY_PERIODIC or kinds[f] == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
-            env = min(env, params[f, 0])
-        if kinds[f] == KIND_LOCALLY_PERIODIC_ZERO_MEAN:  # (p − c0)/(1 − c0) ∈ [−c0/(1 − c0), 1]
-            c0 = _i0e_nb(1.0 / (4.0 * params[f, 1] * params[f, 1]))
-            bound *= max(1.0, c0 / (1.0 - c0))
+    env, bound = envelope_bound(kinds, params)     # |k(d)| ≤ bound · exp(−d²/(2 env²))
     x0 = np.zeros(1)
     x1 = np.zeros(1)
     for L in range(nmax):
@@ -479,6 +462,14 @@ def build_lag_table(kinds, params, cols, step, nmax, tab):
 # ---- k_t ----------------------------------------------------------------------------------------
 
 @njit(cache=True, nogil=True, inline="always")
+def _off_table(dl, top, zero_tail):
+    """The table cannot give ``k`` at the lag ``dl`` (grid steps): off the grid within the table, or beyond
+    a table without zero tail (NaN: True). Branch-free, so that the row loop vectorises."""
+    inside = dl <= top
+    return (inside & (abs(dl - np.floor(dl + 0.5)) > LAG_TOL)) | ((not inside) & (not (zero_tail & (dl > top))))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _kernel_row(st, x, xph, hw, kt):
     """``k_t = k(D, x)`` into the slots of ``kt`` (zeros elsewhere, up to ``hw8``); returns ``k_tt = k(x,x) + ε_j``."""
     hw8 = (hw + LANES - 1) // LANES * LANES
@@ -492,20 +483,18 @@ def _kernel_row(st, x, xph, hw, kt):
         top = ntab - 1.0
         zero_tail = tab[ntab - 1] == 0.0               # k = 0 beyond the table (build_lag_table)
         nbad = 0
-        for i in range(hw):                            # (two branch-free loops, so that both vectorise)
+        # nearest table entry; beyond the table tab[top], 0 in a zero tail (NaN: a valid index, and
+        # evaluated directly below)
+        for i in range(hw):
             dl = abs(x0 - X[i, 0]) * invts             # lag in grid steps
-            inside = dl <= top                         # (False for NaN: the index below stays valid)
-            zero = zero_tail & (dl > top)              # beyond the envelope: tab[top] = 0 is exact
-            L = np.floor((dl if inside else top) + 0.5)   # nearest table entry
-            nbad += (((not inside) & (not zero)) | (inside & (abs(dl - L) > LAG_TOL))) & (occ[i] != 0.0)
-            kt[i] = L
+            nbad += _off_table(dl, top, zero_tail) & (occ[i] != 0.0)
+            kt[i] = np.floor((dl if dl <= top else top) + 0.5)
         for i in range(hw):
             kt[i] = occ[i] * tab[np.int64(kt[i])]      # k(L Ts), computed once
         if nbad:                                       # off the grid, or beyond a table without zero tail: direct
             for i in range(hw):
                 dl = abs(x0 - X[i, 0]) * invts
-                if occ[i] != 0.0 and not (dl <= top and abs(dl - np.floor(dl + 0.5)) <= LAG_TOL) \
-                        and not (zero_tail and dl > top):
+                if occ[i] != 0.0 and _off_table(dl, top, zero_tail):
                     kernel_row_phased(st.kinds, st.params, st.cols, X, st.Ph, occ, i, i + 1, x, xph, kt)
         ktt = tab[0]
     else:

@@ -180,7 +180,7 @@ N_PAR = 10
 N_LAY = 5
 #: slots of ``cnt`` (counters and instrument bookkeeping: state)
 (C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE,
- C_SINCE_FORGET, C_QUIET, C_REJECTED, C_RUN) = range(12)
+ C_SINCE_FORGET, C_QUIET, C_REJECTED, C_DIR) = range(12)
 N_CNT = 12
 #: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction
 (S_SCALE, S_VHAT) = range(2)
@@ -190,13 +190,6 @@ N_SST = 2
 FORGET_EVERY = 16
 #: scale floor of the lazily scaled shadow means (renormalised below it)
 SCALE_FLOOR = 1e-150
-#: samples of a motion run (|v_m| > Ω, one direction) that teach nothing: the first sample after the dead band
-#: or a reversal switches a Coulomb column the tracker could not foresee, while the drive's real force
-#: does not step there (stiction before, presliding after) — learning from it reads that step as
-#: "less Coulomb friction" (measured on the EMPS drive: −80 % at 15–20 standard errors)
-SETTLE = 1
-#: bound of the run counter (it only has to exceed SETTLE)
-RUN_CAP = 1 << 30
 #: default re-basing interval of the *apply* mode (learning samples)
 REBASE_EVERY = 64
 
@@ -547,8 +540,8 @@ def validate_beta_state(bs: BetaState, fresh: BetaState, occupied: np.ndarray) -
     if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_TRAINED, C_SINCE_REBASE, C_SINCE_FORGET,
                  C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1:
         raise ValueError("beta 'cnt' holds impossible counters")
-    if abs(int(c[C_RUN])) > min(int(c[C_TRAINED]), RUN_CAP):
-        raise ValueError("beta 'cnt': the motion run is longer than the samples seen (impossible)")
+    if c[C_DIR] not in (-1, 0, 1):
+        raise ValueError("beta 'cnt': the previous sample's direction of motion is not −1, 0 or 1")
     if c[C_SINCE_FORGET] >= FORGET_EVERY or (bs.lay[L_REBASE] > 0 and c[C_SINCE_REBASE] >= bs.lay[L_REBASE]):
         raise ValueError("beta 'cnt': a batched step is overdue (impossible)")
 
@@ -985,17 +978,10 @@ def _beta_step(bs, z, e, R, gate, bout):
     cnt[C_TRAINED] += 1
     omega = par[P_OMEGA]
     vk = z[1]
-    run = cnt[C_RUN]                              # signed run of samples moving one way (0: dead band)
-    if vk > omega:
-        run = run + 1 if run > 0 else 1
-    elif vk < -omega:
-        run = run - 1 if run < 0 else -1
-    else:
-        run = 0
-    if run > RUN_CAP or run < -RUN_CAP:
-        run = RUN_CAP if run > 0 else -RUN_CAP
-    cnt[C_RUN] = run
-    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and (run > SETTLE or run < -SETTLE)
+    d = 1 if vk > omega else (-1 if vk < -omega else 0)   # direction of motion (0: dead band)
+    # learn only in motion, and not from the first sample of a run of motion (module docstring)
+    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR]
+    cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
     ztg = 0.0
     for i in range(p):

@@ -43,6 +43,7 @@ __all__ = [
     "KIND_PERIODIC",
     "KIND_LOCALLY_PERIODIC",
     "kernel_value",
+    "envelope_bound",
     "kernel_value_at",
     "kernel_row",
     "kernel_row_at",
@@ -464,6 +465,24 @@ def kernel_value_at(kinds, params, cols, X, i, x):
             r = X[i, start] - x[start]
         v *= _factor(kind, params, f, r)
     return v
+
+
+@njit(cache=True, nogil=True)
+def envelope_bound(kinds, params):
+    """``(σ, B)`` with ``|k(d)| ≤ B·exp(−d²/(2σ²))`` for a time kernel: σ the narrowest squared-exponential
+    envelope (SE, locally periodic, zero-mean locally periodic factors; ``inf`` when none decays) and
+    ``B`` the product of the factors' largest magnitudes (1, or ``max(1, c0/(1 − c0))`` for a zero-mean
+    factor, whose ``(p − c0)/(1 − c0)`` lies in ``[−c0/(1 − c0), 1]``)."""
+    sigma = math.inf
+    bound = 1.0
+    for f in range(kinds.shape[0]):
+        kind = kinds[f]
+        if kind == KIND_SE or kind == KIND_LOCALLY_PERIODIC or kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+            sigma = min(sigma, params[f, 0])
+        if kind == KIND_LOCALLY_PERIODIC_ZERO_MEAN:
+            c0 = _i0e_nb(1.0 / (4.0 * params[f, 1] * params[f, 1]))
+            bound *= max(1.0, c0 / (1.0 - c0))
+    return sigma, bound
 
 
 @njit(cache=True, nogil=True)

@@ -571,7 +571,6 @@ def _child_main(conn, spec_json: str, axes: dict | None = None) -> None:
 
 
 def _child(conn, spec: dict, axes: dict | None = None) -> None:
-
     from feedio.mcapio import TrialFileError
     from monitor.axes import load_axes
 
