@@ -209,8 +209,13 @@ class AxisEstimator:
             tick_period=self.settings.health.period)
         self.counters: Counter[str] = Counter()
         b = self.force_gain
-        #: divisors of the rows f, f_var, f_next that give force, force_var, force_next (None: no scale)
-        self._force_div = None if b is None else np.array([[-b], [b * b], [-b]])
+        #: force, force_var, force_next = the rows f, f_var, f_next divided by sign·b^power (F = −f/b,
+        #: var F = var f/b², F_next = −f_next/b); b fixed (None: no scale) or, in apply mode, β̂1 per row
+        #: times ``_beta1_to_b`` (1 in force-input form, 1/K in velocity-loop form)
+        self._force_sign = np.array([[-1.0], [1.0], [-1.0]])
+        self._force_power = np.array([[1.0], [2.0], [1.0]])
+        self._force_div = None if b is None else self._force_sign * b ** self._force_power
+        self._beta1_to_b = 1.0 if model.form == "force-input" else 1.0 / (model.loop_gain or math.nan)
         #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
         self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
         self._state = online.new_state()
@@ -362,12 +367,9 @@ class AxisEstimator:
         row's disturbance goes with (β̂ per row in apply mode); None when the model cannot scale."""
         if self._force_div is None:
             return None
-        if self.mode != "apply":
-            return rows[online.R_F:online.R_FNEXT + 1] / self._force_div
-        b = rows[online.R_BETA1]
-        if self.model.form == "velocity-loop":
-            b = b / self.model.loop_gain
-        return np.stack((-rows[online.R_F] / b, rows[online.R_FVAR] / (b * b), -rows[online.R_FNEXT] / b))
+        div = self._force_div if self.mode != "apply" else \
+            self._force_sign * (rows[online.R_BETA1] * self._beta1_to_b) ** self._force_power
+        return rows[online.R_F:online.R_FNEXT + 1] / div
 
     def take_health(self) -> list[Health]:
         """The health reports produced since the last call (oldest first), and forget them."""
