@@ -174,11 +174,11 @@ def make_tracker(hp: dict, period: float, Ts: float) -> KRLST:
                  forgetting=hp["forgetting"], budget=hp["budget"], jitter=1e-6, grid_step=Ts, refine=True)
 
 
-def run_axis(d: Drive, beta0, hp: dict, *, adapt=True, memory=10.0, beta_cov=None, health=None, tick=1.0,
-             period=None, force_gain_online=True) -> Run:
+def run_axis(d: Drive, beta0, hp: dict, *, adapt=True, memory=5.0, inertia_memory=10.0, beta_cov=None, health=None,
+             tick=1.0, period=None, force_gain_online=True) -> Run:
     names = beta_names(d.form, d.coulomb)
     ob = OnlineBeta(make_tracker(hp, period or d.period, d.Ts), beta0, names, d.Ts, omega=d.omega, gain=d.gain,
-                    beta_cov=beta_cov, memory=memory, enabled=adapt)
+                    beta_cov=beta_cov, memory=memory, inertia_memory=inertia_memory, enabled=adapt)
     P_file = np.diag(np.zeros(len(names))) if beta_cov is None else np.asarray(beta_cov)
     th0, se0 = physical_of(beta0, names, d.Ts, P_file, gain=d.gain)
     hm = HealthMonitor(d.Ts, physical_vector(th0), physical_vector(se0), physical_vector(ob.prior_se),
@@ -483,7 +483,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=",".join(CHECKS), help=f"comma-separated subset of {', '.join(CHECKS)}")
     ap.add_argument("--nominal-hours", type=float, default=1.0, help="length of the nominal stream (h)")
     ap.add_argument("--drift-seconds", type=float, default=120.0)
-    ap.add_argument("--memory", type=float, default=10.0, help="β memory T_β (s)")
+    ap.add_argument("--memory", type=float, default=5.0, help="β memory T_β of damping, Coulomb, offset (s)")
     ap.add_argument("--repeats", type=int, default=20, help="repeats of the cost measurement")
     ap.add_argument("--json", default=None, help="write the rows to this JSON file")
     args = ap.parse_args(argv)

@@ -34,9 +34,12 @@ formula). Per trained sample, after the tracker's own update (Λ = information, 
     w = min(1, c/|ν|),  R_w = R/w                           Huber weight                (4)
     β̂ ← β̂ + g e/(R_w + s),  Λ⁻¹ ← Λ⁻¹ − g (z̃ᵀΛ⁻¹)/(R_w + s)   RLS update (Λ += ζ̃z̃ᵀ/R_w) (5)
     Ψ ← Ψ + ζ̃ζ̃ᵀ R/R_w²,   P = Λ⁻¹ Ψ Λ⁻ᵀ                    covariance (sandwich)       (5')
-    every m = 16 learning samples, with λ_m = λ_β^m:
-    Λ ← λ_m Λ + (1 − λ_m) Λ₀,  Ψ likewise,                     forgetting back to the
-    β̂ ← β̂ + (1 − λ_m) Λ⁻¹ Λ₀ (β₀ − β̂)                         prior N(β₀, P₀)             (2)
+    every m = 16 learning samples, per physical parameter θ_i (G = ∂β/∂θ at β₀; λ_i = λ_J for
+    the inertia, λ_β for damping, Coulomb and offset; T = G diag(√λ_i^m) G⁻¹,
+    S = G diag(√(1 − λ_i^m)) G⁻¹):
+    Λ ← TᵀΛT + SᵀΛ₀S,  Ψ likewise,                              forgetting back to the
+    β̂ ← β̂ + Λ⁻¹ SᵀΛ₀S (β₀ − β̂)                               prior N(β₀, P₀)             (2)
+    (with λ_J = λ_β: Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀, the plain exponential forgetting)
     projection onto the physical set when β̂ leaves it                                   (7)
     μ ← μ − M_Z (β̂ − β_trk),  β_trk ← β̂   every 64 samples;  in between every prediction
     and residual is corrected exactly by ẑᵀ(β̂ − β_trk)                                   (6)
@@ -80,18 +83,26 @@ Why these choices
   ``P₀`` and never grows without limit. Forgetting *back to the prior* (mean and
   covariance, like KRLS-T's own forgetting) also bounds how far a weakly determined
   direction can wander: there β̂ is the posterior of the prior and a few seconds of data.
-* **Drift rate trade-off.** ``T_β`` (``memory``, default 10 s of learning samples) is the
-  drift setting: a parameter drifting linearly at rate ``ṙ`` (relative per second) is
-  followed with a lag of about ``ṙ·T_β``; an excited step decays like ``exp(−t/T_β)``;
-  standard errors scale like ``1/√T_β``. Measured through ``feedmon run --from`` on the
-  ``shaker-drift`` trial (friction +30 % in 120 s, 0.25 %/s, REML-tuned tracker): largest error
-  from 60 s on damping 5.5 % / Coulomb 6.4 % with T_β = 10 s, 3.3 % / 4.1 % with 5 s. The other
-  side: a parameter excited only in bursts (inertia, at the feed starts of a machining cycle every
-  18 s) is then estimated from the last one or two bursts, and its error is heavier-tailed than its
-  standard error says — over the 24 h soak stream (``benchmarks/soak.py``) T_β = 5 s gave 15 false
-  inertia warnings (−4.8 % at 6.0–6.3 standard errors), 10 s none (largest |z| 4.5). 10 s is the
-  default: no false alarm at nominal conditions first; a plant known to drift fast is served by
-  ``[adaptation] memory``.
+* **Drift rate trade-off, per parameter.** ``T_β`` (``memory``, default 5 s of learning
+  samples) is the drift setting of damping, Coulomb and offset: a parameter drifting linearly at
+  rate ``ṙ`` (relative per second) is followed with a lag of about ``1.5 ṙ·T_β`` (measured
+  1.4–1.7; part of the excess over ``ṙ·T_β``: the weights ``1/R = 1/(s0²σ_y²)`` fall while the
+  tracker's residual under the file's β grows with the drift, so older samples weigh more — a scale
+  from the joint innovations instead of ``s0²`` removed a fifth of the excess, but made the first
+  seconds overconfident: 32 false reports at the start of the soak stream);
+  an excited step decays like ``exp(−t/T_β)``; standard errors scale like ``1/√T_β``. Measured
+  through ``feedmon run --from`` on the ``shaker-drift`` trial (friction +30 % in 120 s, 0.25 %/s,
+  REML-tuned tracker), largest error from 60 s on over seeds 3, 4, 7: damping 3.3–3.4 % and
+  Coulomb 3.8–4.2 % with T_β = 5 s; 5.4–5.5 % and 6.3–6.6 % with 10 s. The inertia has its own
+  memory ``T_J`` (``inertia_memory``, default 10 s): friction is excited whenever the axis moves,
+  the inertia only while it accelerates — at the feed starts of a machining cycle, every 18 s in
+  the soak stream. With one memory for all, 5 s made the inertia rest on the last one or two
+  accelerations, with an error heavier-tailed than its standard error: over the 24 h soak stream
+  (``benchmarks/soak.py``) it gave 15 false inertia warnings (−4.8 % at 6.0–6.3 standard errors);
+  10 s none (largest |z| 4.5). The forgetting (2) is therefore applied in the coordinates of the
+  physical parameters, each at its own rate; inertia and friction drift on different time scales
+  anyway (a payload changes in steps, friction with temperature and lubrication). A plant known to
+  drift faster or slower is served by ``[adaptation] memory`` / ``inertia_memory``.
 * **Prior.** ``P₀ = P_file + G diag((ρθ₀)²) Gᵀ``: the model file's covariance of β plus a
   drift allowance ρ (default 0.3, relative, on inertia, damping, Coulomb ± and offset —
   Coulomb and offset relative to the friction scale ``max(d_p, c_n, |offset|, 1 N)`` — mapped
@@ -173,8 +184,8 @@ PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offs
 N_PHYS = len(PHYSICAL)
 
 #: slots of ``par`` (settings, fixed for a model)
-(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD) = range(10)
-N_PAR = 10
+(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD, P_LAMBDA_J) = range(11)
+N_PAR = 11
 #: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
 (L_FORM, L_ISP, L_ISN, L_IONE, L_REBASE) = range(5)
 N_LAY = 5
@@ -232,6 +243,7 @@ class BetaState(NamedTuple):
     beta0: np.ndarray    # (p,)
     info0: np.ndarray    # (p, p)
     cons: np.ndarray     # (ncons, p + 1)
+    basis: np.ndarray    # (2, p, p): G = ∂β/∂θ and G⁻¹ (the physical parameters' directions)
     beta: np.ndarray     # (p,)
     beta_trk: np.ndarray  # (p,)
     cov: np.ndarray      # (p, p)
@@ -242,12 +254,13 @@ class BetaState(NamedTuple):
     info: np.ndarray     # (p, p) scratch
     lu: np.ndarray       # (p, p) scratch
     vec: np.ndarray      # (N_VEC, p) scratch
+    work: np.ndarray     # (2, p, p) scratch of the forgetting
 
 
 #: the fields that are the estimator's state (snapshots); the others are settings or scratch
 STATE_FIELDS = ("cnt", "beta", "beta_trk", "cov", "psi", "MZ", "zhat", "sst")
 #: the fields fixed by the model and the settings (a restored state must hold the same)
-SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons")
+SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons", "basis")
 
 
 def _offsets(p, cap, ncons):
@@ -261,7 +274,8 @@ def _offsets(p, cap, ncons):
     f_beta0 = f_par + N_PAR
     f_info0 = f_beta0 + p
     f_cons = f_info0 + pp
-    f_beta = f_cons + ncons * (p + 1)
+    f_basis = f_cons + ncons * (p + 1)
+    f_beta = f_basis + 2 * pp
     f_btrk = f_beta + p
     f_cov = f_btrk + p
     f_psi = f_cov + pp
@@ -271,9 +285,10 @@ def _offsets(p, cap, ncons):
     f_info = f_sst + N_SST
     f_lu = f_info + pp
     f_vec = f_lu + pp
-    f_end = f_vec + N_VEC * p
-    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
-            f_sst, f_info, f_lu, f_vec, f_end)
+    f_work = f_vec + N_VEC * p
+    f_end = f_work + 2 * pp
+    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz,
+            f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_end)
 
 
 _offsets_nb = njit(cache=True, nogil=True)(_offsets)
@@ -282,15 +297,16 @@ _offsets_nb = njit(cache=True, nogil=True)(_offsets)
 def beta_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> BetaState:
     """The :class:`BetaState` of the two base buffers, as NumPy views."""
     p, cap, ncons = (int(v) for v in ibuf[:3])
-    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat, f_sst,
-     f_info, f_lu, f_vec, f_end) = _offsets(p, cap, ncons)
+    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
+     f_sst, f_info, f_lu, f_vec, f_work, f_end) = _offsets(p, cap, ncons)
     return BetaState(ibuf[:_HEADER], ibuf[i_lay:i_cnt], ibuf[i_cnt:i_piv], ibuf[i_piv:i_end],
                      fbuf[f_par:f_beta0], fbuf[f_beta0:f_info0], fbuf[f_info0:f_cons].reshape(p, p),
-                     fbuf[f_cons:f_beta].reshape(ncons, p + 1), fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
+                     fbuf[f_cons:f_basis].reshape(ncons, p + 1), fbuf[f_basis:f_beta].reshape(2, p, p),
+                     fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
                      fbuf[f_cov:f_psi].reshape(p, p), fbuf[f_psi:f_mz].reshape(p, p),
                      fbuf[f_mz:f_zhat].reshape(cap, p), fbuf[f_zhat:f_sst], fbuf[f_sst:f_info],
                      fbuf[f_info:f_lu].reshape(p, p), fbuf[f_lu:f_vec].reshape(p, p),
-                     fbuf[f_vec:f_end].reshape(N_VEC, p))
+                     fbuf[f_vec:f_work].reshape(N_VEC, p), fbuf[f_work:f_end].reshape(2, p, p))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -300,14 +316,16 @@ def beta_state_of(fbuf, ibuf):
     p = ibuf[0]
     cap = ibuf[1]
     ncons = ibuf[2]
-    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat, f_sst,
-     f_info, f_lu, f_vec, _) = _offsets_nb(p, cap, ncons)
+    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
+     f_sst, f_info, f_lu, f_vec, f_work, _) = _offsets_nb(p, cap, ncons)
     return BetaState(view(ibuf, 0, (_HEADER,)), view(ibuf, i_lay, (N_LAY,)), view(ibuf, i_cnt, (N_CNT,)),
                      view(ibuf, i_piv, (p,)), view(fbuf, f_par, (N_PAR,)), view(fbuf, f_beta0, (p,)),
-                     view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_beta, (p,)),
+                     view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_basis, (2, p, p)),
+                     view(fbuf, f_beta, (p,)),
                      view(fbuf, f_btrk, (p,)), view(fbuf, f_cov, (p, p)), view(fbuf, f_psi, (p, p)),
                      view(fbuf, f_mz, (cap, p)), view(fbuf, f_zhat, (p,)), view(fbuf, f_sst, (N_SST,)),
-                     view(fbuf, f_info, (p, p)), view(fbuf, f_lu, (p, p)), view(fbuf, f_vec, (N_VEC, p)))
+                     view(fbuf, f_info, (p, p)), view(fbuf, f_lu, (p, p)), view(fbuf, f_vec, (N_VEC, p)),
+                     view(fbuf, f_work, (2, p, p)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -368,6 +386,38 @@ def _beta_of_theta(form, theta, Ts, gain, p_len, i_sp, i_sn, i_one) -> np.ndarra
     return beta
 
 
+def _jacobian(form, beta0, Ts, g, i_sp, i_sn, i_one) -> tuple[np.ndarray, np.ndarray, float]:
+    """``G = ∂β/∂θ`` at β₀ (p×5, central differences; zero columns for the parameters the model has
+    no column of), θ₀ = (J, B, d_p, c_n, offset) and the friction scale ``max(d_p, c_n, |offset|, 1 N)``."""
+    p = beta0.size
+    theta0 = _theta_of_beta(form, beta0, Ts, g, i_sp, i_sn, i_one)
+    fscale = max(abs(theta0[2]), abs(theta0[3]), abs(theta0[4]), 1.0)
+    G = np.zeros((p, 5))
+    for j in _present(i_sp, i_one):
+        h = 1e-6 * max(abs(theta0[j]), 1e-3 * fscale if j >= 2 else abs(theta0[j]))
+        tp, tm = theta0.copy(), theta0.copy()
+        tp[j] += h
+        tm[j] -= h
+        G[:, j] = (_beta_of_theta(form, tp, Ts, g, p, i_sp, i_sn, i_one)
+                   - _beta_of_theta(form, tm, Ts, g, p, i_sp, i_sn, i_one)) / (2 * h)
+    return G, theta0, fscale
+
+
+def _present(i_sp, i_one) -> list[int]:
+    """Indices into θ = (J, B, d_p, c_n, offset) of the parameters the model's columns carry (one per column)."""
+    return [0, 1] + ([2, 3] if i_sp >= 0 else []) + ([4] if i_one >= 0 else [])
+
+
+def parameter_basis(form, beta0, Ts, g, i_sp, i_sn, i_one) -> np.ndarray:
+    """``[G, G⁻¹]`` (2, p, p): the columns of ``G = ∂β/∂θ`` at β₀ are the directions in β of the
+    physical parameters the model has (inertia first), the basis of the forgetting (2)."""
+    G = _jacobian(form, beta0, Ts, g, i_sp, i_sn, i_one)[0][:, _present(i_sp, i_one)]
+    if not (np.all(np.isfinite(G)) and np.linalg.cond(G) < 1e12):
+        raise ValueError("β₀ gives an ill-conditioned map to the physical parameters (∂β/∂θ); "
+                         "cannot adapt it")
+    return np.stack([G, np.linalg.inv(G)])
+
+
 def prior_covariance(beta0, names, Ts: float, *, gain: float | None = None, beta_cov=None,
                      rel: float = 0.3) -> np.ndarray:
     """``P₀ = P_file + G diag((ρ θ₀)²) Gᵀ`` (module docstring, "Prior").
@@ -386,19 +436,8 @@ def prior_covariance(beta0, names, Ts: float, *, gain: float | None = None, beta
         raise ValueError(f"prior allowance rel must be in (0, 10], got {rel!r}")
     g = 1.0 if gain is None else float(gain)
     _check_physical(form, beta0)
-    theta0 = _theta_of_beta(form, beta0, Ts, g, i_sp, i_sn, i_one)
-    fscale = max(abs(theta0[2]), abs(theta0[3]), abs(theta0[4]), 1.0)
+    G, theta0, fscale = _jacobian(form, beta0, Ts, g, i_sp, i_sn, i_one)
     sd = rel * np.array([theta0[0], theta0[1], fscale, fscale, fscale])
-    G = np.zeros((p, 5))
-    for j in range(5):
-        if (j in (2, 3) and i_sp < 0) or (j == 4 and i_one < 0):
-            continue
-        h = 1e-6 * max(abs(theta0[j]), 1e-3 * fscale if j >= 2 else abs(theta0[j]))
-        tp, tm = theta0.copy(), theta0.copy()
-        tp[j] += h
-        tm[j] -= h
-        G[:, j] = (_beta_of_theta(form, tp, Ts, g, p, i_sp, i_sn, i_one)
-                   - _beta_of_theta(form, tm, Ts, g, p, i_sp, i_sn, i_one)) / (2 * h)
     P0 = G @ np.diag(sd * sd) @ G.T
     if beta_cov is not None:
         C = np.asarray(beta_cov, dtype=np.float64)
@@ -438,11 +477,14 @@ def _constraints(form, beta0, i_sp, i_sn) -> np.ndarray:
 
 
 def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0, gain: float | None = None,
-                     P0=None, memory: float = 10.0, huber: float = 3.0, instrument: bool = True,
-                     enabled: bool = True, warmup: int | None = None, rebase_every: int = REBASE_EVERY,
-                     reject: float | None = None, hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                     P0=None, memory: float = 5.0, inertia_memory: float | None = 10.0, huber: float = 3.0,
+                     instrument: bool = True, enabled: bool = True, warmup: int | None = None,
+                     rebase_every: int = REBASE_EVERY, reject: float | None = None,
+                     hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The two base buffers ``(float64, int64)`` of a fresh :class:`BetaState` for a tracker of budget
-    ``budget`` (M): β̂ = β₀, P = P₀. ``rebase_every = 0``: never re-base (the *track* mode)."""
+    ``budget`` (M): β̂ = β₀, P = P₀. ``rebase_every = 0``: never re-base (the *track* mode).
+    ``memory``: T_β of the friction parameters (damping, Coulomb, offset), ``inertia_memory``
+    the inertia's (None: the same), both in s of learning samples."""
     form, i_sp, i_sn, i_one = _layout(names)
     beta0 = np.asarray(beta0, dtype=np.float64).copy()
     p = beta0.size
@@ -461,6 +503,9 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     info0 = 0.5 * (info0 + info0.T)
     if not (math.isfinite(memory) and memory > 0):
         raise ValueError(f"memory must be a positive number of seconds, got {memory!r}")
+    inertia_memory = memory if inertia_memory is None else inertia_memory
+    if not (math.isfinite(inertia_memory) and inertia_memory > 0):
+        raise ValueError(f"inertia_memory must be a positive number of seconds, got {inertia_memory!r}")
     if not (math.isfinite(huber) and huber > 0):
         raise ValueError(f"huber must be a positive number of standard deviations, got {huber!r}")
     if reject is not None and not (math.isfinite(reject) and reject > huber):
@@ -481,6 +526,7 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     bs = beta_state_views(fbuf, ibuf)
     par = bs.par
     par[P_LAMBDA] = math.exp(-Ts / memory)
+    par[P_LAMBDA_J] = math.exp(-Ts / inertia_memory)
     par[P_HUBER] = huber
     par[P_OMEGA] = omega
     par[P_ENABLED] = 1.0 if enabled else 0.0
@@ -496,6 +542,7 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     bs.beta0[:] = beta0
     bs.info0[:] = info0
     bs.cons[:] = cons
+    bs.basis[:] = parameter_basis(form, beta0, Ts, par[P_GAIN], i_sp, i_sn, i_one)
     bs.beta[:] = beta0
     bs.beta_trk[:] = beta0
     bs.cov[:] = P0
@@ -666,26 +713,50 @@ def _invert(A, out, LU, piv, b, x):
 
 @njit(cache=True, nogil=True)
 def _forget(bs, m):
-    """(2) applied for ``m`` learning samples at once: ``Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀`` (Ψ alike) and
-    ``β̂ ← Λ_new⁻¹(λ_β^m Λ β̂ + (1 − λ_β^m) Λ₀ β₀)``, i.e. back to the prior N(β₀, P₀)."""
+    """(2) for ``m`` learning samples at once, per physical parameter: with ``G = ∂β/∂θ``, ``G⁻¹``
+    (:attr:`BetaState.basis`), ``D = diag(√λ_θ^m)`` (λ_J for the inertia, λ_β for the others) and
+    ``E = diag(√(1 − λ_θ^m))``, ``T = G D G⁻¹``, ``S = G E G⁻¹``:
+
+        Λ ← TᵀΛT + SᵀΛ₀S,   Ψ ← TᵀΨT + SᵀΛ₀S,   β̂ ← β̂ + Λ_new⁻¹ SᵀΛ₀S (β₀ − β̂),
+
+    i.e. in the coordinates of the physical parameters θ each one is flattened towards the prior
+    N(β₀, P₀) at its own rate (``Λ_θ ← DΛ_θD + EΛ₀θE``); with λ_J = λ_β it is
+    ``Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀``."""
     beta = bs.beta
     p = beta.shape[0]
     vec = bs.vec
     info = bs.info
-    lam = bs.par[P_LAMBDA] ** m
     if not _invert(bs.cov, info, bs.lu, bs.piv, vec[V_TMP], vec[V_X]):   # Λ = (Λ⁻¹)⁻¹
         return
-    info0 = bs.info0
+    G = bs.basis[0]
+    Gi = bs.basis[1]
+    T = bs.work[0]
+    S = bs.work[1]
+    lam = bs.par[P_LAMBDA] ** m
+    lam_j = bs.par[P_LAMBDA_J] ** m
+    for i in range(p):
+        for j in range(p):
+            t = 0.0
+            s = 0.0
+            for k in range(p):
+                lk = lam_j if k == 0 else lam                # θ_0 is the inertia
+                t += G[i, k] * math.sqrt(lk) * Gi[k, j]      # T = G D G⁻¹
+                s += G[i, k] * math.sqrt(1.0 - lk) * Gi[k, j]  # S = G E G⁻¹
+            T[i, j] = t
+            S[i, j] = s
+    _congruence(info, T, info, bs.lu)             # Λ ← TᵀΛT
+    _congruence(bs.psi, T, bs.psi, bs.lu)         # Ψ ← TᵀΨT
+    prior = bs.lu
+    _congruence(bs.info0, S, prior, T)            # SᵀΛ₀S (T is free now)
     beta0 = bs.beta0
-    psi = bs.psi
     d = vec[V_BEFORE]
     for i in range(p):
         acc = 0.0
         for j in range(p):
-            acc += info0[i, j] * (beta0[j] - beta[j])
-            info[i, j] = lam * info[i, j] + (1.0 - lam) * info0[i, j]
-            psi[i, j] = lam * psi[i, j] + (1.0 - lam) * info0[i, j]
-        d[i] = (1.0 - lam) * acc                  # (1 − λ^m) Λ₀ (β₀ − β̂)
+            acc += prior[i, j] * (beta0[j] - beta[j])
+            info[i, j] += prior[i, j]
+            bs.psi[i, j] += prior[i, j]
+        d[i] = acc                                # SᵀΛ₀S (β₀ − β̂)
     if not _invert(info, bs.cov, bs.lu, bs.piv, vec[V_TMP], vec[V_X]):
         return
     C = bs.cov
@@ -694,6 +765,24 @@ def _forget(bs, m):
         for j in range(p):
             acc += C[i, j] * d[j]
         beta[i] += acc
+
+
+@njit(cache=True, nogil=True)
+def _congruence(A, T, out, tmp):
+    """out = Tᵀ A T (p×p; ``out`` may be ``A``; ``tmp`` scratch, aliasing none of them)."""
+    p = A.shape[0]
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += A[i, k] * T[k, j]
+            tmp[i, j] = acc                       # A T
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                acc += T[k, i] * tmp[k, j]
+            out[i, j] = acc                       # Tᵀ (A T)
 
 
 @njit(cache=True, nogil=True)
@@ -1270,7 +1359,10 @@ class OnlineBeta:
     allowance : float
         ρ, the relative drift allowance of the prior (default 0.3).
     memory : float
-        T_β (s of learning samples), the forgetting time constant (default 10 s).
+        T_β (s of learning samples), the forgetting time constant of the friction parameters —
+        damping, Coulomb, offset (default 5 s).
+    inertia_memory : float, optional
+        The inertia's (default 10 s; None: ``memory``). Module docstring, "Drift rate trade-off".
     huber : float
         Huber threshold c (standard deviations, default 3).
     reject, hold : float, optional
@@ -1299,8 +1391,8 @@ class OnlineBeta:
     """
 
     def __init__(self, tracker, beta0, names, Ts: float, *, omega: float = 0.0, gain: float | None = None,
-                 beta_cov=None, allowance: float = 0.3, memory: float = 10.0, huber: float = 3.0,
-                 reject: float | None = None, hold: float = 0.0, instrument: bool = True, enabled: bool = True,
+                 beta_cov=None, allowance: float = 0.3, memory: float = 5.0,
+                 inertia_memory: float | None = 10.0, huber: float = 3.0, reject: float | None = None, hold: float = 0.0, instrument: bool = True, enabled: bool = True,
                  warmup: int | None = None, rebase_every: int = REBASE_EVERY):
         from .krlst import KRLST
 
@@ -1320,7 +1412,8 @@ class OnlineBeta:
         self.gain = gain
         self.tracker = tracker
         self.P0 = prior_covariance(beta0, self.names, Ts, gain=gain, beta_cov=beta_cov, rel=allowance)
-        self._kw = dict(omega=omega, gain=gain, P0=self.P0, memory=memory, huber=huber, instrument=instrument,
+        self._kw = dict(omega=omega, gain=gain, P0=self.P0, memory=memory, inertia_memory=inertia_memory,
+                        huber=huber, instrument=instrument,
                         enabled=enabled, warmup=warmup, reject=reject, hold=hold, rebase_every=rebase_every)
         self._beta0 = np.asarray(beta0, dtype=np.float64).copy()
         self._buf = new_beta_buffers(self._beta0, self.names, Ts, tracker.budget, **self._kw)

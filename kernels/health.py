@@ -55,17 +55,19 @@ model-file value ``θ_j⁰ ± s_j⁰`` and online value ``θ̂_j ± ŝ_j``:
     alarm when determined, |z| ≥ z_alarm and r ≥ r_alarm; back to warn when |z| < z_warn or r < r_alarm/2
 
 Defaults ``z_warn = 6``, ``z_alarm = 8``, ``z_clear = 4``, ``r_warn = 0.03``,
-``r_alarm = 0.15``, ``κ = 0.5``. With the β memory of ~10 s a day holds ~9000 independent
-looks per parameter, ~1.6·10⁷ a year for five parameters: the expected largest |z| of honest
-standard errors is ≈ 4.8 in a day and ≈ 5.9 in a year. Measured over the 24 h soak stream
-(``benchmarks/soak.py``, true β): largest |z| 4.5 (inertia), 2.6 (damping), 4.0 and 1.9
-(Coulomb ±) — the standard errors are about honest (before the first sample of each run of motion
-was kept out of the β learning, Coulomb + reached 5.1, and ``z_warn = 5`` warned once in those 24 h).
+``r_alarm = 0.15``, ``κ = 0.5``. With β memories of 5–10 s a day holds ~9000–17000 independent
+looks per parameter, ~3·10⁷ a year for five parameters: the expected largest |z| of honest
+standard errors is ≈ 4.9 in a day and ≈ 6.0 in a year. Measured over the 24 h soak stream
+(``benchmarks/soak.py``, true β, friction memory 5 s, inertia 10 s): largest |z| 4.0 (inertia),
+3.5 (damping), 2.8 and 1.6 (Coulomb ±) — the standard errors are about honest (before the first
+sample of each run of motion was kept out of the β learning, Coulomb + reached 5.1, and
+``z_warn = 5`` warned once in those 24 h; with one memory of 5 s for all parameters the inertia
+reached 6.3).
 ``z_warn = 6`` (``P(|z| > 6) = 2·10⁻⁹``: less than one false warning in 30 years per
 axis if Gaussian; a factor 1.3 above the measured nominal maximum) and the relative
 threshold (statistically *and* practically significant) removes the alarms a
 high-SNR drive would otherwise raise for irrelevant deviations. ``r_warn = 3 %`` (not 5 %)
-because a parameter is seen only while it is excited: with the β memory of 10 s and a feed
+because a parameter is seen only while it is excited: with the inertia memory of 10 s and a feed
 change every ~6 s (milling), one acceleration event moves the inertia estimate about a third of
 the way after a step (+4.4 … +6.5 % after a +20 % payload step, three noise seeds, at 8.6 … 11
 standard errors); 3 % warns at the first event after the step (3 s), 5 % at the second (10 s).

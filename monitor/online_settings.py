@@ -129,8 +129,12 @@ class Adaptation(msgspec.Struct, **_OPTS):
     #: model file's β; apply: the disturbance uses β̂ (unbiased under drift, but β̂ may take up
     #: a disturbance that moves with the motion)
     mode: Literal["off", "track", "apply"] = "track"
-    #: T_β, s of learning samples: a drift of ṙ per second lags by ≈ ṙ·T_β; standard errors ∝ 1/√T_β
-    memory: _num(0.5, 3600.0, "s, β memory T_β (drift lag vs noise)") = 10.0
+    #: T_β of the friction parameters (damping, Coulomb, offset), s of learning samples: a drift of ṙ
+    #: per second lags by ≈ 1.5 ṙ·T_β; standard errors ∝ 1/√T_β
+    memory: _num(0.5, 3600.0, "s, β memory T_β of damping, Coulomb, offset (drift lag vs noise)") = 5.0
+    #: T_J, the inertia's: excited only while the axis accelerates, so it needs a longer memory to
+    #: rest on several accelerations (a payload step is followed within ≈ 2 T_J)
+    inertia_memory: _num(0.5, 3600.0, "s, β memory T_J of the inertia (step lag vs noise)") = 10.0
     #: ρ, relative drift allowance of the prior P₀ (bounds P; larger: faster start, farther wander
     #: of weakly determined parameters)
     allowance: _num(0.01, 10.0, "relative drift allowance ρ of the prior") = 0.3
@@ -263,7 +267,10 @@ def parse_model_tables(doc: dict, path) -> OnlineSettings:
 COMMENTS = {
     "adaptation": {
         "mode": "off | track (β estimated, disturbance with the file's β) | apply (disturbance with online β)",
-        "memory": "s of learning samples: drift lag ≈ rate × memory vs. noise ∝ 1/√memory (0.5 … 3600)",
+        "memory": "s of learning samples, damping, Coulomb, offset: drift lag ≈ 1.5 × rate × memory vs. noise "
+                  "∝ 1/√memory (0.5 … 3600)",
+        "inertia_memory": "s of learning samples, inertia (excited only while accelerating): step lag vs. noise "
+                          "(0.5 … 3600)",
         "allowance": "relative drift the prior allows (0.01 … 10): bounds the covariance of β",
         "huber": "standard deviations (1 … 100): a sample's largest influence",
         "instrument": "model's velocity prediction as instrument of v_m (closed-loop noise bias)",

@@ -98,7 +98,7 @@ def test_recursion_equals_batch_weighted_least_squares_on_gp_innovations():
     t, vr, vm, _ = _drive(n, seed=5)
     b0 = _beta(inertia=320.0, damping=260.0)
     trk = _tracker(budget=600, forgetting=1.0)
-    ob = _online(b0, trk, memory=1e12, huber=1e9, instrument=False, warmup=0)
+    ob = _online(b0, trk, memory=1e12, inertia_memory=None, huber=1e9, instrument=False, warmup=0)
     Z = np.zeros((n - 1, len(NAMES)))
     Y = vm[1:]
     R = np.zeros(n - 1)
@@ -220,15 +220,17 @@ def test_first_sample_of_each_run_of_motion_teaches_nothing():
 
 
 def test_unexcited_direction_does_not_move_and_its_covariance_stays_bounded():
-    """Only positive motion: the −σ_n column is never excited. With a diagonal prior β4 keeps its
-    value exactly and its variance never exceeds the prior (no wind-up), while β1 is learned."""
+    """Only positive motion: the −σ_n column is never excited. With a diagonal prior and one memory for
+    all parameters β4 keeps its value exactly and its variance never exceeds the prior (no wind-up),
+    while β1 is learned. (With a separate inertia memory the forgetting works on the physical
+    parameters, and c_n = −β4/b ties β4 to the learned gain b: the next test.)"""
     n = 5000
     t = np.arange(n) * TS
     vr = 0.03 + 0.02 * np.sin(2 * np.pi * 1.3 * t)
     t_, _, vm, _ = _drive(n, v_ref=vr, seed=4)
     b0 = _beta(inertia=330.0)
     P0 = np.diag(np.diag(prior_covariance(b0, NAMES, TS, gain=DRIVE["K"])))
-    ob = _online(b0, warmup=100)
+    ob = _online(b0, warmup=100, inertia_memory=None)
     ob.state.cov[:] = P0                          # a diagonal prior: no correlation carries updates over
     ob.state.info0[:] = np.linalg.inv(P0)
     ob.state.psi[:] = ob.state.info0
@@ -238,6 +240,77 @@ def test_unexcited_direction_does_not_move_and_its_covariance_stays_bounded():
     assert P[3, 3] <= P0[3, 3] * (1 + 1e-9)
     assert P[0, 0] < 0.05 * P0[0, 0]               # β1 was learned
     assert ob.counters["updates"] > 3000
+
+
+def _theta_info(ob, info):
+    """Λ in the coordinates of the physical parameters (Gᵀ Λ G, G = ∂β/∂θ at β₀)."""
+    G = ob.state.basis[0]
+    return G.T @ info @ G
+
+
+@pytest.mark.parametrize("memories", [(2.0, 20.0), (3.0, None)])
+def test_forgetting_is_per_physical_parameter_against_its_dense_form(memories):
+    """(2) on a state holding data, against the dense formula in θ = (J, B, d_p, c_n):
+    Λ_θ ← DΛ_θD + EΛ₀θE with D = diag(√λ_J^m, √λ_β^m, …), E = √(I − D²), and Λ_θ_new(θ̂_new − θ₀)
+    = DΛ_θD(θ̂ − θ₀); with one memory for all it is Λ ← λ^m Λ + (1 − λ^m) Λ₀."""
+    from kernels.beta_tracker import _forget
+
+    memory, inertia_memory = memories
+    b0 = _beta()
+    ob = _online(b0, memory=memory, inertia_memory=inertia_memory)
+    bs = ob.state
+    G, Gi = bs.basis
+    assert np.allclose(G @ Gi, np.eye(len(b0)), atol=1e-9)
+    rng = np.random.default_rng(5)
+    p = len(b0)
+    L0t = _theta_info(ob, bs.info0)
+    A = rng.normal(size=(p, p)) * np.sqrt(np.diag(L0t))[:, None]
+    Lt = L0t + 50.0 * A @ A.T                     # data worth ~50 priors, correlated
+    info = Gi.T @ Lt @ Gi
+    bs.cov[:] = np.linalg.inv(info)
+    bs.psi[:] = info
+    dtheta = rng.normal(size=p) / np.sqrt(np.diag(Lt)) * 3.0
+    bs.beta[:] = b0 + G @ dtheta
+    m = 16
+    lam = np.exp(-TS / memory) ** m
+    lam_j = np.exp(-TS / (inertia_memory or memory)) ** m
+    lams = np.r_[lam_j, np.full(p - 1, lam)]
+    D, E = np.diag(np.sqrt(lams)), np.diag(np.sqrt(1.0 - lams))
+    want_Lt = D @ Lt @ D + E @ L0t @ E
+    want_dtheta = np.linalg.solve(want_Lt, D @ Lt @ D @ dtheta)
+    _forget(bs, m)
+    got_Lt = _theta_info(ob, np.linalg.inv(bs.cov))
+    scale = np.sqrt(np.outer(np.diag(want_Lt), np.diag(want_Lt)))
+    assert np.max(np.abs(got_Lt - want_Lt) / scale) < 1e-8
+    got_dtheta = Gi @ (bs.beta - b0)
+    assert np.max(np.abs(got_dtheta - want_dtheta) * np.sqrt(np.diag(want_Lt))) < 1e-8
+    assert np.max(np.abs(_theta_info(ob, bs.psi) - want_Lt) / scale) < 1e-8   # Ψ alike (it was Λ)
+    if inertia_memory is None:                    # the plain exponential forgetting in β
+        want = lam * info + (1 - lam) * bs.info0
+        assert np.max(np.abs(np.linalg.inv(bs.cov) - want) / np.sqrt(np.outer(np.diag(want), np.diag(want)))) < 1e-8
+
+
+def test_inertia_keeps_what_accelerations_taught_through_steady_motion():
+    """Reversals (the inertia is excited), then 20 s of steady feed with the shaker (friction keeps
+    being excited, the inertia hardly): with a 2 s memory for all, the inertia's information is
+    forgotten during the steady part; with T_J = 20 s it is kept — the damping's stays the same."""
+    n1, n2 = 2000, 6660
+    t = np.arange(n1 + n2) * TS
+    vr = 0.05 * np.sign(np.sin(2 * np.pi * 0.7 * t)) * np.minimum(1.0, 4 * np.abs(np.sin(2 * np.pi * 0.7 * t)))
+    vr[n1:] = 0.03
+    _, _, vm, _ = _drive(n1 + n2, v_ref=vr, seed=6)
+    phys = {}
+    for tj in (None, 20.0):
+        ob = _online(_beta(), memory=2.0, inertia_memory=tj)
+        ob.track(t[:n1], vr[:n1], vm[:n1])
+        J, sJ = ob.physical()["inertia"]
+        assert abs(J / DRIVE["J"] - 1) < 0.01 and sJ < 1.0, (J, sJ)   # learnt from the reversals
+        ob.track(t[n1 - 1:], vr[n1 - 1:], vm[n1 - 1:])
+        phys[tj] = ob.physical()
+    J, sJ = phys[20.0]["inertia"]
+    assert abs(J / DRIVE["J"] - 1) < 0.01 and sJ < 1.0, (J, sJ)       # kept
+    assert phys[None]["inertia"][1] > 10 * sJ, phys[None]["inertia"]   # forgotten
+    assert phys[20.0]["damping"][1] == pytest.approx(phys[None]["damping"][1], rel=0.25)
 
 
 def test_estimate_is_always_a_physical_drive():

@@ -200,11 +200,9 @@ def test_drifting_friction_is_followed_within_5_percent(shaker, simulated):
     seq = np.array([h.seq for h in late])
     truth = {k: _truth_at(trial, seq, k) for k in ("inertia", "damping", "coulomb_pos", "coulomb_neg")}
     truth["coulomb"] = 0.5 * (truth["coulomb_pos"] + truth["coulomb_neg"])
-    # issue 11 asks for 5 %: inertia meets it; damping and Coulomb peak at 5.5 % and 6.4 % with the default
-    # β memory of 10 s (β lags ≈ drift rate × memory; 5 s meets 5 % but gives false inertia warnings over the
-    # 24 h soak stream, see kernels/beta_tracker.py). The bounds below still catch a wrong equation or a stuck
-    # β (a fixed β ends 13 % off).
-    for name, bound in (("inertia", 0.05), ("damping", 0.07), ("coulomb", 0.07)):
+    # measured (seeds 3, 4, 7): inertia 0.1 %, damping 3.3–3.4 %, Coulomb 3.8–4.2 % with the default memories
+    # (friction 5 s, inertia 10 s; kernels/beta_tracker.py "Drift rate trade-off"); a fixed β ends 13 % off
+    for name, bound in (("inertia", 0.05), ("damping", 0.05), ("coulomb", 0.05)):
         got = np.array([getattr(h, name) for h in late])
         assert np.max(np.abs(got / truth[name] - 1)) <= bound, (name, np.max(np.abs(got / truth[name] - 1)))
     # the reports follow the drift (truth +13 % of damping from 60 s to the end, a fixed β 0 %); whether it
@@ -296,10 +294,12 @@ def test_settings_live_in_the_model_file_and_errors_name_the_key(shaker, tmp_pat
     text = model.read_text()
     assert "[adaptation]" in text and 'mode = "track"' in text and "[health]" in text
     bad = tmp_path / "bad.model.toml"
-    bad.write_text(text.replace("memory = 10.0", "memory = 0.01"))
-    with pytest.raises(ModelFileError, match=r"adaptation\.memory.*≥ 0\.5, ≤ 3600") as err:
-        load_model(bad)
-    assert str(bad) in str(err.value)
+    assert "\nmemory = 5.0" in text and "\ninertia_memory = 10.0" in text
+    for key in ("memory", "inertia_memory"):
+        bad.write_text(text.replace(f"\n{key} = ", f"\n{key} = 0.01 #"))
+        with pytest.raises(ModelFileError, match=rf"adaptation\.{key}.*≥ 0\.5, ≤ 3600") as err:
+            load_model(bad)
+        assert str(bad) in str(err.value)
     bad.write_text(text.replace('mode = "track"', 'mode = "learn"'))
     with pytest.raises(ModelFileError, match="adaptation.mode.*'apply' / 'off' / 'track'"):
         load_model(bad)
