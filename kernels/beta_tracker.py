@@ -412,8 +412,14 @@ def parameter_basis(form, beta0, Ts, g, i_sp, i_sn, i_one) -> np.ndarray:
     """``[G, G⁻¹]`` (2, p, p): the columns of ``G = ∂β/∂θ`` at β₀ are the directions in β of the
     physical parameters the model has (inertia first), the basis of the forgetting (2)."""
     G = _jacobian(form, beta0, Ts, g, i_sp, i_sn, i_one)[0][:, _present(i_sp, i_one)]
-    if not (np.all(np.isfinite(G)) and np.linalg.cond(G) < 1e12):
-        raise ValueError("β₀ gives an ill-conditioned map to the physical parameters (∂β/∂θ); "
+    cond = math.inf
+    rows = np.abs(G).max(axis=1)
+    if np.all(np.isfinite(G)) and np.all(rows > 0.0):
+        cols = np.abs(G / rows[:, None]).max(axis=0)
+        if np.all(cols > 0.0):  # scale-free (row and column equilibrated): ~1–3 for drives
+            cond = np.linalg.cond(G / rows[:, None] / cols)
+    if not cond < 1e8:
+        raise ValueError(f"β₀ gives a singular map to the physical parameters (∂β/∂θ, condition {cond:.3g}); "
                          "cannot adapt it")
     return np.stack([G, np.linalg.inv(G)])
 

@@ -398,6 +398,19 @@ def test_bad_input_is_refused_with_the_field_named():
         OnlineBeta(_tracker(), np.array([0.8, 0.3, 1e-4, -1e-4]), NAMES, TS, gain=DRIVE["K"])
     with pytest.raises(ValueError, match="memory"):
         _online(_beta(), memory=0.0)
+    with pytest.raises(ValueError, match="inertia_memory"):
+        _online(_beta(), inertia_memory=math.inf)
+    # a mechanical time constant of 10¹¹ samples: the pole is 1 − 10⁻¹¹, the physical parameters cannot be
+    # told apart in β (double precision), so there is no basis for the per-parameter forgetting
+    # (the prior P₀, built on the same map, is refused too)
+    from kernels.beta_tracker import _layout, parameter_basis
+
+    slow = physical_to_beta("velocity-loop", TS, 3e8, 1e-3, gain=DRIVE["K"], coulomb_pos=9.0, coulomb_neg=10.0)
+    with pytest.raises(ValueError, match="singular map to the physical parameters"):
+        parameter_basis("velocity-loop", slow, TS, DRIVE["K"], *_layout(NAMES)[1:])
+    with pytest.raises(ValueError, match="not positive definite"):
+        _online(slow)
+    assert parameter_basis("velocity-loop", _beta(), TS, DRIVE["K"], *_layout(NAMES)[1:]).shape == (2, 4, 4)
     ob = _online(_beta())
     with pytest.raises(RuntimeError, match="predict_one"):
         ob.learn_one(np.zeros(4), 0.0)
