@@ -20,7 +20,9 @@ def register(sub) -> None:
         "PL-LSSVM with a squared-exponential kernel in time, PL-LSSVM with the locally periodic kernel at the "
         "period(s) in play — are tuned by restricted marginal likelihood and the valid one with the highest "
         "evidence is written to the model file for 'feedmon run'. A model that cannot be right (unstable pole, "
-        "inertia or damping ≤ 0, negative Coulomb friction) is refused: exit 1, nothing written.",
+        "inertia or damping ≤ 0, negative Coulomb friction) is refused: exit 1, nothing written. The model "
+        "written is then run through the monitor over the same trial (self-check): a drift warning there means "
+        "the identified values and the tracker's view of the same data disagree.",
     )
     p.add_argument("trial", help="trial file (.mcap) from 'feedmon simulate', 'feedmon import' or a monitor log")
     p.add_argument("-o", "--output", help="model file to write (TOML), e.g. axis-x.model.toml")
@@ -89,9 +91,14 @@ def run(args) -> int:
     doc = ident.to_json()
     written = []
     refused = ident.refusal is not None and not args.force
-    if args.output and not refused:
+    check = doc["self_check"] = None  # no model, nothing to check
+    if not refused and ident.model_result is not None:
         model = ident.to_model(feedmon_version=__version__, force=args.force)
-        written.append(save_model(model, args.output))
+        check = _self_check(args.trial, model)
+        doc["self_check"] = check
+        model.identification["self_check"] = check["summary"][:4000]
+        if args.output:
+            written.append(save_model(model, args.output))
     if args.report:
         from monitor.report import write_report
 
@@ -100,6 +107,9 @@ def run(args) -> int:
         print(json.dumps(doc, indent=2, default=_jsonable))
     else:
         _print_table(ident)
+        if check is not None:
+            style = "" if check["state"] == "ok" else "[bold yellow]"
+            Console().print(f"{style}self-check{'[/]' if style else ''}: {check['summary']}")
     for path in written:
         err.print(f"wrote {path}")
     if ident.refusal is not None:
@@ -109,6 +119,17 @@ def run(args) -> int:
             return 1
         err.print(f"[bold yellow]warning:[/] {ident.refusal}; written anyway (--force), 'feedmon run' will refuse it")
     return 0
+
+
+def _self_check(trial: str, model) -> dict:
+    """:func:`monitor.self_check.self_check` as JSON; a check that cannot run says why (it never stops
+    the identification)."""
+    from monitor.self_check import self_check
+
+    try:
+        return self_check(trial, model).to_json()
+    except (ValueError, OSError) as exc:
+        return {"state": "not run", "summary": f"not run: {exc}"}
 
 
 def _jsonable(x):

@@ -18,7 +18,8 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
     [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
-                      hyperparameters of the chosen model
+                      hyperparameters of the chosen model; self_check: what the monitor over the
+                      identification trial said of this model (:mod:`monitor.self_check`)
     [[identification.candidates]]   method, kernel, period, log_evidence, valid, why_not — every
                       candidate ``feedmon identify`` weighed
     [validity]        warning — only in a file written with ``identify --force`` although the model
@@ -188,6 +189,7 @@ class _IdentificationT(msgspec.Struct, **_Opts):
     evaluations: _int(0, 10**9) | None = None
     tune_seconds: _num(0.0, 1e7, "s") | None = None
     segment: _int(0, 10**9, "samples") | None = None
+    self_check: _Text | None = None
     candidates: Annotated[list[_CandidateT], msgspec.Meta(max_length=64)] = []
 
 
