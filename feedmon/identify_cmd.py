@@ -102,7 +102,7 @@ def run(args) -> int:
     if args.report:
         from monitor.report import write_report
 
-        written += write_report(ident, args.report)
+        written += write_report(ident, args.report, self_check=check)
     if args.json:
         print(json.dumps(doc, indent=2, default=_jsonable))
     else:

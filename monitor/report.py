@@ -132,8 +132,10 @@ def _reference(ident):
     return None, None
 
 
-def write_report(ident, out_dir) -> list[Path]:
-    """Write the figure and ``<machine>-<axis>-identification.md`` into ``out_dir``; returns the paths."""
+def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
+    """Write the figure and ``<machine>-<axis>-identification.md`` into ``out_dir``; returns the paths.
+    ``self_check``: the JSON of :func:`monitor.self_check.self_check` for the written model (a section of
+    the summary)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,11 +211,11 @@ def write_report(ident, out_dir) -> list[Path]:
     plt.close(fig)
 
     md_path = out / f"{stem}.md"
-    md_path.write_text(_markdown(ident, png.name), encoding="utf-8")
+    md_path.write_text(_markdown(ident, png.name, self_check), encoding="utf-8")
     return [png, md_path]
 
 
-def _markdown(ident, png_name: str) -> str:
+def _markdown(ident, png_name: str, self_check: dict | None = None) -> str:
     truth = ident.truth or {}
     psi_text = "none" if ident.period is None else f"{ident.period:.6g} s ({ident.period_source})"
     if ident.period_suggested is not None:
@@ -257,6 +259,9 @@ def _markdown(ident, png_name: str) -> str:
             errs.append(f"* disturbance correlation with the truth ({label}): {truth[key]:.4f}")
     if errs:
         lines += ["## Against the truth", "", *errs, ""]
+    if self_check is not None:
+        lines += ["## Self-check", "", "The monitor (`feedmon run --from`) with the written model over this trial: "
+                  + self_check["summary"] + ".", ""]
     notes = ident.notes + [n for c in ident.candidates for n in c.notes]
     if notes:
         lines += ["## Notes", "", *[f"* {n}" for n in notes], ""]

@@ -271,6 +271,8 @@ def test_model_file_and_report(simulated, tmp_path):
     md = next(report.glob("*.md")).read_text()
     assert "**Chosen model: PL-LSSVM" in md and "| LS |" in md and "log evidence" in md
     assert "disturbance correlation with the truth" in md and "vs truth" in md
+    assert "## Self-check" in md and model.identification["self_check"] in md   # the same verdict as the file
+    assert model.identification["self_check"].startswith("ok: ")
 
 
 def test_invalid_model_refused_unless_forced_and_run_refuses_it(emps_trials, tmp_path, capsys):
