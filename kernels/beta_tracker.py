@@ -184,8 +184,8 @@ PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offs
 N_PHYS = len(PHYSICAL)
 
 #: slots of ``par`` (settings, fixed for a model)
-(P_LAMBDA, P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD, P_LAMBDA_J) = range(11)
-N_PAR = 11
+(P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD) = range(9)
+N_PAR = 9
 #: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
 (L_FORM, L_ISP, L_ISN, L_IONE, L_REBASE) = range(5)
 N_LAY = 5
@@ -218,9 +218,10 @@ class BetaState(NamedTuple):
     """State of the online β estimator: named views of two base buffers (:func:`new_beta_buffers`).
 
     Settings (fixed for a model; :data:`SETTINGS_FIELDS`): ``lay`` the column layout and the
-    re-basing interval (:data:`L_FORM` …), ``par`` float settings (:data:`P_LAMBDA` …),
+    re-basing interval (:data:`L_FORM` …), ``par`` float settings (:data:`P_HUBER` …),
     ``beta0`` the model file's β, ``info0`` Λ₀ = P₀⁻¹, ``cons`` rows ``[a, b]`` of the
-    constraints ``aᵀβ ≤ b``.
+    constraints ``aᵀβ ≤ b``, ``forget`` the operators ``[T, S]`` of the forgetting (2) over
+    :data:`FORGET_EVERY` learning samples (:func:`forgetting_operators`).
 
     State (:data:`STATE_FIELDS`): ``beta`` β̂ (p,); ``beta_trk`` the β the tracker's mean
     currently goes with (re-based to β̂ every ``lay[L_REBASE]`` learning samples in *apply*
@@ -243,7 +244,7 @@ class BetaState(NamedTuple):
     beta0: np.ndarray    # (p,)
     info0: np.ndarray    # (p, p)
     cons: np.ndarray     # (ncons, p + 1)
-    basis: np.ndarray    # (2, p, p): G = ∂β/∂θ and G⁻¹ (the physical parameters' directions)
+    forget: np.ndarray   # (2, p, p): T and S of the forgetting (2)
     beta: np.ndarray     # (p,)
     beta_trk: np.ndarray  # (p,)
     cov: np.ndarray      # (p, p)
@@ -254,13 +255,13 @@ class BetaState(NamedTuple):
     info: np.ndarray     # (p, p) scratch
     lu: np.ndarray       # (p, p) scratch
     vec: np.ndarray      # (N_VEC, p) scratch
-    work: np.ndarray     # (2, p, p) scratch of the forgetting
+    work: np.ndarray     # (p, p) scratch of the forgetting
 
 
 #: the fields that are the estimator's state (snapshots); the others are settings or scratch
 STATE_FIELDS = ("cnt", "beta", "beta_trk", "cov", "psi", "MZ", "zhat", "sst")
 #: the fields fixed by the model and the settings (a restored state must hold the same)
-SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons", "basis")
+SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons", "forget")
 
 
 def _offsets(p, cap, ncons):
@@ -274,8 +275,8 @@ def _offsets(p, cap, ncons):
     f_beta0 = f_par + N_PAR
     f_info0 = f_beta0 + p
     f_cons = f_info0 + pp
-    f_basis = f_cons + ncons * (p + 1)
-    f_beta = f_basis + 2 * pp
+    f_forget = f_cons + ncons * (p + 1)
+    f_beta = f_forget + 2 * pp
     f_btrk = f_beta + p
     f_cov = f_btrk + p
     f_psi = f_cov + pp
@@ -286,8 +287,8 @@ def _offsets(p, cap, ncons):
     f_lu = f_info + pp
     f_vec = f_lu + pp
     f_work = f_vec + N_VEC * p
-    f_end = f_work + 2 * pp
-    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz,
+    f_end = f_work + pp
+    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz,
             f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_end)
 
 
@@ -297,16 +298,16 @@ _offsets_nb = njit(cache=True, nogil=True)(_offsets)
 def beta_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> BetaState:
     """The :class:`BetaState` of the two base buffers, as NumPy views."""
     p, cap, ncons = (int(v) for v in ibuf[:3])
-    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
+    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
      f_sst, f_info, f_lu, f_vec, f_work, f_end) = _offsets(p, cap, ncons)
     return BetaState(ibuf[:_HEADER], ibuf[i_lay:i_cnt], ibuf[i_cnt:i_piv], ibuf[i_piv:i_end],
                      fbuf[f_par:f_beta0], fbuf[f_beta0:f_info0], fbuf[f_info0:f_cons].reshape(p, p),
-                     fbuf[f_cons:f_basis].reshape(ncons, p + 1), fbuf[f_basis:f_beta].reshape(2, p, p),
+                     fbuf[f_cons:f_forget].reshape(ncons, p + 1), fbuf[f_forget:f_beta].reshape(2, p, p),
                      fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
                      fbuf[f_cov:f_psi].reshape(p, p), fbuf[f_psi:f_mz].reshape(p, p),
                      fbuf[f_mz:f_zhat].reshape(cap, p), fbuf[f_zhat:f_sst], fbuf[f_sst:f_info],
                      fbuf[f_info:f_lu].reshape(p, p), fbuf[f_lu:f_vec].reshape(p, p),
-                     fbuf[f_vec:f_work].reshape(N_VEC, p), fbuf[f_work:f_end].reshape(2, p, p))
+                     fbuf[f_vec:f_work].reshape(N_VEC, p), fbuf[f_work:f_end].reshape(p, p))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -316,16 +317,16 @@ def beta_state_of(fbuf, ibuf):
     p = ibuf[0]
     cap = ibuf[1]
     ncons = ibuf[2]
-    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_basis, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
+    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
      f_sst, f_info, f_lu, f_vec, f_work, _) = _offsets_nb(p, cap, ncons)
     return BetaState(view(ibuf, 0, (_HEADER,)), view(ibuf, i_lay, (N_LAY,)), view(ibuf, i_cnt, (N_CNT,)),
                      view(ibuf, i_piv, (p,)), view(fbuf, f_par, (N_PAR,)), view(fbuf, f_beta0, (p,)),
-                     view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_basis, (2, p, p)),
+                     view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_forget, (2, p, p)),
                      view(fbuf, f_beta, (p,)),
                      view(fbuf, f_btrk, (p,)), view(fbuf, f_cov, (p, p)), view(fbuf, f_psi, (p, p)),
                      view(fbuf, f_mz, (cap, p)), view(fbuf, f_zhat, (p,)), view(fbuf, f_sst, (N_SST,)),
                      view(fbuf, f_info, (p, p)), view(fbuf, f_lu, (p, p)), view(fbuf, f_vec, (N_VEC, p)),
-                     view(fbuf, f_work, (2, p, p)))
+                     view(fbuf, f_work, (p, p)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -422,6 +423,16 @@ def parameter_basis(form, beta0, Ts, g, i_sp, i_sn, i_one) -> np.ndarray:
         raise ValueError(f"β₀ gives a singular map to the physical parameters (∂β/∂θ, condition {cond:.3g}); "
                          "cannot adapt it")
     return np.stack([G, np.linalg.inv(G)])
+
+
+def forgetting_operators(basis: np.ndarray, lam: float, lam_j: float) -> np.ndarray:
+    """``[T, S]`` (2, p, p) of the forgetting (2) over ``m`` learning samples, from ``basis`` =
+    :func:`parameter_basis` and the factors ``lam`` = λ_β^m (damping, Coulomb, offset) and ``lam_j`` =
+    λ_J^m (inertia, θ_0): ``T = G diag(√λ_i) G⁻¹``, ``S = G diag(√(1 − λ_i)) G⁻¹``."""
+    G, Gi = basis
+    lams = np.full(G.shape[0], lam)
+    lams[0] = lam_j
+    return np.stack([G @ np.diag(np.sqrt(lams)) @ Gi, G @ np.diag(np.sqrt(1.0 - lams)) @ Gi])
 
 
 def prior_covariance(beta0, names, Ts: float, *, gain: float | None = None, beta_cov=None,
@@ -531,8 +542,6 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     ibuf[:3] = p, cap, cons.shape[0]
     bs = beta_state_views(fbuf, ibuf)
     par = bs.par
-    par[P_LAMBDA] = math.exp(-Ts / memory)
-    par[P_LAMBDA_J] = math.exp(-Ts / inertia_memory)
     par[P_HUBER] = huber
     par[P_OMEGA] = omega
     par[P_ENABLED] = 1.0 if enabled else 0.0
@@ -548,7 +557,9 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     bs.beta0[:] = beta0
     bs.info0[:] = info0
     bs.cons[:] = cons
-    bs.basis[:] = parameter_basis(form, beta0, Ts, par[P_GAIN], i_sp, i_sn, i_one)
+    bs.forget[:] = forgetting_operators(parameter_basis(form, beta0, Ts, par[P_GAIN], i_sp, i_sn, i_one),
+                                        math.exp(-Ts / memory) ** FORGET_EVERY,
+                                        math.exp(-Ts / inertia_memory) ** FORGET_EVERY)
     bs.beta[:] = beta0
     bs.beta_trk[:] = beta0
     bs.cov[:] = P0
@@ -718,42 +729,26 @@ def _invert(A, out, LU, piv, b, x):
 
 
 @njit(cache=True, nogil=True)
-def _forget(bs, m):
-    """(2) for ``m`` learning samples at once, per physical parameter: with ``G = ∂β/∂θ``, ``G⁻¹``
-    (:attr:`BetaState.basis`), ``D = diag(√λ_θ^m)`` (λ_J for the inertia, λ_β for the others) and
-    ``E = diag(√(1 − λ_θ^m))``, ``T = G D G⁻¹``, ``S = G E G⁻¹``:
+def _forget(bs):
+    """(2) for the last :data:`FORGET_EVERY` learning samples, per physical parameter, with the
+    operators ``T``, ``S`` of :func:`forgetting_operators` (:attr:`BetaState.forget`):
 
         Λ ← TᵀΛT + SᵀΛ₀S,   Ψ ← TᵀΨT + SᵀΛ₀S,   β̂ ← β̂ + Λ_new⁻¹ SᵀΛ₀S (β₀ − β̂),
 
     i.e. in the coordinates of the physical parameters θ each one is flattened towards the prior
-    N(β₀, P₀) at its own rate (``Λ_θ ← DΛ_θD + EΛ₀θE``); with λ_J = λ_β it is
-    ``Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀``."""
+    N(β₀, P₀) at its own rate (``Λ_θ ← DΛ_θD + EΛ₀θE``, ``D = diag(√λ_i^m)``, ``E = √(I − D²)``);
+    with λ_J = λ_β it is ``Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀``."""
     beta = bs.beta
     p = beta.shape[0]
     vec = bs.vec
     info = bs.info
     if not _invert(bs.cov, info, bs.lu, bs.piv, vec[V_TMP], vec[V_X]):   # Λ = (Λ⁻¹)⁻¹
         return
-    G = bs.basis[0]
-    Gi = bs.basis[1]
-    T = bs.work[0]
-    S = bs.work[1]
-    lam = bs.par[P_LAMBDA] ** m
-    lam_j = bs.par[P_LAMBDA_J] ** m
-    for i in range(p):
-        for j in range(p):
-            t = 0.0
-            s = 0.0
-            for k in range(p):
-                lk = lam_j if k == 0 else lam                # θ_0 is the inertia
-                t += G[i, k] * math.sqrt(lk) * Gi[k, j]      # T = G D G⁻¹
-                s += G[i, k] * math.sqrt(1.0 - lk) * Gi[k, j]  # S = G E G⁻¹
-            T[i, j] = t
-            S[i, j] = s
+    T = bs.forget[0]
+    prior = bs.work
     _congruence(info, T, info, bs.lu)             # Λ ← TᵀΛT
     _congruence(bs.psi, T, bs.psi, bs.lu)         # Ψ ← TᵀΨT
-    prior = bs.lu
-    _congruence(bs.info0, S, prior, T)            # SᵀΛ₀S (T is free now)
+    _congruence(bs.info0, bs.forget[1], prior, bs.lu)   # SᵀΛ₀S
     beta0 = bs.beta0
     d = vec[V_BEFORE]
     for i in range(p):
@@ -1125,7 +1120,7 @@ def _beta_step(bs, z, e, R, gate, bout):
             psi[i, j] += zeta[i] * zeta[j] * meat  # Ψ ← Ψ + ζ̃ ζ̃ᵀ R / R_w²
     cnt[C_SINCE_FORGET] += 1
     if cnt[C_SINCE_FORGET] >= FORGET_EVERY:
-        _forget(bs, cnt[C_SINCE_FORGET])          # (2) for the last m learning samples
+        _forget(bs)                               # (2) for the last FORGET_EVERY learning samples
         cnt[C_SINCE_FORGET] = 0
     # ---- (7) physical constraints -------------------------------------------------------------
     viol = False
@@ -1397,9 +1392,9 @@ class OnlineBeta:
     """
 
     def __init__(self, tracker, beta0, names, Ts: float, *, omega: float = 0.0, gain: float | None = None,
-                 beta_cov=None, allowance: float = 0.3, memory: float = 5.0,
-                 inertia_memory: float | None = 10.0, huber: float = 3.0, reject: float | None = None, hold: float = 0.0, instrument: bool = True, enabled: bool = True,
-                 warmup: int | None = None, rebase_every: int = REBASE_EVERY):
+                 beta_cov=None, allowance: float = 0.3, memory: float = 5.0, inertia_memory: float | None = 10.0,
+                 huber: float = 3.0, reject: float | None = None, hold: float = 0.0, instrument: bool = True,
+                 enabled: bool = True, warmup: int | None = None, rebase_every: int = REBASE_EVERY):
         from .krlst import KRLST
 
         if not isinstance(tracker, KRLST):

@@ -242,9 +242,15 @@ def test_unexcited_direction_does_not_move_and_its_covariance_stays_bounded():
     assert ob.counters["updates"] > 3000
 
 
-def _theta_info(ob, info):
+def _basis(b0):
+    """``[G, G⁻¹]``, G = ∂β/∂θ at β₀ (the drive of these tests)."""
+    from kernels.beta_tracker import _layout, parameter_basis
+
+    return parameter_basis("velocity-loop", b0, TS, DRIVE["K"], *_layout(NAMES)[1:])
+
+
+def _theta_info(G, info):
     """Λ in the coordinates of the physical parameters (Gᵀ Λ G, G = ∂β/∂θ at β₀)."""
-    G = ob.state.basis[0]
     return G.T @ info @ G
 
 
@@ -253,17 +259,17 @@ def test_forgetting_is_per_physical_parameter_against_its_dense_form(memories):
     """(2) on a state holding data, against the dense formula in θ = (J, B, d_p, c_n):
     Λ_θ ← DΛ_θD + EΛ₀θE with D = diag(√λ_J^m, √λ_β^m, …), E = √(I − D²), and Λ_θ_new(θ̂_new − θ₀)
     = DΛ_θD(θ̂ − θ₀); with one memory for all it is Λ ← λ^m Λ + (1 − λ^m) Λ₀."""
-    from kernels.beta_tracker import _forget
+    from kernels.beta_tracker import FORGET_EVERY, _forget
 
     memory, inertia_memory = memories
     b0 = _beta()
     ob = _online(b0, memory=memory, inertia_memory=inertia_memory)
     bs = ob.state
-    G, Gi = bs.basis
+    G, Gi = _basis(b0)
     assert np.allclose(G @ Gi, np.eye(len(b0)), atol=1e-9)
     rng = np.random.default_rng(5)
     p = len(b0)
-    L0t = _theta_info(ob, bs.info0)
+    L0t = _theta_info(G, bs.info0)
     A = rng.normal(size=(p, p)) * np.sqrt(np.diag(L0t))[:, None]
     Lt = L0t + 50.0 * A @ A.T                     # data worth ~50 priors, correlated
     info = Gi.T @ Lt @ Gi
@@ -271,20 +277,20 @@ def test_forgetting_is_per_physical_parameter_against_its_dense_form(memories):
     bs.psi[:] = info
     dtheta = rng.normal(size=p) / np.sqrt(np.diag(Lt)) * 3.0
     bs.beta[:] = b0 + G @ dtheta
-    m = 16
+    m = FORGET_EVERY
     lam = np.exp(-TS / memory) ** m
     lam_j = np.exp(-TS / (inertia_memory or memory)) ** m
     lams = np.r_[lam_j, np.full(p - 1, lam)]
     D, E = np.diag(np.sqrt(lams)), np.diag(np.sqrt(1.0 - lams))
     want_Lt = D @ Lt @ D + E @ L0t @ E
     want_dtheta = np.linalg.solve(want_Lt, D @ Lt @ D @ dtheta)
-    _forget(bs, m)
-    got_Lt = _theta_info(ob, np.linalg.inv(bs.cov))
+    _forget(bs)                                   # m = FORGET_EVERY learning samples
+    got_Lt = _theta_info(G, np.linalg.inv(bs.cov))
     scale = np.sqrt(np.outer(np.diag(want_Lt), np.diag(want_Lt)))
     assert np.max(np.abs(got_Lt - want_Lt) / scale) < 1e-8
     got_dtheta = Gi @ (bs.beta - b0)
     assert np.max(np.abs(got_dtheta - want_dtheta) * np.sqrt(np.diag(want_Lt))) < 1e-8
-    assert np.max(np.abs(_theta_info(ob, bs.psi) - want_Lt) / scale) < 1e-8   # Ψ alike (it was Λ)
+    assert np.max(np.abs(_theta_info(G, bs.psi) - want_Lt) / scale) < 1e-8   # Ψ alike (it was Λ)
     if inertia_memory is None:                    # the plain exponential forgetting in β
         want = lam * info + (1 - lam) * bs.info0
         assert np.max(np.abs(np.linalg.inv(bs.cov) - want) / np.sqrt(np.outer(np.diag(want), np.diag(want)))) < 1e-8
