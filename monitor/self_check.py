@@ -88,24 +88,12 @@ def self_check(trial_path: str, model) -> SelfCheck:
     for _, _, block in iter_axes(trial_path, [name], kinds=("samples",))[name]:
         est.process_rows(block)
         reports += est.take_health()
-    rank = {s: i for i, s in enumerate(HEALTH_STATES)}
-    worst, flagged, reasons, seen = "ok", 0, [], set()
-    for h in reports:
-        if h.state == "ok":
-            continue
-        flagged += 1
-        if rank[h.state] > rank[worst]:
-            worst = h.state
-        for r in h.reasons:
-            if not (" drift " in r or r.startswith("innovation")):
-                continue
-            k = _kind(r)
-            if k not in seen:
-                seen.add(k)
-                reasons.append(r)
-    online = {}
-    if reports:
-        last = reports[-1]
-        for k in ("inertia", "damping", "coulomb", "offset"):
-            online[k] = (getattr(last, k), getattr(last, f"{k}_se"))
-    return SelfCheck(worst, len(reports), flagged, reasons, online)
+    flagged = [h for h in reports if h.state != "ok"]
+    worst = max((h.state for h in flagged), key=HEALTH_STATES.index, default="ok")
+    reasons: dict[str, str] = {}                   # the first reason of each kind, in order
+    for r in (r for h in flagged for r in h.reasons if " drift " in r or r.startswith("innovation")):
+        reasons.setdefault(_kind(r), r)
+    last = reports[-1] if reports else None
+    online = {} if last is None else {k: (getattr(last, k), getattr(last, f"{k}_se"))
+                                      for k in ("inertia", "damping", "coulomb", "offset")}
+    return SelfCheck(worst, len(reports), len(flagged), list(reasons.values()), online)
