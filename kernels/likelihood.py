@@ -37,6 +37,10 @@ Evaluation (:func:`reml_terms`): by **whitening** with the inverse Cholesky fact
 ``log|Z̃ᵀA⁻¹Z̃|`` and (L3). Exact, ``O(N² (p + 2))`` time, ``O(N p)`` memory, independent of the
 conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson).
 
+The spindle-phase kernel (:mod:`kernels.spindle_phase`, kind ``"spindle"``) on ``x = (t, θ)`` is
+evaluated on the stretches of constant spindle speed (``phase``): block-diagonal ``A``, one exact
+Levinson whitening per stretch with its own Toeplitz column (eq. S2), ``log|A| = Σ log|A_s|``.
+
 Tuning (:func:`tune`) maximises the exact REML of the whole record. A block-diagonal (segmented)
 approximation is available (``segment``: consecutive segments treated as independent realisations of
 ``f`` with a shared ``b``, ``log|A| = Σ log|A_s|``, one Levinson pass of the segment length for all
@@ -58,6 +62,7 @@ from scipy.optimize import minimize
 
 from .covariance import Kernel, LocallyPeriodic, SquaredExponential, ZeroMeanLocallyPeriodic
 from .pl_lssvm import _check_gamma, prepare_regression
+from .spindle_phase import PhaseSegments, spindle_phase_kernel
 from .toeplitz import levinson_whiten
 
 __all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "log_evidence", "tune", "TuneResult",
@@ -65,7 +70,7 @@ __all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "log_evidence",
 
 #: kernel families that can be tuned: hyperparameter names besides γ
 KINDS = {"squared_exponential": ("lengthscale",), "locally_periodic": ("sigma1", "sigma2"),
-         "locally_periodic_zero_mean": ("sigma1", "sigma2")}
+         "locally_periodic_zero_mean": ("sigma1", "sigma2"), "spindle": ("sigma1", "sigma2")}
 #: the families with a period ψ
 PERIODIC_KINDS = ("locally_periodic", "locally_periodic_zero_mean")
 #: a tuned value within this fraction (in log space, of the bound interval) of a bound "ends on it"
@@ -104,13 +109,14 @@ def _logdet_scaled_gram(Zs: np.ndarray) -> float:
 
 
 def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: int | None = None,
-               _prepared=None) -> REMLTerms:
+               phase: PhaseSegments | None = None, _prepared=None) -> REMLTerms:
     """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
     ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
     time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact (Levinson
     whitening of the whole record) unless ``segment`` is given: then the block-diagonal (segmented)
-    approximation of the module docstring.
+    approximation of the module docstring. With ``phase`` (the stretches of constant spindle speed),
+    ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated block-diagonally.
     """
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
@@ -121,6 +127,12 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: i
         b, quad, logdet_M_s, Rinv = _qr_terms(Zt / scale, y)
         return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept)
     gamma = _check_gamma(gamma)
+    if phase is not None:
+        if phase.edges[-1] != n:
+            raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
+        white, logdet_A = _whiten_phase(Zt, y, kernel, gamma, float(Ts), phase)
+        b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
+        return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, f"spindle-{phase.count}", intercept)
     if not kernel.is_stationary_1d:
         raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
     Ts = float(Ts)
@@ -157,6 +169,19 @@ def _whiten(Zt, y, kernel, gamma, Ts, segment):
     W, logdets = levinson_whiten(column, series, lengths)
     white = np.concatenate([W[i, :, :lengths[i]].T for i in range(count)], axis=0)
     return white, float(np.sum(logdets)), int(count)
+
+
+def _whiten_phase(Zt, y, kernel, gamma, Ts, phase: PhaseSegments):
+    """``L_s⁻¹[Z̃_s, y_s]`` and ``Σ log|A_s|`` over the stretches of constant spindle speed (eq. S2)."""
+    data = np.column_stack([Zt, y])
+    white = np.empty_like(data)
+    logdet = 0.0
+    edges = phase.edges.tolist()
+    for (a, b), column in zip(zip(edges[:-1], edges[1:]), phase.columns(kernel, Ts, 1.0 / gamma)):
+        W, logdets = levinson_whiten(column, data[a:b].T[None])
+        white[a:b] = W[0].T
+        logdet += float(logdets[0])
+    return white, logdet
 
 
 def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
@@ -203,21 +228,27 @@ def default_bounds(kind: str, n: int, Ts: float, period: float | None = None) ->
       the periodic pattern stays correlated), ``σ2 ∈ [max(0.05, π Ts/(2ψ)), 5]`` (within-period
       smoothness ``σ2 ψ/π`` from half a sample, or 1/60 of a period, to nearly sinusoidal),
       ``γ ∈ [1e-2, 1e6]`` (disturbance-to-noise variance ratio);
-    * squared exponential: ``ℓ ∈ [10 Ts, max(20 Ts, T)]``, ``γ ∈ [1e-2, 1e6]``.
+    * squared exponential: ``ℓ ∈ [10 Ts, max(20 Ts, T)]``, ``γ ∈ [1e-2, 1e6]``;
+    * spindle phase: those of the locally periodic kernel, ``period`` = (slowest, fastest) stretch
+      period ψ (s): σ1 from the slowest, σ2 from the fastest.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown kernel family {kind!r}; use one of {', '.join(KINDS)}")
     record = n * Ts
     gamma = (1e-2, 1e6)
-    if kind in PERIODIC_KINDS:
+    if kind in PERIODIC_KINDS or kind == "spindle":
         if period is None:
             raise ValueError("the locally periodic kernel needs a period ψ")
-        return {"sigma1": (2.0 * period, max(4.0 * period, record)),
-                "sigma2": (max(0.05, math.pi * Ts / (2.0 * period)), 5.0), "gamma": gamma}
+        slow, fast = period if kind == "spindle" else (period, period)
+        return {"sigma1": (2.0 * slow, max(4.0 * slow, record)),
+                "sigma2": (max(0.05, math.pi * Ts / (2.0 * fast)), 5.0), "gamma": gamma}
     return {"lengthscale": (10.0 * Ts, max(20.0 * Ts, record)), "gamma": gamma}
 
 
 def _make_kernel(kind: str, values: dict, period: float | None) -> Kernel:
+    """The kernel of family ``kind``; ``period`` is ψ (s), for ``"spindle"`` the angle period P (rad)."""
+    if kind == "spindle":
+        return spindle_phase_kernel(values["sigma1"], values["sigma2"], period)
     if kind == "locally_periodic":
         return LocallyPeriodic(values["sigma1"], values["sigma2"], period)
     if kind == "locally_periodic_zero_mean":
@@ -234,7 +265,7 @@ class TuneResult:
     gamma: float
     log_likelihood: float  # the tuning objective at the optimum (exact REML unless segmented)
     evaluations: int
-    period: float | None = None
+    period: float | None = None  # ψ (s); for "spindle" the angle period P (rad)
     seconds: float = 0.0
     segment: int = 0
     bounds: dict = field(default_factory=dict)
@@ -256,7 +287,7 @@ class TuneResult:
 def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
          bounds: dict | None = None, progress=None, names=None, segment: int | None = None,
          max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
-         _prepared=None) -> TuneResult:
+         phase: PhaseSegments | None = None, _prepared=None) -> TuneResult:
     """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
     The objective is the exact REML of the whole record (``segment`` selects the block-diagonal
@@ -270,8 +301,9 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
     Parameters
     ----------
     Z, y : regression data (method §2); ``Ts`` sample period (s); ``period`` ψ (s) for the locally
-        periodic kernel.
-    kind : "locally_periodic", "locally_periodic_zero_mean" or "squared_exponential"
+        periodic kernel; for ``"spindle"`` the angle period P (rad, default 2π: per revolution).
+    kind : "locally_periodic", "locally_periodic_zero_mean", "squared_exponential" or "spindle"
+        (the spindle-phase kernel on the stretches ``phase`` of constant spindle speed)
     init : dict, optional
         Starting values by name (e.g. ``{"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}``).
     bounds : dict name → (lo, hi), optional
@@ -292,8 +324,21 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         period = float(period) if period is not None else math.nan
         if not (math.isfinite(period) and period > 0):
             raise ValueError(f"period ψ must be a positive number of seconds, got {period!r}")
+    spindle = kind == "spindle"
+    span = None
+    if spindle:
+        if phase is None:
+            raise ValueError("the spindle-phase kernel needs the stretches of constant spindle speed (phase)")
+        period = 2.0 * math.pi if period is None else float(period)
+        psi = phase.periods(period)
+        psi = psi[np.isfinite(psi) & (phase.lengths > 1)]
+        if psi.size == 0:
+            raise ValueError("the spindle does not turn in this record: no spindle-phase kernel")
+        span = (float(psi.max()), float(psi.min()))
     names_all = KINDS[kind] + ("gamma",)
-    bounds = default_bounds(kind, n, Ts, period if periodic else None) if bounds is None else dict(bounds)
+    if bounds is None:
+        bounds = default_bounds(kind, n, Ts, span if spindle else (period if periodic else None))
+    bounds = dict(bounds)
     try:
         box = [(float(bounds[k][0]), float(bounds[k][1])) for k in names_all]
     except (KeyError, TypeError, IndexError):
@@ -309,7 +354,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
             terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, segment=segment,
-                               _prepared=prepared)
+                               phase=phase if spindle else None, _prepared=prepared)
             ll = terms.log_likelihood
         except ValueError:
             terms, ll = None, -math.inf
@@ -349,7 +394,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
             on_bound[k] = "upper"
     gamma = best_vals.pop("gamma")
     return TuneResult(kind=kind, hyper=best_vals, gamma=gamma, log_likelihood=float(state["best"]),
-                      evaluations=state["evaluations"], period=period if periodic else None,
+                      evaluations=state["evaluations"], period=period if periodic or spindle else None,
                       seconds=time.perf_counter() - start_time, segment=n if segment is None else int(segment),
                       bounds=dict(zip(names_all, box)), on_bound=on_bound,
                       terms=state["terms"] if segment is None else None)

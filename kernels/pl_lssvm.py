@@ -18,6 +18,8 @@ are needed:
   PCG, falling back to Levinson (up to ``LEVINSON_LIMIT`` samples) when PCG does not converge
   (long σ1 with large γ: thousands of iterations).
 * vector inputs ``x`` (N, d): dense Cholesky of ``A``, limited to ``dense_limit`` samples.
+* the spindle-phase kernel on ``(t, θ)`` with the stretches of constant spindle speed ``phase``
+  (:mod:`kernels.spindle_phase`): block-diagonal ``A``, Levinson–Durbin per stretch (eq. S2).
 
 Uncertainty: in the Gaussian-process reading of :mod:`kernels.likelihood` (eq. L1) ``[c; β]`` is
 the GLS estimate and its covariance is ``ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹`` with ``ŝ² = rᵀA⁻¹r/(N − p)``,
@@ -50,6 +52,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from .covariance import Kernel
 from .least_squares import validate_regression
+from .spindle_phase import PhaseSegments
 from .toeplitz import DENSE_LIMIT as TOEPLITZ_DENSE_LIMIT
 from .toeplitz import WARN_FACTOR, ToeplitzSolver, levinson_solve
 
@@ -194,6 +197,23 @@ class _LevinsonSolver:
         return levinson_solve(self.column, B)
 
 
+class _PhaseSolver:
+    """``A⁻¹B`` for the block-diagonal ``A`` of the spindle-phase kernel: Levinson–Durbin per stretch."""
+
+    def __init__(self, kernel: Kernel, gamma: float, Ts: float, phase: PhaseSegments):
+        self.blocks = list(zip(phase.edges[:-1].tolist(), phase.edges[1:].tolist(),
+                               phase.columns(kernel, Ts, 1.0 / gamma)))
+        self.iterations = 0
+        self.residual = 0.0
+
+    def solve(self, B, tol=None):
+        B = np.asarray(B, dtype=np.float64)
+        out = np.empty_like(B)
+        for a, b, column in self.blocks:
+            out[a:b] = levinson_solve(column, B[a:b])
+        return out
+
+
 class _DenseSolver:
     def __init__(self, A: np.ndarray):
         try:
@@ -297,7 +317,8 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
 
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
              tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
-             toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto") -> PLLSSVMResult:
+             toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto",
+             phase: PhaseSegments | None = None) -> PLLSSVMResult:
     """PL-LSSVM estimate of β and the disturbance ``f`` (method §4, thesis eq. 2.9–2.12).
 
     Parameters
@@ -325,6 +346,9 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
         Time kernels with ``N ≤`` this use a dense Cholesky of the Toeplitz matrix (``solver="auto"``).
     solver : "auto", "pcg" or "levinson"
         Path for time kernels (module docstring); "pcg" honours ``toeplitz_dense_limit`` too.
+    phase : PhaseSegments, optional
+        Stretches of constant spindle speed: ``kernel`` is then a kernel on ``(t, θ)`` (the
+        spindle-phase kernel), solved block-diagonally on a grid of period ``Ts``.
 
     Raises
     ------
@@ -336,8 +360,13 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     Z_arr, y, names, Zt, intercept = prepare_regression(Z, y, names)
     n, p = Zt.shape
     method = solver
-    solver, solver_name, step = _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit,
-                                              toeplitz_dense_limit, method)
+    if phase is not None:
+        if Ts is None or phase.edges[-1] != n:
+            raise ValueError(f"the spindle-phase path needs Ts and stretches covering the {n} samples")
+        solver, solver_name, step = _PhaseSolver(kernel, gamma, float(Ts), phase), f"spindle-{phase.count}", float(Ts)
+    else:
+        solver, solver_name, step = _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit,
+                                                  toeplitz_dense_limit, method)
     fallback = method == "auto" and max_iter is None and solver_name.startswith("toeplitz-pcg") and n <= LEVINSON_LIMIT
     with warnings.catch_warnings():
         if fallback:

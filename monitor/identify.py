@@ -16,7 +16,10 @@ mapped back to the spec's β for the model file.
   with its zero-mean form (:class:`kernels.covariance.ZeroMeanLocallyPeriodic`, tuned from the former's
   optimum): the locally periodic kernel carries a slowly varying mean (most of its variance when σ2 is
   large), right for a cutting force whose mean follows the feed, wrong for a zero-mean vibration,
-  where that mean competes with the velocity column; the evidence tells which one the data support.
+  where that mean competes with the velocity column; the evidence tells which one the data support;
+* ``pl_lssvm`` with the spindle-phase kernel (the tracker's, on ``(t, θ)``) when the samples carry the
+  spindle and its speed changes (:func:`_spindle_candidate`; block-diagonal over the stretches of
+  constant speed, :mod:`kernels.spindle_phase`).
 
 **Period.** In this order: ``period`` ("given"), the spindle speed ("spindle"), else found in the LS
 residual ("detected", :func:`kernels.period.detect_periods`: harmonic-sum periodogram, periods locked
@@ -89,6 +92,7 @@ from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_
 from kernels.likelihood import tune as tune_hyperparameters
 from kernels.period import MIN_CYCLES, detect_periods, harmonically_related
 from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
+from kernels.spindle_phase import phase_segments, segment_tolerance, spindle_phase
 
 from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
@@ -197,7 +201,7 @@ class Candidate:
     """One candidate model, evaluated exactly on the whole record."""
 
     method: str  # "ls" | "pl_lssvm"
-    kernel: str | None  # None | "squared_exponential" | "locally_periodic" | "locally_periodic_zero_mean"
+    kernel: str | None  # None | "squared_exponential" | "locally_periodic" | "locally_periodic_zero_mean" | "spindle"
     period: float | None
     hyperparameters: dict  # sigma1, sigma2 | lengthscale, gamma (+ tuned, evaluations, on_bound)
     k: int  # hyperparameters fitted to the data (eq. L4)
@@ -215,6 +219,7 @@ class Candidate:
     gamma: float | None = None
     vif: dict = field(default_factory=dict)  # variance inflation of each physical parameter by the kernel
     eligible: bool = True  # False: evaluated for the period check only (the period was given)
+    phase: object = None  # kernels.spindle_phase.PhaseSegments of the spindle-phase candidate
 
     @property
     def label(self) -> str:
@@ -224,6 +229,8 @@ class Candidate:
             return f"PL-LSSVM, locally periodic ψ = {self.period:.6g} s"
         if self.kernel == "locally_periodic_zero_mean":
             return f"PL-LSSVM, zero-mean locally periodic ψ = {self.period:.6g} s"
+        if self.kernel == "spindle":
+            return "PL-LSSVM, spindle phase"
         return "PL-LSSVM, squared exponential"
 
     @property
@@ -375,7 +382,12 @@ class Identification:
         at the tracker's period ψ (its zero-mean form too — a disturbance without a slowly varying mean,
         so the tracker leaves slow forces to β, online as offline); when the chosen model is LS or of
         another kernel, the best tuned locally periodic candidate at ψ by evidence. ``("locally_periodic",
-        None)`` (thesis values) when none was tuned."""
+        None)`` (thesis values) when none was tuned. With spindle data the tracker runs the spindle-phase
+        kernel: the tuned spindle-phase candidate's values when there is one (the speed changed)."""
+        if self.spindle:
+            for cand in self.candidates:
+                if cand.kernel == "spindle" and cand.hyperparameters.get("tuned"):
+                    return "spindle", cand.hyperparameters
         families = ("locally_periodic", "locally_periodic_zero_mean")
         if psi is not None:
             others = sorted((x for x in self.candidates if x is not chosen),
@@ -480,9 +492,9 @@ class _Problem:
         self.prepared = prepare_regression(Z_id, y, id_names)
         self.n, self.p = Z_id.shape
 
-    def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None) -> Candidate:
+    def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None, phase=None) -> Candidate:
         if terms is None:
-            terms = reml_terms(None, None, kernel, gamma, self.Ts, _prepared=self.prepared)
+            terms = reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, _prepared=self.prepared)
         beta = self.T @ terms.beta
         cov = self.T @ terms.beta_cov @ self.T.T
         try:
@@ -503,20 +515,21 @@ class _Problem:
                          hyperparameters=hyper, k=k, log_likelihood=terms.log_likelihood,
                          log_evidence=log_evidence(terms.log_likelihood, k, self.n, self.p), beta=beta,
                          beta_cov=cov, physical=phys, physical_se=se, pole=pole, notes=list(notes),
-                         kernel_object=kernel, gamma=gamma, vif=vif)
+                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase)
         if problems:
             cand.valid, cand.why_not = False, "; ".join(problems)
         return cand
 
-    def tuned(self, kind, period, init, tune, k_extra, progress, label, refine: bool = False) -> Candidate:
-        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated exactly.
+    def tuned(self, kind, period, init, tune, k_extra, progress, label, refine: bool = False, phase=None) -> Candidate:
+        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated exactly
+        (block-diagonally on the stretches ``phase`` for the spindle-phase kernel).
         ``refine``: ``init`` is a good start (the optimum of a related family): no start design, fewer
         evaluations."""
         notes = []
         if tune:
             res = tune_hyperparameters(None, None, self.Ts, period, kind=kind, init=init, _prepared=self.prepared,
                                        progress=None if progress is None else (lambda *a: progress(label, *a)),
-                                       design=not refine, max_evaluations=20 if refine else 30)
+                                       design=not refine, max_evaluations=20 if refine else 30, phase=phase)
             hyper = dict(res.hyper, gamma=res.gamma, tuned=True, evaluations=res.evaluations,
                          tune_seconds=round(res.seconds, 3))
             if res.on_bound:
@@ -528,7 +541,7 @@ class _Problem:
             kernel, gamma, terms = res.kernel(), res.gamma, res.terms
             k = len(res.hyper) + 1 + k_extra
         else:
-            if kind in PERIODIC_KINDS:
+            if kind in PERIODIC_KINDS or kind == "spindle":
                 values = {"sigma1": init["sigma1"], "sigma2": init["sigma2"]}
             else:
                 values = {"lengthscale": init["lengthscale"]}
@@ -539,7 +552,7 @@ class _Problem:
         if kind == "locally_periodic_zero_mean":
             notes.append(f"{label}: the disturbance is taken to have zero mean, so the offset also holds the "
                          "disturbance's mean force (the two cannot be told apart)")
-        return self.candidate("pl_lssvm", kind, kernel, gamma, hyper, k, notes, terms)
+        return self.candidate("pl_lssvm", kind, kernel, gamma, hyper, k, notes, terms, phase)
 
     def fit(self, cand: Candidate, trial_exo_name) -> MethodResult:
         """Predictions (and, for PL-LSSVM, the disturbance estimate) of a candidate."""
@@ -549,7 +562,7 @@ class _Problem:
         if cand.method == "pl_lssvm":
             solver = "levinson" if self.n <= LEVINSON_LIMIT else "auto"
             res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
-                           solver=solver)
+                           solver=solver, phase=cand.phase)
             f = res.f
             linear = self.Z @ res.beta
         pred = linear + (f if f is not None else 0.0)
@@ -745,6 +758,10 @@ def identify(
             alt.eligible = False
             unused.append(alt)
 
+    spindle_cand = _spindle_candidate(prob, trial, candidates, init, notes, **tuned_kw)
+    if spindle_cand is not None:
+        candidates.append(spindle_cand)
+
     # validity rule 2: determined at least as well as LS
     for c in candidates[1:]:
         why = _efficiency_check(c, ls_c)
@@ -793,6 +810,37 @@ def identify(
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident
+
+
+def _spindle_candidate(prob: _Problem, trial, candidates: list[Candidate], init: dict, notes: list[str], *,
+                       tune: bool, progress) -> Candidate | None:
+    """The spindle-phase candidate (issue 11 item 1: the tracker's kernel, eq. S1, in identification)
+    when the samples carry the spindle and its speed changes; None at constant speed (then it is the
+    locally periodic candidate at ψ = 60/rpm) or without spindle data.
+
+    Started from the best tuned locally periodic candidate (σ1, σ2 mean the same in both kernels);
+    the stretches of constant speed are cut with that candidate's σ2
+    (:func:`kernels.spindle_phase.segment_tolerance`)."""
+    theta = spindle_phase(trial.t, trial.spindle_angle, trial.spindle_rpm)
+    if theta is None:
+        return None
+    periodic = [c for c in candidates if c.kernel == "locally_periodic" and c.hyperparameters.get("tuned")]
+    ref = max(periodic, key=lambda c: c.log_evidence) if periodic else None
+    start = dict(init) if ref is None else {k: ref.hyperparameters[k] for k in ("sigma1", "sigma2")} | {"gamma": ref.gamma}
+    try:
+        phase = phase_segments(trial.t[:-1], theta[:-1], segment_tolerance(start["sigma2"]))
+    except ValueError as exc:
+        notes.append(f"no spindle-phase candidate: {exc}")
+        return None
+    if phase.count < 2:
+        return None
+    label = f"spindle phase ({phase.count} stretches of constant speed)"
+    try:
+        return prob.tuned("spindle", 2.0 * math.pi, start, tune=tune, k_extra=0, progress=progress, label=label,
+                          refine=ref is not None, phase=phase)
+    except ValueError as exc:
+        notes.append(f"no spindle-phase candidate: {exc}")
+        return None
 
 
 def _harmonic_alternatives(prob: _Problem, cand: Candidate, psi: float, duration: float, progress) -> Candidate:

@@ -167,7 +167,7 @@ class _TrackerT(msgspec.Struct, **_Opts):
 
 class _CandidateT(msgspec.Struct, **_Opts):
     method: Literal["ls", "pl_lssvm"]
-    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean"] = "none"
+    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean", "spindle"] = "none"
     period: _num(1e-6, 1e6, "s") | None = None
     log_evidence: _num(-1e15, 1e15) | None = None
     valid: bool = True
@@ -176,7 +176,7 @@ class _CandidateT(msgspec.Struct, **_Opts):
 
 class _IdentificationT(msgspec.Struct, **_Opts):
     chosen: Literal["ls", "pl_lssvm"] | None = None
-    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean"] | None = None
+    kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean", "spindle"] | None = None
     period: _num(1e-6, 1e6, "s") | None = None
     period_source: Literal["given", "spindle", "detected", "none"] | None = None
     log_evidence: _num(-1e15, 1e15) | None = None

@@ -32,8 +32,9 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from kernels.covariance import Kernel, Periodic, Product, SquaredExponential
+from kernels.covariance import Kernel
 from kernels.health import HealthConfig
+from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
            "TrackerOverride", "AdaptationOverride", "HealthOverride", "build_tracker_kernel", "check_kernel_desc",
@@ -72,7 +73,7 @@ class SpindleKernel(msgspec.Struct, **_OPTS):
         return 2.0 * math.pi / (self.teeth if self.per == "tooth" else 1)
 
     def build(self) -> Kernel:
-        return Product(SquaredExponential(self.sigma1, dims=0), Periodic(self.sigma2, self.period, dims=1))
+        return spindle_phase_kernel(self.sigma1, self.sigma2, self.period)
 
     def to_dict(self) -> dict:
         return {"type": SPINDLE, **msgspec.structs.asdict(self)}
