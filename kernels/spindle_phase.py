@@ -30,7 +30,7 @@ import numpy as np
 from .covariance import Kernel, Periodic, Product, SquaredExponential
 
 __all__ = ["spindle_phase_kernel", "spindle_phase", "PhaseSegments", "phase_segments", "segment_tolerance",
-           "TOL_FRACTION", "MAX_SEGMENTS"]
+           "TOL_FRACTION", "MAX_SEGMENTS", "MAX_HOLE"]
 
 #: θ may leave the straight line of its stretch by this fraction of the periodic factor's length
 #: scale ``ℓ_θ = P σ2/π`` (S1 near zero lag): the kernel value then errs by ≲ 2·TOL_FRACTION
@@ -39,6 +39,8 @@ TOL_FRACTION = 0.02
 #: most stretches a record may split into (beyond it the speed varies continuously: the
 #: block-diagonal approximation would forget the pattern every few samples)
 MAX_SEGMENTS = 2000
+#: longest hole in the spindle speed (s) bridged by linear interpolation
+MAX_HOLE = 0.1
 
 
 def spindle_phase_kernel(sigma1: float, sigma2: float, period: float = 2.0 * math.pi) -> Kernel:
@@ -56,13 +58,15 @@ def spindle_phase(t, angle=None, rpm=None) -> np.ndarray | None:
       wrapped angle at any speed is followed), else by :func:`numpy.unwrap` (steps below π per
       sample: a cumulative angle, or a spindle slower than 30 revolutions per sample period);
     * else ``rpm`` integrated with the trapezoid rule of the online tracker
-      (:func:`kernels.online._theta`): ``θ_k = θ_{k−1} + (2π/60)·(n_{k−1} + n_k)/2·(t_k − t_{k−1})``.
+      (:func:`kernels.online._theta`): ``θ_k = θ_{k−1} + (2π/60)·(n_{k−1} + n_k)/2·(t_k − t_{k−1})``;
+      holes in ``rpm`` (non-finite values) of at most :data:`MAX_HOLE` s are interpolated linearly
+      (held at the ends); a longer hole leaves no usable speed.
     """
     t = np.asarray(t, dtype=np.float64)
     rate = None
     if rpm is not None:
-        r = np.asarray(rpm, dtype=np.float64)
-        if r.shape == t.shape and np.all(np.isfinite(r)):
+        r = _fill_holes(t, np.asarray(rpm, dtype=np.float64))
+        if r is not None:
             rate = (2.0 * math.pi / 60.0) * 0.5 * (r[1:] + r[:-1]) * np.diff(t)
     if angle is not None:
         a = np.asarray(angle, dtype=np.float64)
@@ -75,6 +79,23 @@ def spindle_phase(t, angle=None, rpm=None) -> np.ndarray | None:
     if rate is None:
         return None
     return np.concatenate([[0.0], np.cumsum(rate)])
+
+
+def _fill_holes(t: np.ndarray, x: np.ndarray) -> np.ndarray | None:
+    """``x`` with holes (non-finite runs) of at most :data:`MAX_HOLE` s interpolated linearly in t (held
+    at the ends); None when ``x`` does not match ``t`` or a hole is longer."""
+    if x.shape != t.shape:
+        return None
+    ok = np.isfinite(x)
+    if ok.all():
+        return x
+    good = np.flatnonzero(ok)
+    if good.size == 0:
+        return None
+    edges = np.concatenate([[t[good[0]] - t[0]], np.diff(t[good]), [t[-1] - t[good[-1]]]])
+    if float(np.max(edges)) > MAX_HOLE + 1e-12:
+        return None
+    return np.interp(t, t[good], x[good])
 
 
 @dataclass(frozen=True)

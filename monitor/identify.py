@@ -92,7 +92,7 @@ from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_
 from kernels.likelihood import tune as tune_hyperparameters
 from kernels.period import MIN_CYCLES, detect_periods, harmonically_related
 from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
-from kernels.spindle_phase import phase_segments, segment_tolerance, spindle_phase
+from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, spindle_phase
 
 from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
@@ -823,6 +823,10 @@ def _spindle_candidate(prob: _Problem, trial, candidates: list[Candidate], init:
     (:func:`kernels.spindle_phase.segment_tolerance`)."""
     theta = spindle_phase(trial.t, trial.spindle_angle, trial.spindle_rpm)
     if theta is None:
+        if trial.spindle_angle is not None or trial.spindle_rpm is not None:
+            notes.append("no spindle-phase candidate: the spindle columns have samples without a finite angle or "
+                         "speed (the spindle's phase needs every sample's spindle_angle, or spindle_rpm with holes of "
+                         f"at most {MAX_HOLE:g} s)")
         return None
     periodic = [c for c in candidates if c.kernel == "locally_periodic" and c.hyperparameters.get("tuned")]
     ref = max(periodic, key=lambda c: c.log_evidence) if periodic else None

@@ -44,7 +44,14 @@ def test_spindle_angle_from_speed_is_the_trapezoid_integral():
     ref = np.concatenate([[0.0], np.cumsum(2 * np.pi / 60 * 0.5 * (rpm[1:] + rpm[:-1]) * TS)])
     np.testing.assert_allclose(theta, ref, rtol=1e-13, atol=1e-9)
     assert spindle_phase(t) is None
-    assert spindle_phase(t, rpm=np.where(t > 1, np.nan, rpm)) is None  # a hole: no spindle data
+    assert spindle_phase(t, rpm=np.where(t > 1, np.nan, rpm)) is None  # a hole to the end: no spindle data
+    holes = rpm.copy()
+    holes[500:520] = np.nan                            # 60 ms at constant speed: bridged exactly
+    holes[::97] = np.nan
+    holes[-1] = rpm[-1]
+    np.testing.assert_allclose(spindle_phase(t, rpm=holes), ref, rtol=1e-9, atol=1e-6)
+    holes[1000:1040] = np.nan                          # 120 ms: too long to bridge
+    assert spindle_phase(t, rpm=holes) is None
 
 
 @pytest.mark.parametrize("rpm0", [3000.0, 12000.0])  # 12000 rpm at 333 Hz turns > π per sample
