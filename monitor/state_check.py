@@ -117,7 +117,8 @@ def _check_posterior(tr: KRLST) -> None:
     if tr.size == 0:
         return
     K = tr.K
-    ref = tr.kernel(tr.dictionary) + tr.jitter * np.eye(tr.size)
+    with np.errstate(over="ignore", invalid="ignore"):  # a damaged dictionary (1e300 s) is refused below
+        ref = tr.kernel(tr.dictionary) + tr.jitter * np.eye(tr.size)
     if not np.max(np.abs(K - ref)) <= K_TOL:
         raise StateError("tracker kernel matrix K_D is not the kernel of its dictionary")
     if not tr.inverse_error() <= INVERSE_TOL:
