@@ -215,11 +215,11 @@ def test_drives_far_from_the_defaults(far_trials, scenario, fj, fb):
 
 def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simulated, tmp_path):
     """A milling trial whose spindle goes 3000 → 2400 → 3600 rpm (the cutting force follows the spindle):
-    time kernels at one period each explain a third of the record and leave the inertia at about half its
-    value (LS: 806 kg for 1500). The spindle-phase candidate — the tracker's kernel on (t, θ) — explains all
+    time kernels at one period each explain a part of the record and leave the inertia at about half its
+    value (LS: 852 kg for 1500 on these 30 s). The spindle-phase candidate — the tracker's kernel on (t, θ) — explains all
     of it: it is chosen, finds the inertia, and the monitor with the written model agrees (self-check ok)."""
     model_path = tmp_path / "sc.model.toml"
-    code, doc, _ = run_identify(simulated("milling-spindle-change", seed=11), output=model_path)
+    code, doc, _ = run_identify(simulated("milling-spindle-change", seed=11, duration=30.0), output=model_path)
     assert code == 0
     spindle = [c for c in doc["candidates"] if c["kernel"] == "spindle"]
     assert len(spindle) == 1 and spindle[0]["valid"]
