@@ -18,7 +18,7 @@ mapped back to the spec's β for the model file.
   large), right for a cutting force whose mean follows the feed, wrong for a zero-mean vibration,
   where that mean competes with the velocity column; the evidence tells which one the data support;
 * ``pl_lssvm`` with the spindle-phase kernel (the tracker's, on ``(t, θ)``) when the samples carry the
-  spindle and its speed changes (:func:`_spindle_candidate`; block-diagonal over the stretches of
+  spindle and its speed changes (:func:`_spindle_candidates`, per revolution and per tooth; block-diagonal over the stretches of
   constant speed, :mod:`kernels.spindle_phase`).
 
 **Period.** In this order: ``period`` ("given"), the spindle speed ("spindle"), else found in the LS
@@ -230,7 +230,7 @@ class Candidate:
         if self.kernel == "locally_periodic_zero_mean":
             return f"PL-LSSVM, zero-mean locally periodic ψ = {self.period:.6g} s"
         if self.kernel == "spindle":
-            return "PL-LSSVM, spindle phase"
+            return f"PL-LSSVM, spindle phase per {self.hyperparameters.get('per', 'revolution')}"
         return "PL-LSSVM, squared exponential"
 
     @property
@@ -385,9 +385,9 @@ class Identification:
         None)`` (thesis values) when none was tuned. With spindle data the tracker runs the spindle-phase
         kernel: the tuned spindle-phase candidate's values when there is one (the speed changed)."""
         if self.spindle:
-            for cand in self.candidates:
-                if cand.kernel == "spindle" and cand.hyperparameters.get("tuned"):
-                    return "spindle", cand.hyperparameters
+            spindle = [c for c in self.candidates if c.kernel == "spindle" and c.hyperparameters.get("tuned")]
+            if spindle:
+                return "spindle", max(spindle, key=lambda c: c.log_evidence).hyperparameters
         families = ("locally_periodic", "locally_periodic_zero_mean")
         if psi is not None:
             others = sorted((x for x in self.candidates if x is not chosen),
@@ -415,7 +415,8 @@ class Identification:
         family, tuned = self._tracker_kernel(c, psi)
         # issue 11: λ, M from measurements, σ1, σ2, γ from REML when tuned, the spindle-phase kernel when
         # the samples carry the spindle (monitor.online_settings.tracker_table, one definition)
-        cfg = OS.tracker_table(tuned=tuned, period=psi or 1.0, spindle=self.spindle)
+        spindle = self.spindle if family != "spindle" else {**self.spindle, "per": tuned.get("per", "revolution")}
+        cfg = OS.tracker_table(tuned=tuned, period=psi or 1.0, spindle=spindle)
         if psi is None and not self.spindle:  # no periodic disturbance in play: a smooth, slowly varying one
             cfg["kernel"] = SquaredExponential(cfg["kernel"]["sigma1"]).to_dict()
         elif not self.spindle and family != "locally_periodic":
@@ -431,6 +432,7 @@ class Identification:
         ident.update({k: v for k, v in c.hyperparameters.items() if isinstance(v, (int, float, bool))})
         candidates = [{"method": x.method, "kernel": x.kernel or "none", "period": x.period,
                        "log_evidence": x.log_evidence, "valid": x.valid, "why_not": x.why_not or ""}
+                      | ({"per": x.hyperparameters.get("per", "revolution")} if x.kernel == "spindle" else {})
                       for x in self.candidates]
         warning = None if c.valid else f"written with --force although invalid: {c.why_not}"
         return AxisModel(
@@ -758,9 +760,7 @@ def identify(
             alt.eligible = False
             unused.append(alt)
 
-    spindle_cand = _spindle_candidate(prob, trial, candidates, init, notes, **tuned_kw)
-    if spindle_cand is not None:
-        candidates.append(spindle_cand)
+    candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
 
     # validity rule 2: determined at least as well as LS
     for c in candidates[1:]:
@@ -812,11 +812,13 @@ def identify(
     return ident
 
 
-def _spindle_candidate(prob: _Problem, trial, candidates: list[Candidate], init: dict, notes: list[str], *,
-                       tune: bool, progress) -> Candidate | None:
-    """The spindle-phase candidate (issue 11 item 1: the tracker's kernel, eq. S1, in identification)
-    when the samples carry the spindle and its speed changes; None at constant speed (then it is the
-    locally periodic candidate at ψ = 60/rpm) or without spindle data.
+def _spindle_candidates(prob: _Problem, trial, candidates: list[Candidate], init: dict, notes: list[str], *,
+                        tune: bool, progress) -> list[Candidate]:
+    """The spindle-phase candidates (issue 11 item 1: the tracker's kernel, eq. S1, in identification)
+    when the samples carry the spindle and its speed changes — per revolution (``P = 2π``: a tool with
+    runout) and, for a tool with several teeth, per tooth (``P = 2π/teeth``: a pattern that repeats
+    with every cutting edge); none at constant speed (there it is the locally periodic candidate at
+    ψ = 60/rpm) or without spindle data.
 
     Started from the best tuned locally periodic candidate (σ1, σ2 mean the same in both kernels);
     the stretches of constant speed are cut with that candidate's σ2
@@ -827,24 +829,25 @@ def _spindle_candidate(prob: _Problem, trial, candidates: list[Candidate], init:
             notes.append("no spindle-phase candidate: the spindle columns have samples without a finite angle or "
                          "speed (the spindle's phase needs every sample's spindle_angle, or spindle_rpm with holes of "
                          f"at most {MAX_HOLE:g} s)")
-        return None
+        return []
     periodic = [c for c in candidates if c.kernel == "locally_periodic" and c.hyperparameters.get("tuned")]
     ref = max(periodic, key=lambda c: c.log_evidence) if periodic else None
     start = dict(init) if ref is None else {k: ref.hyperparameters[k] for k in ("sigma1", "sigma2")} | {"gamma": ref.gamma}
-    try:
-        phase = phase_segments(trial.t[:-1], theta[:-1], segment_tolerance(start["sigma2"]))
-    except ValueError as exc:
-        notes.append(f"no spindle-phase candidate: {exc}")
-        return None
-    if phase.count < 2:
-        return None
-    label = f"spindle phase ({phase.count} stretches of constant speed)"
-    try:
-        return prob.tuned("spindle", 2.0 * math.pi, start, tune=tune, k_extra=0, progress=progress, label=label,
-                          refine=ref is not None, phase=phase)
-    except ValueError as exc:
-        notes.append(f"no spindle-phase candidate: {exc}")
-        return None
+    teeth = int(trial.meta.teeth or 1)
+    out = []
+    for per, P in (("revolution", 2.0 * math.pi), ("tooth", 2.0 * math.pi / teeth))[: 2 if teeth > 1 else 1]:
+        try:
+            phase = phase_segments(trial.t[:-1], theta[:-1], segment_tolerance(start["sigma2"], P))
+            if phase.count < 2:
+                return []
+            cand = prob.tuned("spindle", P, start, tune=tune, k_extra=0, progress=progress, refine=ref is not None,
+                              label=f"spindle phase per {per} ({phase.count} stretches of constant speed)", phase=phase)
+        except ValueError as exc:
+            notes.append(f"no spindle-phase candidate per {per}: {exc}")
+            continue
+        cand.hyperparameters["per"] = per
+        out.append(cand)
+    return out
 
 
 def _harmonic_alternatives(prob: _Problem, cand: Candidate, psi: float, duration: float, progress) -> Candidate:

@@ -20,8 +20,8 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
                       hyperparameters of the chosen model; self_check: what the monitor over the
                       identification trial said of this model (:mod:`monitor.self_check`)
-    [[identification.candidates]]   method, kernel, period, log_evidence, valid, why_not — every
-                      candidate ``feedmon identify`` weighed
+    [[identification.candidates]]   method, kernel, period (s; ``per`` for a spindle-phase one),
+                      log_evidence, valid, why_not — every candidate ``feedmon identify`` weighed
     [validity]        warning — only in a file written with ``identify --force`` although the model
                       is not valid; ``feedmon run`` refuses such a file (the reason is the warning)
     [provenance]      source, sha256, method, created, feedmon_version
@@ -169,6 +169,7 @@ class _CandidateT(msgspec.Struct, **_Opts):
     method: Literal["ls", "pl_lssvm"]
     kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean", "spindle"] = "none"
     period: _num(1e-6, 1e6, "s") | None = None
+    per: Literal["revolution", "tooth"] | None = None  # spindle-phase candidate
     log_evidence: _num(-1e15, 1e15) | None = None
     valid: bool = True
     why_not: _Text = ""

@@ -106,14 +106,14 @@ def spindle_of(desc: dict) -> SpindleKernel | None:
 def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) -> dict:
     """The ``[tracker]`` settings ``feedmon identify`` writes (decision of issue 11): λ, M, jitter from
     :data:`TRACKER_DEFAULTS`; σ1, σ2, γ the REML-tuned values when identification tuned them, else
-    the thesis'; the spindle-phase kernel when the trial has spindle data (``spindle``: ``teeth``
-    and the median ``spindle_rpm``), else the time kernel with ψ = ``period`` (s). Returns the
+    the thesis'; the spindle-phase kernel when the trial has spindle data (``spindle``: ``teeth``,
+    the median ``spindle_rpm`` and ``per``, default "revolution"), else the time kernel with ψ = ``period`` (s). Returns the
     kernel description under ``"kernel"`` and the scalar settings."""
     cfg = dict(TRACKER_DEFAULTS)
     if tuned:
         cfg.update({k: float(tuned[k]) for k in ("sigma1", "sigma2", "gamma")})
     if spindle:
-        kernel = SpindleKernel(sigma1=cfg["sigma1"], sigma2=cfg["sigma2"], per="revolution",
+        kernel = SpindleKernel(sigma1=cfg["sigma1"], sigma2=cfg["sigma2"], per=spindle.get("per", "revolution"),
                                teeth=int(spindle.get("teeth") or 1), spindle_rpm=float(spindle["spindle_rpm"]))
         desc = kernel.to_dict()
     else:

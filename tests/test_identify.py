@@ -221,10 +221,12 @@ def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simu
     model_path = tmp_path / "sc.model.toml"
     code, doc, _ = run_identify(simulated("milling-spindle-change", seed=11, duration=30.0), output=model_path)
     assert code == 0
-    spindle = [c for c in doc["candidates"] if c["kernel"] == "spindle"]
-    assert len(spindle) == 1 and spindle[0]["valid"]
+    spindle = {c["hyperparameters"]["per"]: c for c in doc["candidates"] if c["kernel"] == "spindle"}
+    assert set(spindle) == {"revolution", "tooth"} and all(c["valid"] for c in spindle.values())
+    best = max(spindle.values(), key=lambda c: c["log_evidence"])
+    assert best["hyperparameters"]["per"] == "revolution"  # the simulated tool has runout (a spindle-frequency line)
     best_time = max(c["log_evidence"] for c in doc["candidates"] if c["kernel"] not in (None, "spindle"))
-    assert spindle[0]["log_evidence"] > best_time + 1000
+    assert best["log_evidence"] > best_time + 1000
     assert doc["chosen"] == "pl_lssvm" and doc["pl_lssvm"]["kernel"] == "spindle"
     truth = doc["truth"]["physical"]["inertia"]
     J, sJ = doc["model"]["physical"]["inertia"], doc["model"]["physical_se"]["inertia"]
@@ -235,9 +237,10 @@ def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simu
     assert check["state"] == "ok", check["summary"]
     assert check["online"]["inertia"]["value"] == pytest.approx(truth, rel=0.03)
     model = load_model(model_path)                     # the tracker runs the kernel identification tuned
-    assert model.tracker.kernel["type"] == "spindle"
-    assert model.tracker.kernel["sigma1"] == pytest.approx(spindle[0]["hyperparameters"]["sigma1"])
-    assert model.tracker.gamma == pytest.approx(spindle[0]["hyperparameters"]["gamma"])
+    assert model.tracker.kernel["type"] == "spindle" and model.tracker.kernel["per"] == "revolution"
+    assert model.tracker.kernel["sigma1"] == pytest.approx(best["hyperparameters"]["sigma1"])
+    assert model.tracker.gamma == pytest.approx(best["hyperparameters"]["gamma"])
+    assert sorted(c["per"] for c in model.candidates if c["kernel"] == "spindle") == ["revolution", "tooth"]
 
 
 def test_json_document_has_exactly_the_documented_shape(simulated):

@@ -146,3 +146,21 @@ def test_the_spindle_kernel_beats_time_kernels_when_the_speed_changes_and_recove
     np.testing.assert_allclose(res.terms.beta[:2], [0.9, 0.3], rtol=0.02)
     with pytest.raises(ValueError, match="stretches"):
         tune(Z, y, TS, kind="spindle")
+
+
+def test_per_tooth_is_preferred_when_the_pattern_repeats_with_every_tooth():
+    """Identification weighs P = 2π (runout) against P = 2π/teeth: on a pattern periodic per tooth
+    (2 teeth) the tooth kernel has the higher likelihood, on one with a revolution line the revolution's."""
+    t, theta, Z, _ = _two_speed_record(seed=5, n=1200, split=500)
+    rng = np.random.default_rng(6)
+    base = Z @ np.array([0.9, 0.3, 0.05]) + 0.01 * rng.normal(size=t.size)
+    init = {"sigma1": 1.0, "sigma2": 0.6, "gamma": 100.0}
+    ll = {}
+    for name, f in (("tooth", 0.4 * np.sin(2 * theta) + 0.2 * np.cos(4 * theta + 0.5)),
+                    ("revolution", 0.4 * np.sin(2 * theta) + 0.2 * np.cos(theta + 0.5))):
+        for per, P in (("revolution", 2 * np.pi), ("tooth", np.pi)):
+            seg = phase_segments(t, theta, segment_tolerance(0.6, P))
+            ll[name, per] = tune(Z, base + f, TS, P, kind="spindle", phase=seg, init=init,
+                                 max_evaluations=30).log_likelihood
+    assert ll["tooth", "tooth"] > ll["tooth", "revolution"]
+    assert ll["revolution", "revolution"] > ll["revolution", "tooth"] + 50
