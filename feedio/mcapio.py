@@ -47,6 +47,7 @@ flush (up to :data:`MAX_PENDING_BYTES`, then the file is given up, see
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -750,6 +751,34 @@ class Trial:
 
     def __len__(self) -> int:
         return int(self.t.size)
+
+    def window(self, start: float | None = None, end: float | None = None) -> Trial:
+        """The samples with ``start ≤ t − t₀ < end`` (s from the first sample; None: the record's
+        start or end), and the truth of the same sequence numbers. Raises ``ValueError`` naming the
+        option when the window is empty or ``start ≥ end``."""
+        if start is None and end is None:
+            return self
+        for name, x in (("--start", start), ("--end", end)):
+            if x is not None and not (math.isfinite(x) and x >= 0.0):
+                raise ValueError(f"{name} must be a time ≥ 0 s from the trial's first sample, got {x!r}")
+        if start is not None and end is not None and not start < end:
+            raise ValueError(f"--start ({start:g} s) must come before --end ({end:g} s)")
+        rel = self.t - self.t[0] if self.t.size else self.t
+        keep = (rel >= (start or 0.0)) & (rel < (math.inf if end is None else end))
+        if not keep.any():
+            raise ValueError(f"{self.path}: no sample between {start or 0.0:g} s and "
+                             f"{'the end' if end is None else f'{end:g} s'} (the trial lasts {float(rel[-1]):.6g} s)")
+        idx = np.flatnonzero(keep)
+        cols = {k: None if getattr(self, k) is None else getattr(self, k)[idx]
+                for k in ("seq", "t", "v_ref", "v_meas", "u", "current", "position", "spindle_rpm", "spindle_angle")}
+        truth = self.truth
+        if truth is not None:
+            lo, hi = int(self.seq[idx[0]]), int(self.seq[idx[-1]])
+            sel = (truth.seq >= lo) & (truth.seq <= hi)
+            truth = dataclasses.replace(truth, **{f.name: None if getattr(truth, f.name) is None
+                                                  else getattr(truth, f.name)[sel]
+                                                  for f in dataclasses.fields(truth)})
+        return dataclasses.replace(self, **cols, truth=truth)
 
 
 class _Open:

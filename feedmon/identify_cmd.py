@@ -48,6 +48,11 @@ def register(sub) -> None:
     p.add_argument("--coulomb", action="store_true", help="keep the Coulomb columns even without speed reversal")
     p.add_argument("--omega", type=float, help="Coulomb dead band Ω in m/s (default: 3× the velocity noise)")
     p.add_argument("--loop-gain", type=float, help="velocity-loop gain K (N·s/m) to get J and B instead of J/K, B/K")
+    p.add_argument("--start", type=float, metavar="S",
+                   help="identify from S seconds after the trial's first sample (default: its start)")
+    p.add_argument("--end", type=float, metavar="S",
+                   help="identify up to S seconds after the trial's first sample (default: its end); a trial "
+                        "longer than 60 000 samples needs a window")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and a markdown summary into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.set_defaults(func=run)
@@ -66,7 +71,10 @@ def run(args) -> int:
     if args.tune and args.no_tune:
         raise ValueError("--tune and --no-tune contradict each other; tuning is the default")
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
-    trial = read_trial(args.trial, axis=args.axis)
+    whole = read_trial(args.trial, axis=args.axis)
+    t0 = float(whole.t[0]) if len(whole) else 0.0
+    trial = whole.window(args.start, args.end)
+    del whole
     err = Console(stderr=True)
     show_progress = not args.no_tune and sys.stderr.isatty() and not args.json
     progress_cb = None
@@ -88,13 +96,16 @@ def run(args) -> int:
     finally:
         if show_progress:
             progress.stop()
+    if args.start is not None or args.end is not None:
+        ident.notes.append(f"identified on the window {trial.t[0] - t0:.6g} … {trial.t[-1] - t0:.6g} s of the trial "
+                           f"(seq {int(trial.seq[0])} … {int(trial.seq[-1])}; --start/--end)")
     doc = ident.to_json()
     written = []
     refused = ident.refusal is not None and not args.force
     check = doc["self_check"] = None  # no model, nothing to check
     if not refused and ident.model_result is not None:
         model = ident.to_model(feedmon_version=__version__, force=args.force)
-        check = _self_check(args.trial, model)
+        check = _self_check(args.trial, model, (int(trial.seq[0]), int(trial.seq[-1])))
         doc["self_check"] = check
         model.identification["self_check"] = check["summary"][:4000]
         if args.output:
@@ -121,13 +132,13 @@ def run(args) -> int:
     return 0
 
 
-def _self_check(trial: str, model) -> dict:
+def _self_check(trial: str, model, seq_range: tuple[int, int]) -> dict:
     """:func:`monitor.self_check.self_check` as JSON; a check that cannot run says why (it never stops
     the identification)."""
     from monitor.self_check import self_check
 
     try:
-        return self_check(trial, model).to_json()
+        return self_check(trial, model, seq_range).to_json()
     except (ValueError, OSError) as exc:
         return {"state": "not run", "summary": f"not run: {exc}"}
 

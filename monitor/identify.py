@@ -97,7 +97,7 @@ from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, s
 from . import online_settings as OS
 from .model_file import AxisModel, TrackerConfig, file_sha256
 
-__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
+__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "MAX_SAMPLES", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
            "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify", "periods_in_play", "dead_band"]
 
 #: PL-LSSVM hyperparameters when neither given nor tuned (thesis Table 4.1, case study 1)
@@ -120,6 +120,10 @@ SUGGEST_MARGIN = 10.0
 SPINDLE_SHARE = 0.1
 #: longest period relative to the record (the kernel needs σ1 ≥ 2ψ)
 MAX_PERIOD_FRACTION = 0.5
+#: most samples one identification takes: the exact REML of a kernel candidate costs O(N²) per
+#: evaluation (Levinson), ~2.5 min for all candidates at 40 000 samples, ~6 min at this limit;
+#: a longer record is refused with the fix (a window: ``--start``/``--end``)
+MAX_SAMPLES = 60_000
 
 _METHOD_LABEL = {"ls": "LS", "pl_lssvm": "PL-LSSVM"}
 
@@ -642,6 +646,11 @@ def identify(
     if bad.any():
         raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
                          f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
+    if v.size - 1 > MAX_SAMPLES:
+        raise ValueError(f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
+                         f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the "
+                         "kernel candidates costs O(N²)); identify a window of the trial with --start/--end (s from its "
+                         "first sample), e.g. a stretch that holds the motion and the disturbance of interest")
     steps = np.diff(trial.seq)
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))

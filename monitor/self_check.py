@@ -70,9 +70,23 @@ def _kind(reason: str) -> str:
     return head.strip()
 
 
-def self_check(trial_path: str, model) -> SelfCheck:
+def _within(block, lo: int, hi: int):
+    """The part of a sample block with ``lo ≤ seq ≤ hi`` (None when nothing is left)."""
+    a, b = max(lo - block.seq, 0), min(hi - block.seq + 1, len(block))
+    if a >= b:
+        return None
+    if (a, b) == (0, len(block)):
+        return block
+    cols = {k: getattr(block, k)[a:b] for k in ("t", "v_ref", "v_meas", "u", "current", "position", "spindle_rpm",
+                                               "spindle_angle") if getattr(block, k) is not None}
+    return msgspec.structs.replace(block, seq=block.seq + a, **cols)
+
+
+def self_check(trial_path: str, model, seq_range: tuple[int, int] | None = None) -> SelfCheck:
     """Run ``model`` (:class:`~monitor.model_file.AxisModel`) over the sample blocks of its axis in
-    ``trial_path`` (an MCAP trial, as ``feedmon run --from`` reads it) and collect the health reports."""
+    ``trial_path`` (an MCAP trial, as ``feedmon run --from`` reads it) — only the samples with
+    ``seq_range[0] ≤ seq ≤ seq_range[1]`` when given (the window identified) — and collect the health
+    reports."""
     from feedio.mcapio import iter_axes
     from feedio.schema import HEALTH_STATES
 
@@ -86,6 +100,10 @@ def self_check(trial_path: str, model) -> SelfCheck:
     name = f"{model.machine}/{model.axis}"
     reports = []
     for _, _, block in iter_axes(trial_path, [name], kinds=("samples",))[name]:
+        if seq_range is not None:
+            block = _within(block, *seq_range)
+            if block is None:
+                continue
         est.process_rows(block)
         reports += est.take_health()
     flagged = [h for h in reports if h.state != "ok"]

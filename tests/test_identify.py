@@ -11,7 +11,7 @@ import pytest
 
 from feedio.mcapio import iter_blocks, read_trial
 from feedmon.cli import main
-from monitor.identify import identify
+from monitor.identify import MAX_SAMPLES, identify
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
 from replay.scenarios import load_scenario
@@ -241,6 +241,30 @@ def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simu
     assert model.tracker.kernel["sigma1"] == pytest.approx(best["hyperparameters"]["sigma1"])
     assert model.tracker.gamma == pytest.approx(best["hyperparameters"]["gamma"])
     assert sorted(c["per"] for c in model.candidates if c["kernel"] == "spindle") == ["revolution", "tooth"]
+
+
+def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identified(simulated):
+    """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix;
+    --start/--end identify a window (the self-check runs over the same window)."""
+    path = simulated("shaker-control", seed=3, duration=185.0)  # 61 605 samples at 333 Hz
+    code, doc, err = run_identify(path)
+    assert code == 2 and doc is None
+    assert f"({MAX_SAMPLES} samples" in err and "--start/--end" in err
+    code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
+    assert code == 0, err
+    assert any(n.startswith("identified on the window 5 … 34.99") for n in doc["ls"]["notes"])
+    assert doc["self_check"]["state"] == "ok" and doc["self_check"]["reports"] in (29, 30)
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(doc["truth"]["physical"]["inertia"], rel=0.01)
+    whole = read_trial(path)
+    part = whole.window(5.0, 35.0)
+    rel = part.t - whole.t[0]
+    assert rel[0] >= 5.0 and rel[-1] < 35.0 and len(part) == 9990 and np.all(np.diff(part.seq) == 1)
+    assert np.array_equal(part.truth.seq, part.seq) and part.truth.force.size == len(part)
+    for start, end, match in ((35.0, 5.0, "must come before"), (500.0, None, "no sample between"),
+                              (-1.0, None, "--start must be")):
+        with pytest.raises(ValueError, match=match):
+            whole.window(start, end)
+    assert whole.window() is whole
 
 
 def test_json_document_has_exactly_the_documented_shape(simulated):
