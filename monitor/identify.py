@@ -18,8 +18,8 @@ mapped back to the spec's β for the model file.
   large), right for a cutting force whose mean follows the feed, wrong for a zero-mean vibration,
   where that mean competes with the velocity column; the evidence tells which one the data support;
 * ``pl_lssvm`` with the spindle-phase kernel (the tracker's, on ``(t, θ)``) when the samples carry the
-  spindle and its speed changes (:func:`_spindle_candidates`, per revolution and per tooth; block-diagonal over the stretches of
-  constant speed, :mod:`kernels.spindle_phase`).
+  spindle and its speed changes (:func:`_spindle_candidates`: per revolution and per tooth,
+  block-diagonal over the stretches of constant speed, :mod:`kernels.spindle_phase`).
 
 **Period.** In this order: ``period`` ("given"), the spindle speed ("spindle"), else found in the LS
 residual ("detected", :func:`kernels.period.detect_periods`: harmonic-sum periodogram, periods locked
@@ -847,8 +847,8 @@ def _spindle_candidates(prob: _Problem, trial, candidates: list[Candidate], init
     for per, P in (("revolution", 2.0 * math.pi), ("tooth", 2.0 * math.pi / teeth))[: 2 if teeth > 1 else 1]:
         try:
             phase = phase_segments(trial.t[:-1], theta[:-1], segment_tolerance(start["sigma2"], P))
-            if phase.count < 2:
-                return []
+            if phase.count < 2:  # one speed: the locally periodic candidate at 60/rpm is this model
+                return out
             cand = prob.tuned("spindle", P, start, tune=tune, k_extra=0, progress=progress, refine=ref is not None,
                               label=f"spindle phase per {per} ({phase.count} stretches of constant speed)", phase=phase)
         except ValueError as exc:
