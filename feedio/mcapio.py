@@ -755,14 +755,14 @@ class Trial:
     def window(self, start: float | None = None, end: float | None = None) -> Trial:
         """The samples with ``start ≤ t − t₀ < end`` (s from the first sample; None: the record's
         start or end), and the truth of the same sequence numbers. Raises ``ValueError`` naming the
-        option when the window is empty or ``start ≥ end``."""
+        parameter when the window is empty or ``start ≥ end``."""
         if start is None and end is None:
             return self
-        for name, x in (("--start", start), ("--end", end)):
+        for name, x in (("start", start), ("end", end)):
             if x is not None and not (math.isfinite(x) and x >= 0.0):
-                raise ValueError(f"{name} must be a time ≥ 0 s from the trial's first sample, got {x!r}")
+                raise ValueError(f"window {name} must be a time ≥ 0 s from the trial's first sample, got {x!r}")
         if start is not None and end is not None and not start < end:
-            raise ValueError(f"--start ({start:g} s) must come before --end ({end:g} s)")
+            raise ValueError(f"window start ({start:g} s) must come before its end ({end:g} s)")
         rel = self.t - self.t[0] if self.t.size else self.t
         keep = (rel >= (start or 0.0)) & (rel < (math.inf if end is None else end))
         if not keep.any():

@@ -73,7 +73,10 @@ def run(args) -> int:
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
     whole = read_trial(args.trial, axis=args.axis)
     t0 = float(whole.t[0]) if len(whole) else 0.0
-    trial = whole.window(args.start, args.end)
+    try:
+        trial = whole.window(args.start, args.end)
+    except ValueError as exc:
+        raise ValueError(f"--start/--end: {exc}") from None
     del whole
     err = Console(stderr=True)
     show_progress = not args.no_tune and sys.stderr.isatty() and not args.json

@@ -649,8 +649,9 @@ def identify(
     if v.size - 1 > MAX_SAMPLES:
         raise ValueError(f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
                          f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the "
-                         "kernel candidates costs O(N²)); identify a window of the trial with --start/--end (s from its "
-                         "first sample), e.g. a stretch that holds the motion and the disturbance of interest")
+                         "kernel candidates costs O(N²)); identify a window of the trial (feedmon identify --start/--end, s "
+                         "from its first sample; Trial.window), e.g. a stretch that holds the motion and the disturbance "
+                         "of interest")
     steps = np.diff(trial.seq)
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))

@@ -250,6 +250,8 @@ def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identi
     code, doc, err = run_identify(path)
     assert code == 2 and doc is None
     assert f"({MAX_SAMPLES} samples" in err and "--start/--end" in err
+    code, _, err = run_identify(path, "--start", 40, "--end", 30)
+    assert code == 2 and "--start/--end: window start (40 s) must come before its end (30 s)" in err
     code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
     assert code == 0, err
     assert any(n.startswith("identified on the window 5 … 34.99") for n in doc["ls"]["notes"])
@@ -261,7 +263,7 @@ def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identi
     assert rel[0] >= 5.0 and rel[-1] < 35.0 and len(part) == 9990 and np.all(np.diff(part.seq) == 1)
     assert np.array_equal(part.truth.seq, part.seq) and part.truth.force.size == len(part)
     for start, end, match in ((35.0, 5.0, "must come before"), (500.0, None, "no sample between"),
-                              (-1.0, None, "--start must be")):
+                              (-1.0, None, "window start must be")):
         with pytest.raises(ValueError, match=match):
             whole.window(start, end)
     assert whole.window() is whole
