@@ -770,7 +770,7 @@ class Trial:
                              f"{'the end' if end is None else f'{end:g} s'} (the trial lasts {float(rel[-1]):.6g} s)")
         idx = np.flatnonzero(keep)
         cols = {k: None if getattr(self, k) is None else getattr(self, k)[idx]
-                for k in ("seq", "t", "v_ref", "v_meas", "u", "current", "position", "spindle_rpm", "spindle_angle")}
+                for k in ("seq", *S.SAMPLE_COLUMNS)}
         truth = self.truth
         if truth is not None:
             lo, hi = int(self.seq[idx[0]]), int(self.seq[idx[-1]])

@@ -52,7 +52,7 @@ def register(sub) -> None:
                    help="identify from S seconds after the trial's first sample (default: its start)")
     p.add_argument("--end", type=float, metavar="S",
                    help="identify up to S seconds after the trial's first sample (default: its end); a trial "
-                        "longer than 60 000 samples needs a window")
+                        "longer than what one identification takes (README: Input limits) needs a window")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and a markdown summary into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.set_defaults(func=run)

@@ -1,19 +1,20 @@
 """Self-check of an identified model: the monitor run over the very trial it was identified on.
 
-``feedmon identify`` chooses among batch candidates (LS, PL-LSSVM with kernels in time). Their
-standard errors say how well the data determine β *if the candidate's disturbance model is right*;
-they cannot show a bias that the candidate's own model hides. The online monitor estimates β
-with a different disturbance model — the tracker's kernel, e.g. the spindle-phase kernel that
-follows a change of spindle speed — and tests the drift of each physical parameter against the
-model file (:mod:`kernels.health`). Run over the identification trial itself, with the model just
-identified, it must find nothing: the data are the same. A drift warning or alarm there means the
-identified values and the tracker's view of the same data disagree by more than the health
-thresholds (≥ 6 standard errors *and* ≥ 3 %): at least one of them is biased, and the model file
-should not be used as a reference for drift without checking it. Measured: a milling trial whose
-spindle goes 3000 → 2400 → 3600 rpm (the cutting force follows the spindle), identified with no
-options — every batch candidate finds an inertia of 770–1110 kg at ± 7–11 kg (truth 1500 kg);
-the monitor over the same trial, 1530 kg, alarm from 5 s. On the other simulated scenarios and
-on the EMPS drive (333 Hz and 1 kHz) every report is ok.
+``feedmon identify`` chooses among batch candidates (LS, PL-LSSVM with kernels in time and, when the
+spindle speed changes, the spindle-phase kernel). Their standard errors say how well the data
+determine β *if the candidate's disturbance model is right*; they cannot show a bias that the
+candidate's own model hides. The online monitor estimates β
+with a different disturbance model — the tracker's kernel — and tests the drift of each physical
+parameter against the model file (:mod:`kernels.health`). Run over the identification trial itself
+(or the window identified), with the model just identified, it must find nothing: the data are the
+same. A drift warning or alarm there means the identified values and the tracker's view of the same
+data disagree by more than the health thresholds (≥ 6 standard errors *and* ≥ 3 %): at least one
+of them is biased, and the model file should not be used as a reference for drift without checking
+it. Measured: a milling trial whose spindle goes 3000 → 2400 → 3600 rpm, identified before the
+spindle-phase candidate existed — every batch candidate found an inertia of 770–1110 kg at ± 7–11
+kg (truth 1500 kg), the monitor over the same trial 1530 kg: alarm from 5 s (now: 1502 ± 2.9 kg,
+ok). Still flagged: the EMPS pulses identified on themselves, and ``DATA_EMPS.mat`` without a
+period (README, self-check).
 
 The check is what ``feedmon run --from`` does (:class:`~monitor.estimator.AxisEstimator`, the
 model file's own tracker, adaptation and health settings, adaptation *track* when the file says
@@ -26,6 +27,8 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import msgspec
+
+from feedio.schema import SAMPLE_COLUMNS
 
 __all__ = ["SelfCheck", "self_check"]
 
@@ -77,8 +80,7 @@ def _within(block, lo: int, hi: int):
         return None
     if (a, b) == (0, len(block)):
         return block
-    cols = {k: getattr(block, k)[a:b] for k in ("t", "v_ref", "v_meas", "u", "current", "position", "spindle_rpm",
-                                               "spindle_angle") if getattr(block, k) is not None}
+    cols = {k: getattr(block, k)[a:b] for k in SAMPLE_COLUMNS if getattr(block, k) is not None}
     return msgspec.structs.replace(block, seq=block.seq + a, **cols)
 
 
