@@ -289,7 +289,14 @@ class AxisStatus:
     def report(self, estimator_counters: Counter, dict_size: int,
                refused: dict[str, int] | None = None) -> dict[str, Any]:
         """The axis' status; ``refused``: per-reason counts kept outside this object (the Zenoh
-        callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``."""
+        callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``.
+
+        Built on the status thread while the estimating thread runs: ``last_seq``/``last_t`` are read
+        *before* the counters. The estimator counts a block before the pipeline sets ``last_seq`` to
+        its end, so the document never shows a sample as the last one seen without it in
+        ``samples_in`` (read the other way round, a switch of the interpreter lock in between let a
+        status show ``last_seq`` 199 with ``samples_in`` 100)."""
+        last_seq, last_t = self.last_seq, self.last_t
         c = dict(estimator_counters)
         for src in (dict(self.counters), refused or {}):
             for k, v in src.items():
@@ -312,8 +319,8 @@ class AxisStatus:
             "latency_us": self.latency.summary(),
             "stages_us": self.stages.summary(),
             "dict_size": int(dict_size),
-            "last_seq": self.last_seq,
-            "last_t": self.last_t,
+            "last_seq": last_seq,
+            "last_t": last_t,
             "model": {"path": self.model_path, "sha256": self.model_sha256},
             "state": {"origin": self.state, "path": self.state_path},
             "health": None if self.health is None else {**self.health, "changes": self.health_changes},
