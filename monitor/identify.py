@@ -26,9 +26,13 @@ residual ("detected", :func:`kernels.period.detect_periods`: harmonic-sum period
 to the commanded motion left out, at least ``MIN_CYCLES`` periods in the record) — then the
 multiples 2ψ and 3ψ are tried on the likelihood (:func:`_harmonic_alternatives`: a line found at
 1/ψ may be a harmonic of a longer true period) — else none. A period found in the data counts as one
-more fitted hyperparameter. With a given (or spindle) period the detected one is tuned too; when it is
-valid and its evidence exceeds the best periodic candidate at the given period by ``SUGGEST_MARGIN``,
-the output says so and names it (``period_suggested``), but the given period is kept.
+more fitted hyperparameter. With a given (or spindle) period the detected one is tuned too. When it is
+valid and its evidence exceeds the best candidate at the given period (or on the spindle's phase) by
+``SUGGEST_MARGIN``, the output says so and names it (``period_suggested``), but a period the user gave
+(``--period``, ``--spindle-rpm``) is kept. A spindle speed read from the samples or the trial's
+metadata is only a presumption: when the detected period beats every spindle-locked candidate by that
+margin, the disturbance does not follow the spindle, the detected period competes like any other
+(source "detected") and the tracker runs on time, not on the spindle's angle.
 
 Each kernel candidate is tuned by the REML (:func:`kernels.likelihood.tune`; ``tune=False`` keeps the
 given or thesis hyperparameters), then evaluated exactly: REML ``ℓ``, GLS covariance of β (eq. L3),
@@ -751,26 +755,42 @@ def identify(
         final_psis.append(cand.period)
     psis = final_psis
     unused = []
+    alt = None  # the detected period's candidate when the period came from elsewhere
     if psi_source in ("given", "spindle") and detected:
         found = detected[0]
         if not any(abs(psi - found.period) <= 0.02 * found.period for psi in psis):
             alt = prob.tuned("locally_periodic", found.period, init, k_extra=1,
                              label=f"locally periodic ψ = {found.period:.6g} s", **tuned_kw)
-            given_best = max((c for c in candidates if c.kernel in PERIODIC_KINDS), key=lambda c: c.log_evidence)
             why = _efficiency_check(alt, ls_c)
             if why:
                 alt.valid, alt.why_not = False, why if alt.why_not is None else f"{alt.why_not}; {why}"
-            if alt.valid and alt.log_evidence > given_best.log_evidence + SUGGEST_MARGIN:
-                suggested = found.period
-                notes.append(f"the data prefer ψ = {found.period:.6g} s to the {psi_source} ψ = {given_best.period:.6g} s "
-                             f"(log evidence {alt.log_evidence - given_best.log_evidence:+.1f}); check the period "
-                             f"(--period {found.period:.6g})")
-            source = "--period" if psi_source == "given" else "the spindle speed"
-            alt.notes.append(f"ψ = {found.period:.6g} s was found in the data; not a choice, the period comes from {source}")
-            alt.eligible = False
-            unused.append(alt)
 
     candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
+
+    off_spindle = False
+    if alt is not None:
+        locked = max((c for c in candidates if c.kernel in PERIODIC_KINDS or c.kernel == "spindle"),
+                     key=lambda c: c.log_evidence)
+        margin = alt.log_evidence - locked.log_evidence
+        # a speed read from the samples or the trial's metadata is a presumption about the disturbance, not
+        # the user's word: when the data clearly prefer another period, the disturbance does not follow the
+        # spindle (a shaker, a pump, a neighbouring machine) and that period competes like any other
+        off_spindle = psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN
+        if off_spindle:
+            notes.append(f"the disturbance does not follow the spindle: ψ = {alt.period:.6g} s, found in the data, "
+                         f"explains it better than every model locked to the spindle's speed (log evidence "
+                         f"{margin:+.1f} over the {locked.label}); that period competes like any other, and the "
+                         "tracker runs on time, not on the spindle's angle")
+            psi_source, psis = "detected", [alt.period]
+        else:
+            if alt.valid and margin > SUGGEST_MARGIN:
+                suggested = alt.period
+                notes.append(f"the data prefer ψ = {alt.period:.6g} s to the {psi_source} period (log evidence "
+                             f"{margin:+.1f} over the {locked.label}); check the period (--period {alt.period:.6g})")
+            source = {"given": "--period", "spindle": "the spindle speed"}[psi_source]
+            alt.notes.append(f"ψ = {alt.period:.6g} s was found in the data; not a choice, the period comes from {source}")
+            alt.eligible = False
+            unused.append(alt)
 
     # validity rule 2: determined at least as well as LS
     for c in candidates[1:]:
@@ -778,6 +798,8 @@ def identify(
         if why:
             c.valid = False
             c.why_not = why if c.why_not is None else f"{c.why_not}; {why}"
+    if off_spindle:  # checked above, with its own evidence of being in play
+        candidates.append(alt)
 
     pool = {"auto": candidates, "ls": [ls_c], "pl-lssvm": candidates[1:]}[method]
     valid = [c for c in pool if c.valid]
@@ -816,7 +838,7 @@ def identify(
         chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y, t=trial.t[1:], refusal=refusal,
         notes=notes,
     )
-    ident.spindle = _spindle(trial)
+    ident.spindle = None if off_spindle else _spindle(trial)
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident

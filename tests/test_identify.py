@@ -243,6 +243,57 @@ def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simu
     assert sorted(c["per"] for c in model.candidates if c["kernel"] == "spindle") == ["revolution", "tooth"]
 
 
+def _with_spindle_column(src, dst, rpm_at):
+    """``src`` with a ``spindle_rpm`` column ``rpm_at(t)`` added to every sample block (truth kept)."""
+    import msgspec
+
+    from feedio.mcapio import TrialWriter, _Open
+
+    with _Open(src) as f:
+        ((m, a),) = f.axes()
+        meta, start = f.meta(m, a), f.start_ns(m, a)
+    with TrialWriter(dst, [meta], start=start) as w:
+        for kind, b in iter_blocks(src, kinds=("samples", "truth")):
+            if kind == "samples":
+                w.write_samples(msgspec.structs.replace(b, spindle_rpm=rpm_at(np.asarray(b.t)).tolist()))
+            else:
+                w.write_truth(b, m, a)
+    return dst
+
+
+def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simulated, tmp_path):
+    """The 55 Hz shaker on a machine whose spindle runs 3000 → 2400 → 3600 rpm: the spindle speed read from
+    the samples is only a presumption. The period found in the data beats every spindle-locked model by
+    far, so it is chosen (source "detected") and the tracker runs the time kernel at it; before, the
+    spindle's periods were in play ahead of it (LS written with a spindle tracker, self-check alarm).
+    Given by the user (--spindle-rpm) the spindle period is kept and the data's period only suggested."""
+    def rpm(t):
+        return np.where(t < 5.0, 3000.0, np.where(t < 10.0, 2400.0, 3600.0))
+
+    trial = _with_spindle_column(simulated("shaker-constant", seed=4, duration=15.0), tmp_path / "spindle.mcap", rpm)
+    model_path = tmp_path / "off.model.toml"
+    code, doc, _ = run_identify(trial, output=model_path)
+    assert code == 0
+    assert doc["period"]["source"] == "detected" and doc["period"]["suggested"] is None
+    assert doc["period"]["value"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
+    assert doc["chosen"] == "pl_lssvm" and doc["pl_lssvm"]["kernel"] == "locally_periodic"
+    locked = max(c["log_evidence"] for c in doc["candidates"]
+                 if c["kernel"] == "spindle" or any(c["period"] == pytest.approx(60.0 / r) for r in (3000, 2400, 3600)))
+    assert doc["pl_lssvm"]["log_evidence"] > locked + 10
+    assert any("does not follow the spindle" in n for n in doc["pl_lssvm"]["notes"] + doc["ls"]["notes"])
+    errs = doc["truth"]["model_physical_error"]
+    assert errs["inertia"] < 0.01 and errs["damping"] < 0.02
+    assert doc["self_check"]["state"] == "ok", doc["self_check"]["summary"]
+    model = load_model(model_path)
+    assert model.tracker.kernel["type"] == "locally_periodic"
+    assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
+
+    code, doc, _ = run_identify(trial, "--spindle-rpm", 3000)  # the user's word: kept, the data's period suggested
+    assert code == 0
+    assert doc["period"]["source"] == "spindle" and doc["period"]["value"] == pytest.approx(0.02)
+    assert doc["period"]["suggested"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
+
+
 def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identified(simulated):
     """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix;
     --start/--end identify a window (the self-check runs over the same window)."""
