@@ -361,6 +361,7 @@ class Identification:
     def hyperparameters(self) -> dict:
         return {} if self.pl is None else self.pl.candidate.hyperparameters
     spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
+    periods: list[float] = field(default_factory=list)  # every ψ in play (s; several when the spindle speed changes)
 
     def to_json(self) -> dict:
         """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
@@ -839,6 +840,7 @@ def identify(
         notes=notes,
     )
     ident.spindle = None if off_spindle else _spindle(trial)
+    ident.periods = [float(p) for p in psis]
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident

@@ -6,7 +6,8 @@ Figure, one PNG per trial axis (``<machine>-<axis>-identification.png``):
 mean removed (a disturbance's mean cannot be told from the force offset, so only the variation is
 compared), in N when the model scales and is valid, otherwise both normalised (an invalid model's
 force scale means nothing), (d) power spectral density of the prediction error, LS vs PL-LSSVM
-(``scipy.signal.welch``) with the harmonics ``h/ψ`` of the period marked and labelled.
+(``scipy.signal.welch``) with the harmonics ``h/ψ`` of the period marked and labelled (and, when the
+spindle speed changes, the fundamental of every other speed in play, dotted).
 
 The markdown names the chosen model, lists every candidate with its evidence and validity, the
 parameters with their standard errors (undetermined ones flagged), the errors against the truth or a
@@ -197,6 +198,11 @@ def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
             ax[3].axvline(fk, color="k", lw=1.0, ls="--", alpha=0.6, zorder=0)
             ax[3].annotate(f"{h}/ψ" if h > 1 else "1/ψ", (fk, 1.0), xycoords=("data", "axes fraction"),
                            xytext=(3, -12), textcoords="offset points", fontsize=8)
+        others = [q for q in ident.periods if abs(q - psi) > 1e-3 * psi and 1.0 / q < fs / 2]
+        for i, q in enumerate(sorted(others)):  # the spindle's other speeds in the trial: their fundamentals
+            ax[3].axvline(1.0 / q, color="0.4", lw=1.0, ls=":", alpha=0.8, zorder=0)
+            ax[3].annotate(f"{60.0 / q:.0f} rpm", (1.0 / q, 0.93 - 0.07 * (i % 3)), xycoords=("data", "axes fraction"),
+                           xytext=(3, -12), textcoords="offset points", fontsize=8, color="0.3")
         if harmonics and harmonics[-1] < fs / 20:
             ax[3].set_xscale("log")
     ax[3].set(xlabel="frequency (Hz)", ylabel="PSD ((m/s)²/Hz)", title="(d) PSD of the prediction error")
