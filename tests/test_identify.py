@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from trial_edit import rewrite_samples
 
 from feedio.mcapio import iter_blocks, read_trial
 from feedmon.cli import main
@@ -247,18 +248,7 @@ def _with_spindle_column(src, dst, rpm_at):
     """``src`` with a ``spindle_rpm`` column ``rpm_at(t)`` added to every sample block (truth kept)."""
     import msgspec
 
-    from feedio.mcapio import TrialWriter, _Open
-
-    with _Open(src) as f:
-        ((m, a),) = f.axes()
-        meta, start = f.meta(m, a), f.start_ns(m, a)
-    with TrialWriter(dst, [meta], start=start) as w:
-        for kind, b in iter_blocks(src, kinds=("samples", "truth")):
-            if kind == "samples":
-                w.write_samples(msgspec.structs.replace(b, spindle_rpm=rpm_at(np.asarray(b.t)).tolist()))
-            else:
-                w.write_truth(b, m, a)
-    return dst
+    return rewrite_samples(src, dst, lambda b: msgspec.structs.replace(b, spindle_rpm=rpm_at(np.asarray(b.t)).tolist()))
 
 
 def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simulated, tmp_path):

@@ -15,9 +15,10 @@ import logging
 import msgspec
 import numpy as np
 import pytest
+from trial_edit import rewrite_samples
 
 from feedio import schema as S
-from feedio.mcapio import TrialWriter, _Open, iter_blocks, read_trial
+from feedio.mcapio import _Open, iter_blocks, read_trial
 from feedmon.cli import main
 from monitor.model_file import ModelFileError, load_model, save_model
 
@@ -70,16 +71,7 @@ def _corr(a, b):
 
 def _strip_spindle(src, dst):
     """The same trial without the samples' spindle columns (a bridge without spindle data)."""
-    with _Open(src) as f:
-        ((m, a),) = f.axes()
-        meta, start = f.meta(m, a), f.start_ns(m, a)
-    with TrialWriter(dst, [meta], start=start) as w:
-        for kind, b in iter_blocks(src, kinds=("samples", "truth")):
-            if kind == "samples":
-                w.write_samples(msgspec.structs.replace(b, spindle_rpm=None, spindle_angle=None))
-            else:
-                w.write_truth(b, m, a)
-    return dst
+    return rewrite_samples(src, dst, lambda b: msgspec.structs.replace(b, spindle_rpm=None, spindle_angle=None))
 
 
 # ---- milling: spindle-speed changes, payload ----------------------------------------------------------------
