@@ -31,6 +31,8 @@ formula). Per trained sample, after the tracker's own update (Λ = information, 
 ``Λ⁻¹`` by rank-one updates; ζ̃ the instrument, = z̃ without it):
 
     g = Λ⁻¹ζ̃,  s = z̃ᵀΛ⁻¹ζ̃ (≥ 0),  S = R + s,  ν = e/√S      gain direction, innovation  (3)
+    z̃, ζ̃ ← x − (xᵀd/3) d,  d = e_sp + e_sn + e_one          off the rest direction      (3')
+      (in the update only, when the Coulomb columns and ``one`` are present; ν keeps z̃)
     w = min(1, c/|ν|),  R_w = R/w                           Huber weight                (4)
     β̂ ← β̂ + g e/(R_w + s),  Λ⁻¹ ← Λ⁻¹ − g (z̃ᵀΛ⁻¹)/(R_w + s)   RLS update (Λ += ζ̃z̃ᵀ/R_w) (5)
     Ψ ← Ψ + ζ̃ζ̃ᵀ R/R_w²,   P = Λ⁻¹ Ψ Λ⁻ᵀ                    covariance (sandwich)       (5')
@@ -71,12 +73,25 @@ Why these choices
   run of motion (out of the dead band or after a reversal: the Coulomb column steps there, which
   the tracker could not foresee, while the drive's real force does not step — stiction before,
   presliding after; learning from that sample reads the step as "less Coulomb friction", measured
-  −80 % at 15–20 standard errors on the EMPS drive with its correct model), during the tracker's
-  warm-up (M trained samples), on samples the caller does not gate in (stale,
+  −80 % at 15–20 standard errors on the EMPS drive with its correct model), nor while
+  ``|v_m(k)| ≤ min_speed`` when identification found that the friction law does not hold at low
+  speed (a Stribeck hump, :mod:`kernels.low_speed`: the samples around reversals and starts carry
+  large innovations, and learning from them read the hump as friction — EMPS with its own model:
+  damping +25 %, Coulomb −10 % against least squares; with min_speed 0.035 m/s within 2–6 %),
+  during the tracker's warm-up (M trained samples), on samples the caller does not gate in (stale,
   restarted chain), or when adaptation is off. Optionally (``reject``, off by default)
   not on a sample with a very large ``|ν|`` (an abrupt disturbance the tracker could not
   foresee): that also delays learning after a real parameter step, because a wrong β
   makes ``|ν|`` large too — measured trade-off in :class:`OnlineBeta`.
+  Every regressor in motion has ``z_sp + z_sn + z_one = 0`` (−1 in its direction's Coulomb
+  column, +1 in ``one``): the *rest direction* ``d`` — the Coulomb asymmetry against the
+  offset — is told only by samples at rest, which β does not learn from. The tracker does learn
+  them, so ``ẑ`` (its prediction of z from its dictionary) and with it ``z̃`` have a component
+  along ``d`` after every rest. Learning from it read the tracker's memory of the rests as a
+  split of the friction: on a 250 Hz shaker trial, with the model identified on another seed,
+  "coulomb_pos +51 %, coulomb_neg −41 %, offset −48 %" at 6–8 standard errors in the first 8 s.
+  (3') takes ``d`` out of the update: the split keeps the model file's values (reported "not
+  determined" online), the symmetric Coulomb friction and everything else learn as before.
 * **No wind-up.** (2) runs on learning samples only, so a standstill neither learns nor
   forgets. Under excitation the information of a direction is that of the last ~T_β
   seconds of learning; without it Λ relaxes to Λ₀, so ``P`` is bounded by the prior
@@ -184,8 +199,10 @@ PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offs
 N_PHYS = len(PHYSICAL)
 
 #: slots of ``par`` (settings, fixed for a model)
-(P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD) = range(9)
-N_PAR = 9
+(P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD, P_MINSPEED) = range(10)
+N_PAR = 10
+#: largest min_speed (m/s) a model may set: beyond any feed drive's speed
+MIN_SPEED_MAX = 100.0
 #: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
 (L_FORM, L_ISP, L_ISN, L_IONE, L_REBASE) = range(5)
 N_LAY = 5
@@ -209,8 +226,8 @@ BOUT = ("residual", "innovation", "nu", "variance", "weight", "learned", "filter
 (B_RESID, B_INNOV, B_NU, B_VAR, B_WEIGHT, B_LEARNED, B_FILTERED, B_ZTN) = range(len(BOUT))
 N_BOUT = len(BOUT)
 #: rows of the scratch ``vec``
-V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X = range(6)  # V_BEFORE: the forgetting's step
-N_VEC = 6
+V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X, V_ZTR, V_ZETAR = range(8)  # V_BEFORE: the forgetting's step;
+N_VEC = 8                                                             # V_ZTR, V_ZETAR: z̃, ζ̃ off the rest direction
 _HEADER = 4                 # int buffer: p, cap, number of constraints, (spare)
 
 
@@ -497,7 +514,7 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
                      P0=None, memory: float = 5.0, inertia_memory: float | None = 10.0, huber: float = 3.0,
                      instrument: bool = True, enabled: bool = True, warmup: int | None = None,
                      rebase_every: int = REBASE_EVERY, reject: float | None = None,
-                     hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                     hold: float = 0.0, min_speed: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The two base buffers ``(float64, int64)`` of a fresh :class:`BetaState` for a tracker of budget
     ``budget`` (M): β̂ = β₀, P = P₀. ``rebase_every = 0``: never re-base (the *track* mode).
     ``memory``: T_β of the friction parameters (damping, Coulomb, offset), ``inertia_memory``
@@ -530,6 +547,8 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
                          f"got {reject!r}")
     if not (math.isfinite(hold) and 0.0 <= hold <= 60.0):
         raise ValueError(f"hold must be in [0, 60] s, got {hold!r}")
+    if not (math.isfinite(min_speed) and 0.0 <= min_speed <= MIN_SPEED_MAX):
+        raise ValueError(f"min_speed must be in [0, {MIN_SPEED_MAX:g}] m/s, got {min_speed!r}")
     if isinstance(rebase_every, bool) or not isinstance(rebase_every, int) or rebase_every < 0:
         raise ValueError(f"rebase_every must be an integer ≥ 0 (0: never), got {rebase_every!r}")
     if isinstance(budget, bool) or not isinstance(budget, int) or budget < 1:
@@ -551,6 +570,7 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     par[P_WARMUP] = budget if warmup is None else int(warmup)
     par[P_REJECT] = 1e300 if reject is None else reject
     par[P_HOLD] = round(hold / Ts)
+    par[P_MINSPEED] = min_speed
     bs.lay[L_FORM] = FORMS.index(form)
     bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE] = i_sp, i_sn, i_one
     bs.lay[L_REBASE] = rebase_every
@@ -1071,7 +1091,7 @@ def _beta_step(bs, z, e, R, gate, bout):
     vk = z[1]
     d = 1 if vk > omega else (-1 if vk < -omega else 0)   # direction of motion (0: dead band)
     # learn only in motion, and not from the first sample of a run of motion (module docstring)
-    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR]
+    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
     cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
     ztg = 0.0
@@ -1102,6 +1122,24 @@ def _beta_step(bs, z, e, R, gate, bout):
     if not learn:
         cnt[C_GATED] += 1
         return
+    if bs.lay[L_ISP] >= 0 and bs.lay[L_IONE] >= 0:
+        # (3') a moving sample says nothing about the rest direction d = e_sp + e_sn + e_one (zᵀd = 0 for
+        # every z in motion); z̃ = z − ẑ has a component along d only through the tracker's memory of
+        # samples at rest, which β does not learn from: learn with z̃, ζ̃ off d (module docstring)
+        zt = _off_rest(zt, vec[V_ZTR], bs.lay)
+        zeta = _off_rest(zeta, vec[V_ZETAR], bs.lay)
+        ztg = 0.0
+        for i in range(p):
+            gi = 0.0
+            ri = 0.0
+            for j in range(p):
+                gi += C[i, j] * zeta[j]
+                ri += zt[j] * C[j, i]
+            g[i] = gi
+            row[i] = ri
+            ztg += zt[i] * gi
+        if ztg < 0.0:
+            ztg = 0.0
     # ---- (4) Huber weight, (5) update ------------------------------------------------------------
     c = par[P_HUBER]
     w = 1.0
@@ -1137,6 +1175,19 @@ def _beta_step(bs, z, e, R, gate, bout):
     bout[B_WEIGHT] = w
     bout[B_LEARNED] = 1.0
     cnt[C_UPDATES] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _off_rest(x, out, lay):
+    """``out = x − (xᵀd/3) d`` with ``d = e_sp + e_sn + e_one`` (the rest direction); returns ``out``."""
+    isp, isn, ione = lay[L_ISP], lay[L_ISN], lay[L_IONE]
+    for j in range(x.shape[0]):
+        out[j] = x[j]
+    m = (x[isp] + x[isn] + x[ione]) / 3.0
+    out[isp] -= m
+    out[isn] -= m
+    out[ione] -= m
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -1354,6 +1405,9 @@ class OnlineBeta:
         Sampling period (s).
     omega : float
         Coulomb dead band Ω (m/s): no learning while ``|v_m(k)| ≤ Ω``.
+    min_speed : float
+        No learning while ``|v_m(k)| ≤ min_speed`` either (m/s, default 0): below it the model's
+        friction law does not hold (a Stribeck hump, :mod:`kernels.low_speed`).
     gain : float, optional
         Velocity-loop gain K (N·s/m); without it physical values are ``J/K, B/K, d/K``.
     beta_cov : array, optional
@@ -1395,7 +1449,8 @@ class OnlineBeta:
     def __init__(self, tracker, beta0, names, Ts: float, *, omega: float = 0.0, gain: float | None = None,
                  beta_cov=None, allowance: float = 0.3, memory: float = 5.0, inertia_memory: float | None = 10.0,
                  huber: float = 3.0, reject: float | None = None, hold: float = 0.0, instrument: bool = True,
-                 enabled: bool = True, warmup: int | None = None, rebase_every: int = REBASE_EVERY):
+                 enabled: bool = True, warmup: int | None = None, rebase_every: int = REBASE_EVERY,
+                 min_speed: float = 0.0):
         from .krlst import KRLST
 
         if not isinstance(tracker, KRLST):
@@ -1416,7 +1471,8 @@ class OnlineBeta:
         self.P0 = prior_covariance(beta0, self.names, Ts, gain=gain, beta_cov=beta_cov, rel=allowance)
         self._kw = dict(omega=omega, gain=gain, P0=self.P0, memory=memory, inertia_memory=inertia_memory,
                         huber=huber, instrument=instrument,
-                        enabled=enabled, warmup=warmup, reject=reject, hold=hold, rebase_every=rebase_every)
+                        enabled=enabled, warmup=warmup, reject=reject, hold=hold, rebase_every=rebase_every,
+                        min_speed=min_speed)
         self._beta0 = np.asarray(beta0, dtype=np.float64).copy()
         self._buf = new_beta_buffers(self._beta0, self.names, Ts, tracker.budget, **self._kw)
         self.state = beta_state_views(*self._buf)

@@ -32,7 +32,7 @@ import scipy.fft as sfft
 from numba import njit
 from scipy.ndimage import maximum_filter1d, median_filter
 
-__all__ = ["PeriodCandidate", "harmonic_score", "detect_periods", "motion_period", "harmonically_related",
+__all__ = ["sampled_harmonic", "PeriodCandidate", "harmonic_score", "detect_periods", "motion_period", "harmonically_related",
            "PAD", "Z_MIN", "MIN_CYCLES", "BACKGROUND_FRACTION", "LOCK_RATIO", "MOTION_ACF"]
 
 #: zero padding of the periodogram
@@ -167,6 +167,21 @@ def harmonically_related(a: float, b: float, *, rel: float = 0.02, max_ratio: in
     if max_ratio is not None and k > max_ratio:
         return False
     return k >= 1 and abs(m - k) * short <= rel * long_
+
+
+def sampled_harmonic(period: float, base: float, Ts: float, *, max_harmonic: int = 8, rel: float = 0.005) -> bool:
+    """True when the line at ``1/period`` is, as sampled every ``Ts``, a harmonic ``h/base`` (h ≤
+    ``max_harmonic``) folded into ``[0, 1/(2 Ts)]``, within ``rel`` of its frequency: e.g. the
+    200 Hz tooth-passing line of a 4-tooth cutter at 3000 rpm (period base 20 ms) seen at 133.3 Hz
+    at 333.3 Hz sampling. A periodic kernel at ``base`` then explains it too."""
+    fs = 1.0 / Ts
+    f = 1.0 / period
+    for h in range(1, max_harmonic + 1):
+        g = (h / base) % fs
+        g = min(g, fs - g)
+        if abs(g - f) <= rel * f:
+            return True
+    return False
 
 
 def detect_periods(residual, Ts: float, *, reference=None, top: int = 3,

@@ -251,7 +251,8 @@ class AxisEstimator:
         names = tuple(m.beta_names)
         kw = dict(omega=float(m.omega), gain=m.loop_gain if m.form == "velocity-loop" else None,
                   allowance=a.allowance, memory=a.memory, inertia_memory=a.inertia_memory, huber=a.huber,
-                  reject=a.reject, hold=a.hold, instrument=a.instrument, enabled=self.mode != "off",
+                  reject=a.reject, hold=a.hold, min_speed=a.min_speed, instrument=a.instrument,
+                  enabled=self.mode != "off",
                   rebase_every=REBASE_EVERY if self.mode == "apply" else 0)
         try:
             return OnlineBeta(tracker, self.beta, names, float(m.Ts), beta_cov=_beta_cov(m), **kw)

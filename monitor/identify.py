@@ -94,7 +94,8 @@ from kernels.feed_drive import (
 )
 from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_terms
 from kernels.likelihood import tune as tune_hyperparameters
-from kernels.period import MIN_CYCLES, detect_periods, harmonically_related
+from kernels.low_speed import LowSpeedFriction, low_speed_friction
+from kernels.period import MIN_CYCLES, detect_periods, harmonically_related, sampled_harmonic
 from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
 from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, spindle_phase
 
@@ -362,6 +363,7 @@ class Identification:
         return {} if self.pl is None else self.pl.candidate.hyperparameters
     spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
     periods: list[float] = field(default_factory=list)  # every ψ in play (s; several when the spindle speed changes)
+    low_speed: LowSpeedFriction | None = None  # the friction law near standstill (kernels.low_speed)
 
     def to_json(self) -> dict:
         """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
@@ -463,6 +465,9 @@ class Identification:
             identification=ident,
             candidates=candidates,
             validity_warning=warning,
+            # β learns only where the friction law holds (kernels.low_speed); every other setting its default
+            online=OS.OnlineSettings(adaptation=OS.Adaptation(
+                min_speed=float(self.low_speed.min_speed) if self.low_speed is not None else 0.0)),
             provenance={
                 "source": self.trial_path,
                 "sha256": file_sha256(self.trial_path),
@@ -776,7 +781,11 @@ def identify(
         # a speed read from the samples or the trial's metadata is a presumption about the disturbance, not
         # the user's word: when the data clearly prefer another period, the disturbance does not follow the
         # spindle (a shaker, a pump, a neighbouring machine) and that period competes like any other
-        off_spindle = psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN
+        teeth = int(trial.meta.teeth or 1)
+        # a (folded) harmonic of the spindle line follows the spindle: the periodic kernel at ψ has it
+        related = psi_source == "spindle" and any(sampled_harmonic(alt.period, psi, Ts, max_harmonic=max(8, 2 * teeth))
+                                                  for psi in psis)
+        off_spindle = psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN and not related
         if off_spindle:
             notes.append(f"the disturbance does not follow the spindle: ψ = {alt.period:.6g} s, found in the data, "
                          f"explains it better than every model locked to the spindle's speed (log evidence "
@@ -784,7 +793,10 @@ def identify(
                          "tracker runs on time, not on the spindle's angle")
             psi_source, psis = "detected", [alt.period]
         else:
-            if alt.valid and margin > SUGGEST_MARGIN:
+            if related:
+                notes.append(f"the line found at {1 / alt.period:.5g} Hz is a harmonic of the spindle's (as sampled, "
+                             "folded at half the sample rate): the spindle period explains it")
+            elif alt.valid and margin > SUGGEST_MARGIN:
                 suggested = alt.period
                 notes.append(f"the data prefer ψ = {alt.period:.6g} s to the {psi_source} period (log evidence "
                              f"{margin:+.1f} over the {locked.label}); check the period (--period {alt.period:.6g})")
@@ -827,6 +839,8 @@ def identify(
     elif written is not None:
         model_res = prob.fit(written, exo_name)
 
+    low_speed = _low_speed_check(prob, model_res, notes)
+
     periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
     psi_report = periodic.period if periodic is not None else (psis[0] if psis else None)
     if gain is None and form == "velocity-loop":
@@ -841,9 +855,37 @@ def identify(
     )
     ident.spindle = None if off_spindle else _spindle(trial)
     ident.periods = [float(p) for p in psis]
+    ident.low_speed = low_speed
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident
+
+
+def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str]) -> LowSpeedFriction | None:
+    """The low-speed friction check (:mod:`kernels.low_speed`) on the written model's prediction error;
+    a note when the friction law does not hold near standstill (and whether the monitor then learns
+    β only above ``min_speed``)."""
+    if res is None:
+        return None
+    err = prob.y - res.prediction
+    if not np.all(np.isfinite(err)):
+        return None
+    check = low_speed_friction(prob.Z, err, prob.v[:-1], prob.omega)
+    if check is None or not check.significant:
+        return check
+    b = res.beta[0] if prob.form == "force-input" else (res.beta[0] / prob.gain if prob.gain else None)
+    side = "above" if check.amplitude > 0 else "below"
+    size = (f"{abs(check.amplitude / b):.3g} N {side}" if b else f"{side} (by {abs(check.amplitude):.3g} m/s per "
+            "sample; give --loop-gain for N)")
+    what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {2 * check.v_s:.3g} m/s "
+            f"the friction is {size} the law (log-likelihood gain {check.gain:.0f})")
+    if check.local:
+        notes.append(f"{what}; the monitor learns β only above min_speed = {check.min_speed:.3g} m/s "
+                     f"({100 * check.share:.0f} % of the motion is slower)")
+    else:
+        notes.append(f"{what}, but {100 * check.share:.0f} % of the motion is that slow: not a low-speed effect "
+                     "to leave out (min_speed stays 0); it may be a disturbance that follows the feed")
+    return check
 
 
 def _spindle_candidates(prob: _Problem, trial, candidates: list[Candidate], init: dict, notes: list[str], *,

@@ -32,6 +32,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
+from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel
 from kernels.health import HealthConfig
 from kernels.spindle_phase import spindle_phase_kernel
@@ -147,6 +148,9 @@ class Adaptation(msgspec.Struct, **_OPTS):
     reject: _num(1.0, 1000.0, "standard deviations, > huber; none = off") | None = None
     #: s after a rejected sample that teach nothing either
     hold: _num(0.0, 60.0, "s after a rejected sample") = 0.0
+    #: m/s: β learns only above this speed, where the model's friction law holds (written by
+    #: ``feedmon identify`` from its low-speed friction check, :mod:`kernels.low_speed`; 0: down to Ω)
+    min_speed: _num(0.0, MIN_SPEED_MAX, "m/s, β learns only above (friction law holds)") = 0.0
 
     def __post_init__(self) -> None:
         if self.reject is not None and not self.reject > self.huber:
@@ -277,6 +281,8 @@ COMMENTS = {
         "instrument": "model's velocity prediction as instrument of v_m (closed-loop noise bias)",
         "reject": "standard deviations (> huber): larger innovations teach nothing; absent = off",
         "hold": "s after a rejected sample that teach nothing (0 … 60)",
+        "min_speed": f"m/s: β learns only above it, where the friction law holds (0 … {MIN_SPEED_MAX:g}; identify's "
+                     "low-speed check)",
     },
     "health": {
         "period": "s of data time between two health reports (0.1 … 60)",

@@ -40,8 +40,9 @@ __all__ = ["StateStore", "StateLoad", "STATE_FORMAT", "read_state_file"]
 
 log = logging.getLogger("monitor.state")
 
-STATE_FORMAT = 3  # 2: the β state keeps the previous sample's direction of motion (cnt has 12 entries);
-#                  3: the β forgetting is per physical parameter (settings 'basis', par has 11 entries)
+STATE_FORMAT = 4  # 2: the β state keeps the previous sample's direction of motion (cnt has 12 entries);
+#                  3: the β forgetting is per physical parameter (settings 'basis', par has 11 entries);
+#                  4: the β settings hold min_speed (par has 10 entries)
 
 #: longest ``.npy`` header accepted (numpy writes ~128 bytes for these arrays)
 NPY_HEADER_MAX = 4096

@@ -83,10 +83,12 @@ def test_emps_clean_data_chooses_ls_and_writes_the_published_model(emps_trials, 
     assert any(c["kernel"] == "squared_exponential" and c["log_evidence"] > doc["candidates"][0]["log_evidence"]
                for c in kernels)  # the kernel "explains" more, yet is no valid choice
     assert any("no rest" in n for n in doc["ls"]["notes"])  # asymmetry and offset not separable: said so
+    # the friction near standstill departs from the law (~6 N below it under ~3.5 cm/s, at 333 Hz and 1 kHz
+    # alike): found, said, and the online β learns only above it (kernels/low_speed.py)
+    assert 0.02 < model.online.adaptation.min_speed < 0.05
+    assert any("does not hold near standstill" in n for n in doc["ls"]["notes"])
     # the self-check (monitor.self_check) is what `feedmon run --from` with this file says of this trial, and
-    # the file carries its verdict. Here it is not ok: the tracker written for an LS model (squared exponential
-    # in time, thesis hyperparameters) sees the viscous friction ~20 % higher than LS at ~2 % standard error —
-    # on this drive LS and a GLS with a disturbance model disagree by that much (README, Limits)
+    # the file carries its verdict. It was "alarm, damping +21 %" while β learned from the low-speed samples
     check = doc["self_check"]
     out = model_path.with_suffix(".mcap")
     assert main(["run", "--from", str(emps_trials[trial]), "-o", str(out), "--model", str(model_path)]) == 0
@@ -95,7 +97,7 @@ def test_emps_clean_data_chooses_ls_and_writes_the_published_model(emps_trials, 
     assert check["flagged"] == sum(h.state != "ok" for h in reports)
     assert check["state"] == max((h.state for h in reports), key=("ok", "warn", "alarm").index)
     assert model.identification["self_check"] == check["summary"]
-    assert check["state"] == "ok" or all(" drift " in r for r in check["reasons"])
+    assert check["state"] == "ok", check["summary"]
 
 
 @pytest.mark.slow
@@ -277,6 +279,7 @@ def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simu
     model = load_model(model_path)
     assert model.tracker.kernel["type"] == "locally_periodic"
     assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
+    assert model.online.adaptation.min_speed == 0.0    # the simulated friction follows the law down to Ω
 
     code, doc, _ = run_identify(trial, "--spindle-rpm", 3000)  # the user's word: kept, the data's period suggested
     assert code == 0

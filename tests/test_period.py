@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from kernels.period import Z_MIN, detect_periods, harmonic_score, harmonically_related, motion_period
+from kernels.period import Z_MIN, detect_periods, harmonic_score, harmonically_related, motion_period, sampled_harmonic
 
 TS = 1e-3
 
@@ -55,3 +55,13 @@ def test_harmonic_relations_and_errors():
         harmonic_score(np.ones(5), TS)
     f0, z, nh = harmonic_score(np.random.default_rng(0).normal(size=64), 1.0, f_min=0.6)
     assert f0.size == 0  # nothing between f_min and Nyquist
+
+
+def test_a_line_folded_from_a_spindle_harmonic_is_recognised():
+    """4-tooth cutter at 3000 rpm (spindle period 20 ms) sampled at 333.3 Hz: the 200 Hz tooth line
+    appears at 133.3 Hz; a 55 Hz shaker line is no harmonic of 50, 40 or 60 Hz, folded or not."""
+    Ts = 1 / 333.33
+    assert sampled_harmonic(1 / 133.33, 0.02, Ts) and sampled_harmonic(1 / 100.0, 0.02, Ts)
+    assert not sampled_harmonic(1 / 133.33, 0.02, Ts, max_harmonic=3)    # h = 4 is needed
+    for base in (0.02, 0.025, 1 / 60):
+        assert not sampled_harmonic(1 / 55.0, base, Ts)
