@@ -158,12 +158,15 @@ def _num(v: float) -> str:
 
 
 def range_text(struct: type, name: str) -> str | None:
-    """The allowed range of a numeric field as text (``1024 ≤ queue_bytes ≤ 17179869184``), None if unbounded."""
+    """The allowed range of a numeric field as text (``1024 ≤ queue_bytes ≤ 17179869184``), or the values of a
+    choice (``mode one of peer, client``); None if unbounded."""
     for f in msgspec.inspect.type_info(struct).fields:
         if f.name == name:
             t = f.type
             for c in (t.types if isinstance(t, msgspec.inspect.UnionType) else (t,)):
                 c = c.type if isinstance(c, msgspec.inspect.Metadata) else c
+                if isinstance(c, msgspec.inspect.LiteralType):
+                    return f"{name} one of {', '.join(map(str, c.values))}"
                 if isinstance(c, msgspec.inspect.IntType | msgspec.inspect.FloatType):
                     lo = f"{_num(c.ge)} ≤ " if c.ge is not None else f"{_num(c.gt)} < " if c.gt is not None else ""
                     hi = f" ≤ {_num(c.le)}" if c.le is not None else f" < {_num(c.lt)}" if c.lt is not None else ""

@@ -15,7 +15,7 @@ cleanly (input stopped, queue drained, MCAP finished, tracker state saved), exit
 
 ``--config FILE`` (TOML) holds the options in a ``[run]`` table with the long option names
 (``model = [...]``, ``mcap``, ``rrd``, ``serve_rerun``, ``state_dir``, ``rotate_mb``,
-``rotate_minutes``, ``record_truth``, ``drain_seconds``, ``listen``, ``connect``, ``mode``,
+``rotate_minutes``, ``record_truth``, ``sink_priority``, ``drain_seconds``, ``listen``, ``connect``, ``mode``,
 ``zenoh_config``, ``multicast``, ``prefix``) and the input limits in ``[run.limits]``
 (:class:`feedio.limits.InputLimits`); see :mod:`feedmon.run_config`. Paths are relative to the
 config file; options on the command line win.
@@ -73,6 +73,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="serve the Rerun recording live on this port (viewer: rerun --connect ...)")
     g.add_argument("--record-truth", action="store_true",
                    help="also record ground-truth blocks (<prefix>/*/*/truth, from 'feedmon replay') in the sinks")
+    g.add_argument("--sink-priority", choices=("idle", "low"), default=None,
+                   help="the MCAP and Rerun processes: idle (default; SCHED_IDLE: they run only on a core nothing "
+                        "else wants and never delay an estimate, but fall behind and drop, counted, on a machine "
+                        "kept busy) or low (nice 10: a share of the CPU under load, estimates later)")
     lim = p.add_argument_group("input limits (README: Input limits; file: [run.limits])")
     lim.add_argument("--queue", type=int, default=None, metavar="N",
                      help=f"input queue capacity in messages (default {InputLimits().queue_messages}); "
@@ -195,7 +199,8 @@ def _run_live(cfg: RunConfig) -> int:
 
             path, rb, rs = _mcap_path(cfg.mcap, cfg)
             # own process: decoding, pairing, compression and disk never hold the estimator's GIL
-            sinks.append(McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()]))
+            sinks.append(McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()],
+                                         priority=cfg.sink_priority))
             rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") + ")" \
                 if rb or rs else ""
             _say(f"MCAP log: {path}{rot}")
@@ -205,7 +210,7 @@ def _run_live(cfg: RunConfig) -> int:
 
             info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
             # own process: never holds our GIL; fed the bytes received and published (no second encoding)
-            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info)
+            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info, priority=cfg.sink_priority)
             sinks.append(rs_)
             if cfg.rrd:
                 _say(f"Rerun recording: {cfg.rrd}")

@@ -418,3 +418,26 @@ def test_scalars_channel_of_the_offline_file_is_per_sample_and_finite(two_axes):
         est = [m for t, m in msgs if t == f"/linear-drive/{axis}/disturbance"]
         assert len(sc) == sum(len(m["t"]) for m in est) > 0
         assert all(isinstance(v, (int, float)) and math.isfinite(v) for m in sc for v in m.values())
+
+
+@pytest.mark.parametrize("priority", ["idle", "low"])
+def test_sink_processes_run_below_the_monitor(tmp_path, priority):
+    """The MCAP and Rerun processes yield the CPU to the monitor: 'idle' (default) is Linux's SCHED_IDLE
+    (they run only on a core nothing else wants), 'low' nice 10 only; both are niced. A priority that is
+    neither is refused before any process starts."""
+    from monitor.sinks.rerun_process import RerunProcessSink
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    sinks = [McapProcessSink(tmp_path / "p.mcap", metas=[_meta()], start_timeout=60, priority=priority),
+             RerunProcessSink(tmp_path / "p.rrd", start_timeout=60, priority=priority)]
+    try:
+        for sink in sinks:
+            pid = sink._proc.pid
+            want = os.SCHED_IDLE if priority == "idle" else os.SCHED_OTHER
+            assert os.sched_getscheduler(pid) == want, (sink.name, os.sched_getscheduler(pid))
+            assert os.getpriority(os.PRIO_PROCESS, pid) >= min(19, base + 10)
+    finally:
+        for sink in sinks:
+            assert sink.close(timeout=60)
+    with pytest.raises(ValueError, match="sink priority must be one of idle, low"):
+        McapProcessSink(tmp_path / "q.mcap", metas=[_meta()], priority="realtime")

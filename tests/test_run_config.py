@@ -33,6 +33,7 @@ rotate_mb = 64
 fresh = true
 prefix = "feedmon/hall-2"
 drain_seconds = 5
+sink_priority = "low"
 
 [run.limits]
 max_message_bytes = 1_048_576
@@ -42,12 +43,13 @@ status_rate = 5
     run = run_config_from_args(_args("--config", cfg))
     assert run.model == [str(tmp_path / "models" / "x.model.toml")] and run.state_dir == str(tmp_path / "state")
     assert run.mcap == "/var/log/feedmon" and run.rotate_mb == 64.0 and run.fresh and run.drain_seconds == 5.0
-    assert run.prefix == "feedmon/hall-2"
+    assert run.prefix == "feedmon/hall-2" and run.sink_priority == "low"
     assert run.limits == InputLimits(max_message_bytes=1 << 20, queue_bytes=8 << 20, status_rate=5.0)
     run = run_config_from_args(_args("--config", cfg, "--model", "a.toml", "--model", "b.toml", "--queue", "100",
                                      "--limit", "status_rate=0.5", "--limit", "max-block-samples=2_000",
-                                     "--prefix", "p", "--drain-seconds", "0"))
+                                     "--prefix", "p", "--drain-seconds", "0", "--sink-priority", "idle"))
     assert run.model == ["a.toml", "b.toml"] and run.prefix == "p" and run.drain_seconds == 0.0
+    assert run.sink_priority == "idle"
     assert run.limits.queue_messages == 100 and run.limits.status_rate == 0.5 and run.limits.max_block_samples == 2000
     assert run.limits.max_message_bytes == 1 << 20  # the file's value where the command line says nothing
     assert run_config_from_args(_args()) == RunConfig()  # no file, no options: the defaults
@@ -61,7 +63,8 @@ status_rate = 5
     ("[run]\nserve_rerun = 70000\n", "key run.serve_rerun: Expected `int` <= 65535"),
     ("[run]\nmodel = 5\n", "key run.model: Expected `array`, got `int`"),
     ("[run]\nfresh = \"yes\"\n", "key run.fresh: Expected `bool`, got `str`"),
-    ("[run]\nmode = \"router\"\n", "key run.mode"),
+    ("[run]\nmode = \"router\"\n", "key run.mode: Invalid enum value 'router' (allowed: mode one of client, peer)"),
+    ("[run]\nsink_priority = \"realtime\"\n", "key run.sink_priority: Invalid enum value 'realtime' (allowed: sink_priority one of idle, low)"),
     ("[run.limits]\nmax_message_bytes = 1073741824\n", "queue_bytes (67108864) must be >= max_message_bytes"),
     ("[run.limits]\nstatus_rate = 1e9\n", "allowed: 0.1 ≤ status_rate ≤ 100000"),
     ("model = [\"x\"]\n", "unknown field `model`; known keys here: run (the options of feedmon run go in a [run] table)"),

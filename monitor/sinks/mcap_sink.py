@@ -62,7 +62,8 @@ block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``), ``H`` h
 ``report_interval`` s) and once at the end; the parent's status merges it (files, failures,
 drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
 the pipe closes and it finishes the file anyway), logs like the monitor (same format) and runs
-at ``nice`` 10, as the Rerun process: on a busy machine the estimator gets the CPU first.
+below the monitor, as the Rerun process (:func:`~monitor.sinks.child.background_priority`; default
+``SCHED_IDLE``): the estimator always gets the CPU first.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ from feedio import schema as S
 from feedio.mcapio import TrialWriter
 from feedio.scalars import HOLD_NS, ScalarsPairer
 
-from .child import ChildProcessSink, send_final, start_reporter
+from .child import ChildProcessSink, background_priority, check_priority, send_final, start_reporter
 from .queued import QueuedSink
 
 __all__ = ["McapSink", "McapProcessSink", "infer_meta"]
@@ -390,7 +391,7 @@ class McapProcessSink(ChildProcessSink):
     Same arguments as :class:`McapSink` (``metas`` required: the child cannot ask for them),
     plus ``max_bytes`` (the queue's bound in payload bytes, besides ``maxsize`` items),
     ``start_timeout`` (s to wait for the child to start), ``report_interval`` (s between
-    the child's status reports) and ``nice`` (the child's niceness increment). :meth:`status`
+    the child's status reports) and ``priority`` ("idle" or "low", :func:`~monitor.sinks.child.background_priority`). :meth:`status`
     adds the child's counters: ``written``, ``failures`` (with undecodable frames), ``dropped``
     (with the child's own queue drops), ``last_error``, ``state`` and the MCAP fields (``files``,
     ``current_file``, ``incomplete_files``, ``messages_lost``, ``flush_failures``,
@@ -401,7 +402,7 @@ class McapProcessSink(ChildProcessSink):
                  *, metas: S.TrialMeta | Sequence[S.TrialMeta], flush_seconds: float = 0.5, maxsize: int = 4096,
                  max_bytes: int = 64 * 2**20, name: str = "mcap", scalars: bool = True,
                  max_pending_bytes: int | None = None, start_timeout: float = 60.0, report_interval: float = 0.5,
-                 nice: int = 10) -> None:
+                 priority: str = "idle") -> None:
         path = Path(path)
         if not path.parent.is_dir():
             raise FileNotFoundError(f"directory of the MCAP log {str(path)!r} does not exist")
@@ -415,7 +416,7 @@ class McapProcessSink(ChildProcessSink):
         fmt = log_format()
         self._spawn(_child_main, "feedmon-mcap", (os.fspath(path), rotate_bytes, rotate_seconds,
                                                   [S.encode(m) for m in ms], options, float(report_interval),
-                                                  fmt, int(nice)),
+                                                  fmt, check_priority(priority)),
                     start_timeout, "MCAP sink: the logging process")
         self.path = path
         self.max_bytes = int(max_bytes)
@@ -507,14 +508,12 @@ class McapProcessSink(ChildProcessSink):
     finish_timeout = 120.0
 
 
-def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report_interval, log_format, nice) -> None:
+def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report_interval, log_format,
+                priority) -> None:
     """The logging process: pipe → decode → :class:`McapSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.nice(nice)
-    except OSError:
-        pass
+    background_priority(priority)
     from monitor.status import install_log_format
 
     install_log_format(log_format)

@@ -14,8 +14,9 @@ start (``{"server_uri": ...}`` or ``{"error": ...}``), then with its status when
 change (at most every ``report_interval`` s) and once at the end (``"final": true``): failures
 inside the child count in the parent's ``failures``. It ignores SIGINT/SIGTERM (a service
 manager signals the whole process group): it stops when told, or when the pipe closes because
-the monitor died, and finishes the recording either way. It runs at nice 10, so on a busy
-machine the monitor's estimator thread gets the CPU first.
+the monitor died, and finishes the recording either way. It runs below the monitor
+(:func:`~monitor.sinks.child.background_priority`, default ``SCHED_IDLE``), so the monitor's
+estimator thread always gets the CPU first.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import msgspec
 
 from feedio import schema as S
 
-from .child import ChildProcessSink, send_final, start_reporter
+from .child import ChildProcessSink, background_priority, check_priority, send_final, start_reporter
 
 __all__ = ["RerunProcessSink", "check_outputs"]
 
@@ -60,15 +61,17 @@ class RerunProcessSink(ChildProcessSink):
         seconds to wait for the child to import Rerun and open its sinks.
     report_interval:
         seconds between the child's status reports.
+    priority:
+        "idle" or "low" (:func:`~monitor.sinks.child.background_priority`).
     """
 
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
                  maxsize: int = 4096, name: str = "rerun", start_timeout: float = 60.0, report_interval: float = 0.5,
-                 **rerun_options) -> None:
+                 priority: str = "idle", **rerun_options) -> None:
         check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
         hello = self._spawn(_child_main, "feedmon-rerun", (self.rrd_path, serve_port, memory_limit, rerun_options,
-                                                           float(report_interval)),
+                                                           float(report_interval), check_priority(priority)),
                             start_timeout, "Rerun sink: the recording process")
         self.server_uri: str | None = hello.get("server_uri")
         super().__init__(maxsize, name=name)
@@ -127,14 +130,13 @@ def _report_key(st: dict) -> tuple:
     return st["failures"], st["dropped"], st["state"], st.get("broken"), st["undecodable"]
 
 
-def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5) -> None:
+def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5, priority="idle") -> None:
     """The recording process: pipe → decode → :class:`RerunSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:  # a recording is background work: the estimator must win every contended core
-        os.nice(10)  # before Rerun starts its threads, which inherit it
-    except OSError:
-        pass
+    # a recording is background work: the estimator must win every contended core (before Rerun starts
+    # its threads, which inherit it)
+    background_priority(priority)
     from .rerun_sink import RerunSink
 
     try:
