@@ -211,9 +211,9 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
         return self
 
 
-
 #: the per-sample columns of a :class:`SampleBlock` (all fields but machine, axis, seq), in order
 SAMPLE_COLUMNS = tuple(f for f in SampleBlock.__struct_fields__ if f not in ("machine", "axis", "seq"))
+
 
 class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
     """Ground truth of a simulated (or instrumented) trial (topic ``<machine>/<axis>/truth``).

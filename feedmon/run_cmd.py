@@ -39,6 +39,7 @@ from pathlib import Path
 
 from feedio.limits import InputLimits
 from feedio.transport import add_zenoh_arguments
+from monitor.sinks.child import PRIORITIES
 
 from .run_config import RunConfig, run_config_from_args
 
@@ -73,7 +74,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="serve the Rerun recording live on this port (viewer: rerun --connect ...)")
     g.add_argument("--record-truth", action="store_true",
                    help="also record ground-truth blocks (<prefix>/*/*/truth, from 'feedmon replay') in the sinks")
-    g.add_argument("--sink-priority", choices=("idle", "low"), default=None,
+    g.add_argument("--sink-priority", choices=PRIORITIES, default=None,
                    help="the MCAP and Rerun processes: idle (default; SCHED_IDLE: they run only on a core nothing "
                         "else wants and never delay an estimate, but fall behind and drop, counted, on a machine "
                         "kept busy) or low (nice 10: a share of the CPU under load, estimates later)")

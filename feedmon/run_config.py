@@ -32,6 +32,7 @@ import msgspec
 
 from feedio.limits import InputLimits, range_text
 from monitor import online_settings as OS
+from monitor.sinks.child import Priority
 
 __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
 
@@ -51,7 +52,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     rrd: str | None = None
     serve_rerun: Annotated[int, msgspec.Meta(ge=1, le=65535)] | None = None
     record_truth: bool = False
-    sink_priority: Literal["idle", "low"] = "idle"  # the sink processes: SCHED_IDLE, or nice 10 only
+    sink_priority: Priority = "idle"  # the sink processes: SCHED_IDLE, or nice 10 only (monitor.sinks.child)
     state_dir: str | None = None
     fresh: bool = False
     drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0

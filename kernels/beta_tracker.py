@@ -75,9 +75,10 @@ Why these choices
   presliding after; learning from that sample reads the step as "less Coulomb friction", measured
   −80 % at 15–20 standard errors on the EMPS drive with its correct model), nor while
   ``|v_m(k)| ≤ min_speed`` when identification found that the friction law does not hold at low
-  speed (a Stribeck hump, :mod:`kernels.low_speed`: the samples around reversals and starts carry
-  large innovations, and learning from them read the hump as friction — EMPS with its own model:
-  damping +25 %, Coulomb −10 % against least squares; with min_speed 0.035 m/s within 2–6 %),
+  speed (:mod:`kernels.low_speed`: a Stribeck rise or a gradual Coulomb onset; the samples around
+  reversals and starts carry large innovations, and learning from them read the departure as
+  friction — EMPS with its own model: damping +25 %, Coulomb −11 % against least squares; with
+  min_speed 0.035 m/s damping −8 % ± 20 % (not determined), Coulomb +0.8 %),
   during the tracker's warm-up (M trained samples), on samples the caller does not gate in (stale,
   restarted chain), or when adaptation is off. Optionally (``reject``, off by default)
   not on a sample with a very large ``|ν|`` (an abrupt disturbance the tracker could not
@@ -1094,18 +1095,7 @@ def _beta_step(bs, z, e, R, gate, bout):
     learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
     cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
-    ztg = 0.0
-    for i in range(p):
-        gi = 0.0
-        ri = 0.0
-        for j in range(p):
-            gi += C[i, j] * zeta[j]               # g = Λ⁻¹ ζ̃
-            ri += zt[j] * C[j, i]                 # rowᵀ = z̃ᵀ Λ⁻¹
-        g[i] = gi
-        row[i] = ri
-        ztg += zt[i] * gi                         # z̃ᵀ Λ⁻¹ ζ̃ (= z̃ᵀ P z̃ without instrument)
-    if ztg < 0.0:
-        ztg = 0.0
+    ztg = _gain_direction(C, zt, zeta, g, row)
     Sfull = R + ztg                               # S = R + z̃ᵀ P z̃
     nu = e / math.sqrt(Sfull)
     bout[B_VAR] = Sfull
@@ -1128,18 +1118,7 @@ def _beta_step(bs, z, e, R, gate, bout):
         # samples at rest, which β does not learn from: learn with z̃, ζ̃ off d (module docstring)
         zt = _off_rest(zt, vec[V_ZTR], bs.lay)
         zeta = _off_rest(zeta, vec[V_ZETAR], bs.lay)
-        ztg = 0.0
-        for i in range(p):
-            gi = 0.0
-            ri = 0.0
-            for j in range(p):
-                gi += C[i, j] * zeta[j]
-                ri += zt[j] * C[j, i]
-            g[i] = gi
-            row[i] = ri
-            ztg += zt[i] * gi
-        if ztg < 0.0:
-            ztg = 0.0
+        ztg = _gain_direction(C, zt, zeta, g, row)
     # ---- (4) Huber weight, (5) update ------------------------------------------------------------
     c = par[P_HUBER]
     w = 1.0
@@ -1175,6 +1154,24 @@ def _beta_step(bs, z, e, R, gate, bout):
     bout[B_WEIGHT] = w
     bout[B_LEARNED] = 1.0
     cnt[C_UPDATES] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gain_direction(C, zt, zeta, g, row):
+    """Eq. (3): ``g = Λ⁻¹ζ̃``, ``row = z̃ᵀΛ⁻¹`` (into ``g``, ``row``; ``C`` holds Λ⁻¹); returns
+    ``s = z̃ᵀΛ⁻¹ζ̃`` clipped at 0 (``= z̃ᵀPz̃`` without instrument)."""
+    p = g.shape[0]
+    s = 0.0
+    for i in range(p):
+        gi = 0.0
+        ri = 0.0
+        for j in range(p):
+            gi += C[i, j] * zeta[j]               # g = Λ⁻¹ ζ̃
+            ri += zt[j] * C[j, i]                 # rowᵀ = z̃ᵀ Λ⁻¹
+        g[i] = gi
+        row[i] = ri
+        s += zt[i] * gi                           # z̃ᵀ Λ⁻¹ ζ̃
+    return s if s > 0.0 else 0.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1407,7 +1404,7 @@ class OnlineBeta:
         Coulomb dead band Ω (m/s): no learning while ``|v_m(k)| ≤ Ω``.
     min_speed : float
         No learning while ``|v_m(k)| ≤ min_speed`` either (m/s, default 0): below it the model's
-        friction law does not hold (a Stribeck hump, :mod:`kernels.low_speed`).
+        friction law does not hold (:mod:`kernels.low_speed`).
     gain : float, optional
         Velocity-loop gain K (N·s/m); without it physical values are ``J/K, B/K, d/K``.
     beta_cov : array, optional

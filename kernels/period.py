@@ -32,8 +32,8 @@ import scipy.fft as sfft
 from numba import njit
 from scipy.ndimage import maximum_filter1d, median_filter
 
-__all__ = ["sampled_harmonic", "PeriodCandidate", "harmonic_score", "detect_periods", "motion_period", "harmonically_related",
-           "PAD", "Z_MIN", "MIN_CYCLES", "BACKGROUND_FRACTION", "LOCK_RATIO", "MOTION_ACF"]
+__all__ = ["PeriodCandidate", "harmonic_score", "detect_periods", "motion_period", "harmonically_related",
+           "sampled_harmonic", "PAD", "Z_MIN", "MIN_CYCLES", "BACKGROUND_FRACTION", "LOCK_RATIO", "MOTION_ACF"]
 
 #: zero padding of the periodogram
 PAD = 4

@@ -84,6 +84,7 @@ from kernels import LocallyPeriodic, SquaredExponential
 from kernels.feed_drive import (
     COULOMB_Z,
     beta_to_physical,
+    disturbance_to_force,
     friction_transform,
     physical_covariance,
     physical_to_beta,
@@ -591,8 +592,7 @@ class _Problem:
         f_force = None
         scalable = self.form == "force-input" or self.gain is not None
         if f is not None and scalable and cand.beta[0] > 0:
-            b = cand.beta[0] if self.form == "force-input" else cand.beta[0] / self.gain
-            f_force = -f / b
+            f_force = disturbance_to_force(self.form, cand.beta, f, gain=self.gain)
         return MethodResult(name=_METHOD_LABEL[cand.method], candidate=cand, rmse_linear=_rmse(self.y - linear),
                             rmse=_rmse(self.y - pred), rmse_free_run=free, prediction=pred, f=f, f_force=f_force)
 
@@ -873,10 +873,12 @@ def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str])
     check = low_speed_friction(prob.Z, err, prob.v[:-1], prob.omega)
     if check is None or not check.significant:
         return check
-    b = res.beta[0] if prob.form == "force-input" else (res.beta[0] / prob.gain if prob.gain else None)
-    side = "above" if check.amplitude > 0 else "below"
-    size = (f"{abs(check.amplitude / b):.3g} N {side}" if b else f"{side} (by {abs(check.amplitude):.3g} m/s per "
-            "sample; give --loop-gain for N)")
+    if prob.form == "force-input" or prob.gain is not None:  # a·h is a force δ·sign(v) as a disturbance: δ = a/b
+        delta = -float(disturbance_to_force(prob.form, res.beta, check.amplitude, gain=prob.gain))
+        size = f"{abs(delta):.3g} N {'above' if delta > 0 else 'below'}"
+    else:
+        size = f"{'above' if check.amplitude > 0 else 'below'} (by {abs(check.amplitude):.3g} m/s per sample; give " \
+               "--loop-gain for N)"
     what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {2 * check.v_s:.3g} m/s "
             f"the friction is {size} the law (log-likelihood gain {check.gain:.0f})")
     if check.local:

@@ -13,8 +13,9 @@ of them is biased, and the model file should not be used as a reference for drif
 it. Measured: a milling trial whose spindle goes 3000 → 2400 → 3600 rpm, identified before the
 spindle-phase candidate existed — every batch candidate found an inertia of 770–1110 kg at ± 7–11
 kg (truth 1500 kg), the monitor over the same trial 1530 kg: alarm from 5 s (now: 1502 ± 2.9 kg,
-ok). Still flagged: the EMPS pulses identified on themselves, and ``DATA_EMPS.mat`` without a
-period (README, self-check).
+ok). ``DATA_EMPS.mat`` without a period was flagged (damping +21 %) until the online β learned
+only above the drive's low-speed friction departure (:mod:`kernels.low_speed`). Still flagged: the
+EMPS pulses identified on themselves (README, self-check).
 
 The check is what ``feedmon run --from`` does (:class:`~monitor.estimator.AxisEstimator`, the
 model file's own tracker, adaptation and health settings, adaptation *track* when the file says

@@ -14,14 +14,16 @@ import multiprocessing
 import os
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal, get_args
 
 from .queued import QueuedSink
 
-__all__ = ["ChildProcessSink", "start_reporter", "send_final", "background_priority", "check_priority", "PRIORITIES"]
+__all__ = ["ChildProcessSink", "start_reporter", "send_final", "background_priority", "check_priority", "Priority",
+           "PRIORITIES"]
 
 #: how a sink's child process yields the CPU to the monitor (``feedmon run`` ``[run] sink_priority``)
-PRIORITIES = ("idle", "low")
+Priority = Literal["idle", "low"]
+PRIORITIES: tuple[str, ...] = get_args(Priority)
 
 
 def check_priority(priority: str) -> str:
