@@ -313,6 +313,13 @@ def parse_record(opcode: int, body, *, exact: bool = False, copy: bool = True):
 
 
 # ---- chunks -----------------------------------------------------------------------------------
+#: bytes asked of the zstd stream per read when a damaged chunk is decompressed in part: a read
+#: that meets the damage returns nothing, so small reads keep all but < 4 KiB of what decoded
+#: before it (zstd blocks are up to 128 KiB). An intact chunk is read 1 MiB at a time.
+_ZSTD_PIECE_PARTIAL = 1 << 12
+_ZSTD_PIECE = 1 << 20
+
+
 def check_chunk_size(chunk: Chunk, limits: Limits, compressed_size: int | None = None) -> str | None:
     """Why ``chunk`` is refused before decompression (None: acceptable). ``compressed_size``:
     the chunk's full compressed size when ``chunk.data`` is only the part that is present."""
@@ -356,7 +363,7 @@ def decompress(chunk: Chunk, limits: Limits = DEFAULT_LIMITS, *, partial: bool =
         try:
             reader = zstandard.ZstdDecompressor().stream_reader(bytes(data), read_across_frames=True)
             while len(buf) <= size:
-                piece = reader.read(min(1 << 20, size + 1 - len(buf)))
+                piece = reader.read(min(_ZSTD_PIECE_PARTIAL if partial else _ZSTD_PIECE, size + 1 - len(buf)))
                 if not piece:
                     break
                 buf += piece

@@ -75,7 +75,9 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -499,6 +501,10 @@ _BOUND_MEANING = {
 }
 
 
+class _Abandoned(Exception):
+    """Raised in a tuning thread whose result is no longer wanted (the identification failed)."""
+
+
 class _Problem:
     """The regression of one trial shared by all candidates."""
 
@@ -740,25 +746,48 @@ def identify(
                              "disturbance with that period cannot be told from the drive's response to the motion")
 
     tuned_kw = dict(tune=tune, progress=progress)
-    if tune:
-        se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
-        candidates.append(prob.tuned("squared_exponential", None, se_init, k_extra=0, label="squared exponential",
-                                     **tuned_kw))
-    else:
-        notes.append("--no-tune: the squared-exponential candidate has no given or thesis hyperparameters "
-                     "and is left out")
-    final_psis = []
-    for psi in psis:
-        cand = prob.tuned("locally_periodic", psi, init, k_extra=k_period, label=f"locally periodic ψ = {psi:.6g} s",
-                          **tuned_kw)
-        if psi_source == "detected" and tune:
-            cand = _harmonic_alternatives(prob, cand, psi, duration, progress)
-        candidates.append(cand)
-        zero_init = dict(cand.hyperparameters) if tune else init
-        candidates.append(prob.tuned("locally_periodic_zero_mean", cand.period, zero_init, k_extra=cand.k - 3 if tune
-                                     else k_period, label=f"zero-mean locally periodic ψ = {cand.period:.6g} s",
-                                     refine=True, **tuned_kw))
-        final_psis.append(cand.period)
+    # the squared-exponential candidate depends on no other: it is tuned on a second thread while the
+    # periodic ones are (the likelihood's Levinson pass releases the interpreter lock), and listed first
+    se_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="identify-se") if tune else None
+    se_stop = threading.Event()  # set when this thread fails: the second one stops after its evaluation
+
+    def se_progress(*args) -> None:
+        if se_stop.is_set():
+            raise _Abandoned
+        if progress is not None:
+            progress(*args)
+
+    try:
+        if se_pool is not None:
+            se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
+            se_future = se_pool.submit(prob.tuned, "squared_exponential", None, se_init, tune=True,
+                                       progress=se_progress, k_extra=0, label="squared exponential")
+        else:
+            notes.append("--no-tune: the squared-exponential candidate has no given or thesis hyperparameters "
+                         "and is left out")
+        periodic = []
+        final_psis = []
+        for psi in psis:
+            cand = prob.tuned("locally_periodic", psi, init, k_extra=k_period,
+                              label=f"locally periodic ψ = {psi:.6g} s", **tuned_kw)
+            if psi_source == "detected" and tune:
+                cand = _harmonic_alternatives(prob, cand, psi, duration, progress)
+            periodic.append(cand)
+            zero_init = dict(cand.hyperparameters) if tune else init
+            periodic.append(prob.tuned("locally_periodic_zero_mean", cand.period, zero_init,
+                                       k_extra=cand.k - 3 if tune else k_period,
+                                       label=f"zero-mean locally periodic ψ = {cand.period:.6g} s", refine=True,
+                                       **tuned_kw))
+            final_psis.append(cand.period)
+        if se_pool is not None:
+            candidates.append(se_future.result())
+    except BaseException:
+        se_stop.set()
+        raise
+    finally:
+        if se_pool is not None:
+            se_pool.shutdown(wait=True)
+    candidates += periodic
     psis = final_psis
     unused = []
     alt = None  # the detected period's candidate when the period came from elsewhere

@@ -216,10 +216,12 @@ class _Copier:
 
     def __init__(self, stream, header, compression: str, chunk_size: int, chunk_seconds: float, report: RecoverReport,
                  fallback_schemas: dict, fallback_channels: dict):
-        from mcap.writer import CompressionType, Writer
+        from feedio.mcapio import ZSTD_LEVEL
+        from feedio.mcapwriter import McapWriter
 
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self.writer = Writer(stream, chunk_size=chunk_size, compression=comp, enable_data_crcs=True)
+        # the trial writer's own writer and zstd level: a healthy chunk comes out as it went in
+        self.writer = McapWriter(stream, chunk_size=chunk_size, compression={"none": ""}.get(compression, compression),
+                                 compression_level=ZSTD_LEVEL, enable_data_crcs=True)
         self.writer.start(profile=header.profile, library=header.library)
         self.report = report
         self.schema_ids: dict[int, int] = {0: 0}  # source schema id -> output id (0 = no schema)
