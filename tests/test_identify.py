@@ -390,3 +390,27 @@ def test_clear_errors(simulated, capsys):
     assert main(["identify", str(simulated("milling-inc")), "--coulomb"]) == 2
     err = capsys.readouterr().err
     assert "-sigma_n" in err and "--no-coulomb" in err
+
+
+def test_a_failing_periodic_tune_stops_the_squared_exponential_one(simulated):
+    """The squared-exponential candidate is tuned on a second thread beside the periodic ones: when the
+    identification fails on this thread, the error reaches the caller and the second thread stops after
+    its current evaluation (no tuning thread outlives ``identify``); a stop asked by the caller's own
+    progress callback is one such failure."""
+    import threading
+
+    trial = read_trial(simulated("shaker-constant", seed=3, duration=6.0))
+    seen: dict[str, int] = {}
+
+    class Stop(Exception):
+        pass
+
+    def progress(label, evaluations, values, ll, best):
+        seen[label] = evaluations
+        if label.startswith("locally periodic") and evaluations == 2:
+            raise Stop(label)
+
+    with pytest.raises(Stop):
+        identify(trial, period=SHAKER_PERIOD, progress=progress)
+    assert seen[f"locally periodic ψ = {SHAKER_PERIOD:.6g} s"] == 2  # the failure came from the periodic tune
+    assert not [t for t in threading.enumerate() if t.name.startswith("identify-se")]
