@@ -413,4 +413,4 @@ def test_a_failing_periodic_tune_stops_the_squared_exponential_one(simulated):
     with pytest.raises(Stop):
         identify(trial, period=SHAKER_PERIOD, progress=progress)
     assert seen[f"locally periodic ψ = {SHAKER_PERIOD:.6g} s"] == 2  # the failure came from the periodic tune
-    assert not [t for t in threading.enumerate() if t.name.startswith("identify-se")]
+    assert not [t for t in threading.enumerate() if t.name.startswith("identify-beside")]
