@@ -51,7 +51,6 @@ import zenoh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 
 from feedio import schema as S  # noqa: E402
 from feedio import transport as T  # noqa: E402
@@ -92,15 +91,15 @@ def _trial(path: Path, duration: float, seed: int = 7, scenario: str = "shaker-c
 
 
 def _model(trial: Path, path: Path, budget: int | None = None, axis: str | None = None) -> None:
-    from truth_models import model_from_truth
+    """The trial's true β and the thesis tracker (budget 100 unless given; a smaller dictionary is what the
+    monitor around the tracker sustains) in a model file, for axis ``axis`` (default the trial's)."""
+    from dataclasses import replace
 
-    model_from_truth(trial, path, budget=100)
-    text = path.read_text()
-    if budget is not None:  # a smaller dictionary: what the monitor around the tracker sustains
-        text = text.replace("budget = 100", f"budget = {budget}")
-    if axis is not None:
-        text = text.replace('axis = "Z"', f'axis = "{axis}"')
-    path.write_text(text)
+    from feedio.mcapio import read_trial
+    from monitor.model_file import save_model, truth_model
+
+    model = truth_model(read_trial(trial).meta, budget=100 if budget is None else budget)
+    save_model(replace(model, axis=model.axis if axis is None else axis), path)
 
 
 class Stream:

@@ -28,7 +28,6 @@ import tracemalloc
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "tests"))
 
 SIGMA1, SIGMA2, GAMMA, PSI = 0.59, 0.42, 50.3, 1 / 55
 
@@ -39,11 +38,11 @@ def _maxrss_mb() -> float:
 
 def _case(kind: str, n: int) -> dict:
     import numpy as np
-    from streams import shaker_stream
 
     from kernels.covariance import LocallyPeriodic
     from kernels.likelihood import log_marginal_likelihood, tune
     from kernels.pl_lssvm import pl_lssvm
+    from replay.streams import shaker_stream
 
     kernel = LocallyPeriodic(SIGMA1, SIGMA2, PSI)
     s = shaker_stream(n + 1, amplitude=10.0, seed=1)

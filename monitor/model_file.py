@@ -377,6 +377,24 @@ class AxisModel:
                                  physical_se=self.physical_se)
 
 
+def truth_model(meta, *, period: float = 1 / 55, budget: int = 50, forgetting: float = 0.996) -> AxisModel:
+    """The model of a simulated trial with its TRUE β (``meta.truth`` of a
+    :class:`~feedio.schema.TrialMeta` written by ``feedmon simulate``) and the thesis tracker
+    hyperparameters (Table 4.5: σ1 = 1.2 s, σ2 = 0.495, γ = 5.85) at the disturbance period ``period``
+    (s), dictionary budget ``budget`` and forgetting ``forgetting``: the monitor as it runs after a
+    perfect identification (tests, benchmarks)."""
+    truth = meta.truth
+    if truth is None:
+        raise ValueError(f"trial axis {meta.machine}/{meta.axis} carries no truth (only simulated trials do)")
+    return AxisModel(
+        machine=meta.machine, axis=meta.axis, form=meta.form, Ts=meta.Ts, beta=list(truth.beta), omega=truth.omega,
+        coulomb=truth.coulomb, loop_gain=meta.loop_gain, method="truth",
+        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": period},
+                              gamma=5.85, forgetting=forgetting, budget=budget),
+        provenance={"source": "simulated truth"},
+    )
+
+
 # ---------------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------------

@@ -18,11 +18,7 @@ from kernels.feed_drive import (
     simulate_free_run,
     validity_problems,
 )
-
-try:
-    from tests.streams import GAIN, TS, shaker_stream, simulate
-except ImportError:  # tests/ not a package
-    from streams import GAIN, TS, shaker_stream, simulate
+from replay.streams import GAIN, TS, shaker_stream, simulate
 
 PHYS = dict(inertia=120.0, damping=85.0, coulomb_pos=18.0, coulomb_neg=23.0)
 

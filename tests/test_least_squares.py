@@ -4,11 +4,7 @@ import numpy as np
 import pytest
 
 from kernels.least_squares import least_squares, validate_regression
-
-try:
-    from tests.streams import shaker_stream, simulate
-except ImportError:
-    from streams import shaker_stream, simulate
+from replay.streams import shaker_stream, simulate
 
 
 @pytest.mark.parametrize("form", ["velocity-loop", "force-input"])

@@ -7,11 +7,7 @@ from scipy.linalg import block_diag
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
 from kernels.likelihood import default_bounds, log_evidence, log_marginal_likelihood, reml_terms, tune
 from kernels.pl_lssvm import pl_lssvm
-
-try:
-    from tests.streams import shaker_stream
-except ImportError:
-    from streams import shaker_stream
+from replay.streams import shaker_stream
 
 THESIS = (0.59, 0.42, 50.3)
 PSI = 1 / 55

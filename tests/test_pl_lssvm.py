@@ -6,11 +6,7 @@ import pytest
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
 from kernels.least_squares import least_squares
 from kernels.pl_lssvm import pl_lssvm
-
-try:
-    from tests.streams import shaker_stream, simulate
-except ImportError:
-    from streams import shaker_stream, simulate
+from replay.streams import shaker_stream, simulate
 
 THESIS_KERNEL = LocallyPeriodic(0.59, 0.42, 1 / 55)
 GAMMA = 50.3

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from feedio.mcapio import read_trial
-from monitor.model_file import AxisModel, TrackerConfig, save_model
+from monitor.model_file import save_model, truth_model
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
@@ -18,15 +18,7 @@ def make_trial(path: Path, duration: float, seed: int, scenario: str = "shaker-c
 
 def model_from_truth(trial: Path, path: Path, *, period: float = 1 / 55, budget: int = 50) -> Path:
     """Model file with the trial's TRUE β and the thesis tracker hyperparameters (Table 4.5)."""
-    m = read_trial(trial).meta
-    save_model(AxisModel(
-        machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
-        coulomb=m.truth.coulomb, loop_gain=m.loop_gain, method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": period},
-                              gamma=5.85, forgetting=0.996, budget=budget),
-        provenance={"source": "simulated truth (test)"},
-    ), path)
-    return path
+    return save_model(truth_model(read_trial(trial).meta, period=period, budget=budget), path)
 
 
 def truth_workdir(tmp_path_factory, name: str, *, duration: float, seed: int, budget: int = 50) -> Path:

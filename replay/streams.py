@@ -1,4 +1,8 @@
-"""Synthetic feed-drive streams from the exact discrete model (method §1), for tests and benchmarks.
+"""Synthetic feed-drive streams from the exact discrete model (method §1), for the tests and benchmarks of
+the estimators: ``y = Zβ + f + ε`` holds exactly, so an estimator is checked against the very β and f
+that made the data, as arrays. (:mod:`replay.simulator` makes trial files instead: the closed loop with
+the friction on the true velocity and measurement noise, scenarios, drifting constants; its data satisfy
+the model exactly only without noise.)
 
 The simulated plant is the exact ZOH recursion of method §1,
 
