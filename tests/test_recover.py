@@ -210,6 +210,28 @@ def test_recover_healthy_file_is_lossless(tmp_path, simulated, capsys):
     assert meta[RECOVER_METADATA_NAME]["bytes_dropped"] == "0"
 
 
+def test_recover_healthy_file_of_another_zstd_level_keeps_its_content(tmp_path, simulated, capsys):
+    """A file whose chunks another writer compressed at zstd level 3 (mcap's default; feedmon writes 1):
+    recover rewrites it at its own level with the same records — schemas, channels, metadata, chunk
+    times, messages — and says nothing was lost."""
+    from feedio.mcapio import TrialWriter, iter_blocks
+
+    src = simulated("shaker-constant", seed=2, duration=3.0)
+    tr = read_trial(src)
+    level3 = tmp_path / "level3.mcap"
+    with TrialWriter(level3, tr.meta, start="2024-05-01T08:00:00Z", compression_level=3) as w:
+        for kind, block in iter_blocks(src, kinds=("samples", "truth")):
+            if kind == "samples":
+                w.write_samples(block)
+            else:
+                w.write_truth(block, tr.meta.machine, tr.meta.axis)
+    capsys.readouterr()
+    out = tmp_path / "copy.mcap"
+    assert main(["recover", str(level3), "-o", str(out)]) == 0
+    assert "nothing lost" in capsys.readouterr().out
+    assert _records(out) == _records(level3)
+
+
 def test_recover_summary_lost_keeps_all_messages(tmp_path, simulated):
     """Cut inside the summary section: every message is still there."""
     src = simulated("shaker-constant", seed=1, duration=3.0)
