@@ -107,8 +107,8 @@ MAX_MESSAGE_BYTES = 16 * 2**20
 MAX_PENDING_BYTES = 64 * 2**20
 #: zstd level of the chunks. Level 1, not mcap's 3: on an estimates log (``run --from``, 822 bytes of JSON
 #: per sample) it compresses 2.0× faster (1.6 against 3.3 µs per sample) and smaller (ratio 3.4 against
-#: 3.2). ``feedmon recover`` writes with the same writer and level, so it rewrites a healthy file byte
-#: for byte
+#: 3.2). ``feedmon recover`` writes with the same writer and level: a healthy file written by feedmon comes
+#: out byte for byte, one compressed at another level (an older feedmon, other tools) with the same records
 ZSTD_LEVEL = 1
 #: blocks of other axes buffered while reading several axes in one pass, merged by time
 #: (replay, run --from); files whose axes are not interleaved in time beyond this are refused

@@ -219,7 +219,7 @@ class _Copier:
         from feedio.mcapio import ZSTD_LEVEL
         from feedio.mcapwriter import McapWriter
 
-        # the trial writer's own writer and zstd level: a healthy chunk comes out as it went in
+        # the trial writer's own writer and zstd level: a healthy chunk feedmon wrote comes out as it went in
         self.writer = McapWriter(stream, chunk_size=chunk_size, compression={"none": ""}.get(compression, compression),
                                  compression_level=ZSTD_LEVEL, enable_data_crcs=True)
         self.writer.start(profile=header.profile, library=header.library)
