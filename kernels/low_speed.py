@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LowSpeedFriction", "low_speed_friction", "MIN_GAIN", "MAX_SHARE", "GRID"]
+__all__ = ["LowSpeedFriction", "low_speed_friction", "MIN_GAIN", "MAX_SHARE", "GRID", "SPAN"]
 
 #: log-likelihood gain Δℓ (LS2) from which the effect counts
 MIN_GAIN = 25.0
@@ -47,6 +47,8 @@ MIN_GAIN = 25.0
 MAX_SHARE = 0.25
 #: points of the v_s grid
 GRID = 40
+#: the law departs below SPAN · v_s (there the hump (LS1) is e^(−SPAN²) = e⁻⁴ ≈ 2 % of its height)
+SPAN = 2.0
 
 
 @dataclass(frozen=True)
@@ -58,15 +60,20 @@ class LowSpeedFriction:
                           #: (+: more than the law, a Stribeck rise; −: less, a gradual onset)
     se: float             #: its standard error
     gain: float           #: Δℓ (LS2)
-    share: float          #: share of the moving samples with |v| < 2 v_s
+    share: float          #: share of the moving samples slower than :attr:`speed`
     significant: bool     #: gain ≥ min_gain
     local: bool           #: share ≤ max_share
 
     @property
+    def speed(self) -> float:
+        """``SPAN · v_s`` = 2 v_s (m/s): below it the friction departs from the law."""
+        return SPAN * self.v_s
+
+    @property
     def min_speed(self) -> float:
-        """The speed (m/s) below which the friction law does not hold: ``2 v_s`` when the effect is
+        """The speed (m/s) below which the monitor does not learn β: :attr:`speed` when the effect is
         significant and local, else 0 (the law holds down to the dead band)."""
-        return 2.0 * self.v_s if (self.significant and self.local) else 0.0
+        return self.speed if (self.significant and self.local) else 0.0
 
 
 def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max_share: float = MAX_SHARE,
@@ -112,6 +119,6 @@ def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max
     if best is None:
         return None
     vs, gain, a, se = best
-    share = float(np.sum(moving & (np.abs(v) < 2.0 * vs)) / moving.sum())
+    share = float(np.sum(moving & (np.abs(v) < SPAN * vs)) / moving.sum())
     return LowSpeedFriction(v_s=vs, amplitude=a, se=se, gain=gain, share=share, significant=gain >= min_gain,
                             local=share <= max_share)

@@ -922,7 +922,7 @@ def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str])
     else:
         size = f"{'above' if check.amplitude > 0 else 'below'} (by {abs(check.amplitude):.3g} m/s per sample; give " \
                "--loop-gain for N)"
-    what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {2 * check.v_s:.3g} m/s "
+    what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {check.speed:.3g} m/s "
             f"the friction is {size} the law (log-likelihood gain {check.gain:.0f})")
     if check.local:
         notes.append(f"{what}; the monitor learns β only above min_speed = {check.min_speed:.3g} m/s "
