@@ -179,7 +179,8 @@ def open_session(
 
     Close it with ``session.close()`` (or use it as a context manager).
     Raises ``OSError`` when Zenoh cannot listen (port in use) or, in client mode,
-    cannot reach any ``connect`` endpoint; ``ValueError`` for bad configuration.
+    cannot reach any ``connect`` endpoint (its ``parameters`` names ``listen`` or ``connect``, as a
+    :class:`~kernels.errors.ParameterError` does); ``ValueError`` for bad configuration.
     """
     if config is None:
         config = zenoh_config(
@@ -193,12 +194,15 @@ def open_session(
         return zenoh.open(config)
     except zenoh.ZError as exc:
         msg = str(exc).split(" at /", 1)[0].strip()  # drop the Rust source location
-        hint = ""
+        hint, parameters = "", ()
         if "connect" in msg.lower():
-            hint = " (is the monitor or router running there? check --connect)"
+            hint, parameters = " (is the monitor or router running there? check the connect endpoints)", ("connect",)
         elif "bind" in msg.lower() or "address" in msg.lower() or "listen" in msg.lower():
-            hint = " (is another monitor already listening on that port? use --listen)"
-        raise OSError(f"cannot open Zenoh session: {msg}{hint}") from None
+            hint, parameters = (" (is another monitor already listening on that port? listen on another endpoint)",
+                                ("listen",))
+        err = OSError(f"cannot open Zenoh session: {msg}{hint}")
+        err.parameters = parameters  # the argument to change, as on a kernels.errors.ParameterError (the CLI's hint)
+        raise err from None
 
 
 # ---- command line ----------------------------------------------------------------------------

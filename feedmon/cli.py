@@ -49,8 +49,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, OSError) as exc:  # user-facing errors: say what and how to fix
-        print(f"feedmon {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:  # user-facing errors: say what and how to fix (+ the flags)
+        from .errors import report
+
+        report(exc, args.command)
         return 2
 
 

@@ -20,6 +20,7 @@ _EXPORTS = {
     "Kernel": "covariance", "LocallyPeriodic": "covariance", "Periodic": "covariance", "Product": "covariance",
     "SquaredExponential": "covariance",
     "EstimateFlag": "flags",
+    "ParameterError": "errors",
 }
 
 __all__ = list(_EXPORTS)

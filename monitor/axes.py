@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from feedio import schema as S
+from kernels.errors import ParameterError
 
 from .estimator import AxisEstimator
 from .model_file import AxisModel, file_sha256, load_model
@@ -37,7 +38,7 @@ def load_axes(model_paths: Sequence[str | os.PathLike], config=None) -> dict[tup
     :class:`feedmon.run_config.RunConfig`): its ``tracker``/``adaptation``/``health`` overrides
     replace the model files' settings (:func:`monitor.online_settings.apply_overrides`)."""
     if not model_paths:
-        raise ValueError("at least one --model file is needed")
+        raise ParameterError("model_paths is empty: give at least one model file", "model_paths")
     axes: dict[tuple[str, str], AxisRuntime] = {}
     for p in model_paths:
         path = Path(p)
@@ -46,7 +47,7 @@ def load_axes(model_paths: Sequence[str | os.PathLike], config=None) -> dict[tup
             try:
                 model = apply_overrides(model, config.tracker, config.adaptation, config.health)
             except ValueError as exc:
-                raise ValueError(f"model file {path}: {exc}") from None
+                raise ParameterError(f"model file {path}, with the overrides of config: {exc}", "config") from None
         for what in ("machine", "axis"):  # the names a message must carry (feedio.schema): else no block could match
             try:
                 S.check_name(getattr(model, what), f"model {what}")

@@ -54,6 +54,7 @@ import numpy as np
 
 from feedio import schema as S
 from feedio.limits import DEFAULT, InputLimits
+from kernels.errors import ParameterError
 
 from .axes import AxisRuntime
 from .pipeline import Estimated, Pipeline
@@ -201,8 +202,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
         has_truth = {(m, a) for (m, a) in metas if f"/{m}/{a}/truth" in f.channels}
     missing = [f"{m}/{a}" for (m, a) in axes if (m, a) not in present]
     if missing:
-        raise ValueError(f"{trial} has no axis {', '.join(missing)} (axes present: "
-                         f"{', '.join(f'{m}/{a}' for m, a in present) or 'none'}); check the --model files")
+        raise ParameterError(f"{trial} has no axis {', '.join(missing)} (axes present: "
+                             f"{', '.join(f'{m}/{a}' for m, a in present) or 'none'}); check the model files of axes",
+                             "axes")
     skipped = [f"{m}/{a}" for (m, a) in present if (m, a) not in axes]
     out_metas = []
     for key, meta in metas.items():

@@ -34,6 +34,7 @@ import msgspec
 
 from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel
+from kernels.errors import ParameterError
 from kernels.health import HealthConfig
 from kernels.spindle_phase import spindle_phase_kernel
 
@@ -318,13 +319,16 @@ def _merged(current, override) -> Any:
 
 
 def apply_overrides(model, tracker: TrackerOverride | None = None, adaptation=None, health=None):
-    """``model`` (an :class:`~monitor.model_file.AxisModel`) with the ``--config`` overrides applied
+    """``model`` (an :class:`~monitor.model_file.AxisModel`) with the overrides applied (``feedmon run --config``)
     (a copy; None or empty overrides: the model itself). ``ValueError`` when the result breaks a
-    cross-field rule (e.g. health.clear < warn < alarm), naming the setting."""
+    cross-field rule (e.g. health.clear < warn < alarm), naming the setting
+    (a :class:`~kernels.errors.ParameterError` naming ``adaptation`` or ``health``)."""
     import copy
 
-    if not any(o is not None and any(v is not None for v in msgspec.structs.asdict(o).values())
-               for o in (tracker, adaptation, health)):
+    def given(o) -> bool:
+        return o is not None and any(v is not None for v in msgspec.structs.asdict(o).values())
+
+    if not any(given(o) for o in (tracker, adaptation, health)):
         return model
     m = copy.deepcopy(model)
     if tracker is not None:
@@ -344,6 +348,8 @@ def apply_overrides(model, tracker: TrackerOverride | None = None, adaptation=No
                                 else online.adaptation,
                                 health=_merged(online.health, health) if health is not None else online.health)
     except (msgspec.ValidationError, ValueError) as exc:
-        raise ValueError(f"--config overrides for {m.machine}/{m.axis}: {exc}") from None
+        names = tuple(name for name, o in (("adaptation", adaptation), ("health", health)) if given(o))
+        names = names or ("adaptation", "health")
+        raise ParameterError(f"the {'/'.join(names)} overrides for {m.machine}/{m.axis}: {exc}", *names) from None
     m.online = online
     return m

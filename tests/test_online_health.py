@@ -355,4 +355,6 @@ def test_config_overrides_reach_every_axis_and_are_checked(shaker, simulated, tm
     bad = _config(tmp_path / "bad2.toml", "[run.health]\nalarm = 4.0\n")
     assert main(["run", "--from", str(trial), "-o", str(tmp_path / "y.mcap"), "--model", str(model),
                  "--config", str(bad)]) == 2
-    assert "clear < warn < alarm" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "clear < warn < alarm" in err and "the health overrides for " in err
+    assert err.rstrip().endswith("(command line: --config)")

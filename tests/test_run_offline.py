@@ -58,7 +58,9 @@ def test_offline_errors_are_clear(work, capsys, tmp_path):
     other = tmp_path / "y.model.toml"
     other.write_text((work / "z.model.toml").read_text().replace('axis = "Z"', 'axis = "Y"'))
     assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap", "--model", other) == 2
-    assert "has no axis linear-drive/Y" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "has no axis linear-drive/Y" in err and err.rstrip().endswith("check the model files of axes "
+                                                                         "(command line: --model)")
     assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap", "--model", tmp_path / "none.toml") == 2
     assert "model file not found" in capsys.readouterr().err
     assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap") == 2

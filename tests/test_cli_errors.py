@@ -1,0 +1,40 @@
+"""style.md, library vs CLI: library errors name parameters (:class:`kernels.errors.ParameterError`);
+the CLI adds the flags from one table (:mod:`feedmon.errors`)."""
+
+from __future__ import annotations
+
+import pickle
+
+import pytest
+
+from feedmon.cli import COMMANDS, main
+from feedmon.errors import FLAGS, describe
+from kernels.errors import ParameterError
+from monitor.axes import load_axes
+
+
+def test_describe_adds_the_flags_of_the_command():
+    exc = ParameterError("period and spindle_rpm both give the disturbance period; give one of them",
+                         "period", "spindle_rpm")
+    assert describe(exc, "identify") == (f"{exc} (command line: --period, --spindle-rpm)")
+    assert describe(exc, "replay") == str(exc)  # replay has no such options: no hint
+    assert describe(ValueError("plain"), "identify") == "plain"
+    err = OSError("cannot open Zenoh session: refused")
+    err.parameters = ("connect",)  # as feedio.transport.open_session raises it
+    assert describe(err, "status") == "cannot open Zenoh session: refused (command line: --connect)"
+    assert set(FLAGS) <= set(COMMANDS)
+
+
+def test_parameter_error_is_a_value_error_and_survives_pickling():
+    exc = ParameterError("rate must be > 0", "rate")
+    assert isinstance(exc, ValueError) and exc.parameters == ("rate",)
+    back = pickle.loads(pickle.dumps(exc))  # e.g. from an offline worker process
+    assert type(back) is ParameterError and str(back) == "rate must be > 0" and back.parameters == ("rate",)
+
+
+def test_run_without_models(capsys):
+    with pytest.raises(ParameterError, match="^model_paths is empty: give at least one model file$") as err:
+        load_axes([])
+    assert err.value.parameters == ("model_paths",)
+    assert main(["run", "--from", "trial.mcap", "-o", "out.mcap"]) == 2
+    assert "--model" in capsys.readouterr().err
