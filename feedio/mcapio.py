@@ -60,6 +60,7 @@ import msgspec
 import numpy as np
 
 from feedio import schema as S
+from kernels.errors import ParameterError
 
 from .mcapfile import DEFAULT_LIMITS, Limits, McapFile, TrialFileError, json_depth
 from .mcapwriter import MESSAGE_HEADER, McapWriter
@@ -756,19 +757,21 @@ class Trial:
     def window(self, start: float | None = None, end: float | None = None) -> Trial:
         """The samples with ``start ≤ t − t₀ < end`` (s from the first sample; None: the record's
         start or end), and the truth of the same sequence numbers. Raises ``ValueError`` naming the
-        parameter when the window is empty or ``start ≥ end``."""
+        parameter when the window is empty or ``start ≥ end`` (a :class:`~kernels.errors.ParameterError`)."""
         if start is None and end is None:
             return self
         for name, x in (("start", start), ("end", end)):
             if x is not None and not (math.isfinite(x) and x >= 0.0):
-                raise ValueError(f"window {name} must be a time ≥ 0 s from the trial's first sample, got {x!r}")
+                raise ParameterError(f"window {name} must be a time ≥ 0 s from the trial's first sample, got {x!r}",
+                                     name)
         if start is not None and end is not None and not start < end:
-            raise ValueError(f"window start ({start:g} s) must come before its end ({end:g} s)")
+            raise ParameterError(f"window start ({start:g} s) must come before its end ({end:g} s)", "start", "end")
         rel = self.t - self.t[0] if self.t.size else self.t
         keep = (rel >= (start or 0.0)) & (rel < (math.inf if end is None else end))
         if not keep.any():
-            raise ValueError(f"{self.path}: no sample between {start or 0.0:g} s and "
-                             f"{'the end' if end is None else f'{end:g} s'} (the trial lasts {float(rel[-1]):.6g} s)")
+            raise ParameterError(f"{self.path}: no sample between {start or 0.0:g} s and "
+                                 f"{'the end' if end is None else f'{end:g} s'} (the trial lasts "
+                                 f"{float(rel[-1]):.6g} s)", "start", "end")
         idx = np.flatnonzero(keep)
         cols = {k: None if getattr(self, k) is None else getattr(self, k)[idx]
                 for k in ("seq", *S.SAMPLE_COLUMNS)}

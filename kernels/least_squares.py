@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
+from .errors import ParameterError
+
 __all__ = ["LSResult", "least_squares", "validate_regression", "MIN_EXTRA_SAMPLES", "RANK_RTOL"]
 
 #: Samples required beyond the number of estimated coefficients (residual degrees of freedom).
@@ -88,9 +90,9 @@ def validate_regression(Z, y, names=None, *, intercept: bool = False):
         cols = ", ".join(repr(names[j]) for j in zero)
         hints = [_COULOMB_HINT[names[j]] for j in zero if names[j] in _COULOMB_HINT]
         if hints:
-            raise ValueError(
+            raise ParameterError(
                 f"regressor column(s) {cols} are all zero: {'; '.join(hints)}. No speed reversal: "
-                "drop the Coulomb columns (coulomb=False / --no-coulomb) or record a trial with reversals")
+                "drop the Coulomb columns (coulomb=False) or record a trial with reversals", "coulomb")
         raise ValueError(f"regressor column(s) {cols} are all zero; the coefficients cannot be identified")
     cols = [Z / norms]
     all_names = list(names)
@@ -108,13 +110,16 @@ def validate_regression(Z, y, names=None, *, intercept: bool = False):
                f"{', '.join(repr(x) for x in involved)} are collinear, so their coefficients are not identifiable")
         if {"-sigma_p", "-sigma_n"} <= set(involved):
             msg += ("; every sample is outside the dead band ±Ω, so −σ_p − σ_n is constant: set a dead band "
-                    "omega > 0 that covers the samples at rest, or drop the Coulomb columns (coulomb=False / --no-coulomb)")
+                    "omega > 0 that covers the samples at rest, or drop the Coulomb columns (coulomb=False)")
+            parameters: tuple[str, ...] = ("omega", "coulomb")
         elif set(involved) & set(_COULOMB_HINT):
             msg += ("; the trial has motion in one direction only: drop the Coulomb columns "
-                    "(coulomb=False / --no-coulomb) or record a trial with reversals")
+                    "(coulomb=False) or record a trial with reversals")
+            parameters = ("coulomb",)
         else:
             msg += "; drop one of them or record a trial with richer excitation"
-        raise ValueError(msg)
+            parameters = ()
+        raise ParameterError(msg, *parameters) if parameters else ValueError(msg)
     return Z, y, names
 
 

@@ -29,7 +29,7 @@ multiples 2ψ and 3ψ are tried on the likelihood (:func:`_harmonic_alternatives
 more fitted hyperparameter. With a given (or spindle) period the detected one is tuned too. When it is
 valid and its evidence exceeds the best candidate at the given period (or on the spindle's phase) by
 ``SUGGEST_MARGIN``, the output says so and names it (``period_suggested``), but a period the user gave
-(``--period``, ``--spindle-rpm``) is kept. A spindle speed read from the samples or the trial's
+(``period``, ``spindle_rpm``) is kept. A spindle speed read from the samples or the trial's
 metadata is only a presumption: when the detected period beats every spindle-locked candidate by that
 margin, the disturbance does not follow the spindle, the detected period competes like any other
 (source "detected") and the tracker runs on time, not on the spindle's angle.
@@ -84,6 +84,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels import LocallyPeriodic, SquaredExponential
+from kernels.errors import ParameterError
 from kernels.feed_drive import (
     COULOMB_Z,
     beta_to_physical,
@@ -156,15 +157,20 @@ def dead_band(v_meas: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------------
 # periods
 # ------------------------------------------------------------------------------------------------
-def _check_period(psi: float, what: str, Ts: float, duration: float) -> float:
+def _check_period(psi: float, what: str, Ts: float, duration: float, parameter: str | None = None) -> float:
+    """``psi`` checked against the record; ``parameter``: the argument it comes from (the error is then
+    a :class:`~kernels.errors.ParameterError` naming it), None for a period read from the trial."""
+    def bad(message: str) -> ValueError:
+        return ValueError(message) if parameter is None else ParameterError(message, parameter)
+
     if not (math.isfinite(psi) and psi > 0):
-        raise ValueError(f"{what} must give a positive period in s, got {psi!r}")
+        raise bad(f"{what} must give a positive period in s, got {psi!r}")
     if psi < 2.0 * Ts:
-        raise ValueError(f"{what}: period {psi:.6g} s is shorter than two samples (Ts = {Ts:.6g} s); "
-                         "a disturbance that fast cannot be seen at this sample rate")
+        raise bad(f"{what}: period {psi:.6g} s is shorter than two samples (Ts = {Ts:.6g} s); "
+                  "a disturbance that fast cannot be seen at this sample rate")
     if psi > MAX_PERIOD_FRACTION * duration:
-        raise ValueError(f"{what}: period {psi:.6g} s is longer than half the record ({duration:.6g} s); "
-                         "a periodic disturbance needs at least two periods in the trial")
+        raise bad(f"{what}: period {psi:.6g} s is longer than half the record ({duration:.6g} s); "
+                  "a periodic disturbance needs at least two periods in the trial")
     return float(psi)
 
 
@@ -176,15 +182,16 @@ def periods_in_play(trial, period: float | None = None, spindle_rpm: float | Non
     one in the data ("detected").
     """
     if period is not None and spindle_rpm is not None:
-        raise ValueError("--period and --spindle-rpm both give the disturbance period; give one of them")
+        raise ParameterError("period and spindle_rpm both give the disturbance period; give one of them",
+                             "period", "spindle_rpm")
     Ts = float(trial.meta.Ts)
     duration = len(trial.t) * Ts
     if period is not None:
-        return [_check_period(float(period), "--period", Ts, duration)], "given"
+        return [_check_period(float(period), "period", Ts, duration, "period")], "given"
     if spindle_rpm is not None:
         if not (math.isfinite(spindle_rpm) and spindle_rpm > 0):
-            raise ValueError(f"--spindle-rpm must be positive, got {spindle_rpm!r}")
-        return [_check_period(60.0 / spindle_rpm, "--spindle-rpm", Ts, duration)], "spindle"
+            raise ParameterError(f"spindle_rpm must be positive, got {spindle_rpm!r}", "spindle_rpm")
+        return [_check_period(60.0 / spindle_rpm, "spindle_rpm", Ts, duration, "spindle_rpm")], "spindle"
     meta_rpm = trial.meta.spindle_rpm
     if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0:
         return [_check_period(60.0 / meta_rpm, "trial metadata spindle_rpm", Ts, duration)], "spindle"
@@ -674,17 +681,21 @@ def identify(
     note; ``coulomb=True`` insists (and fails on a trial without reversal with the kernels' rank
     error). ``omega=None`` estimates the dead band with :func:`dead_band`. ``method``: "auto",
     "ls" or "pl-lssvm". ``progress(label, evaluations, values, ll, best)`` is called while tuning.
+    A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
+    the flag, :mod:`feedmon.errors`).
     """
     started = time.perf_counter()
     if method not in ("auto", "ls", "pl-lssvm"):
-        raise ValueError(f"--method must be auto, ls or pl-lssvm, got {method!r}")
+        raise ParameterError(f"method must be 'auto', 'ls' or 'pl-lssvm', got {method!r}", "method")
     meta = trial.meta
     form = form or meta.form
     Ts = float(meta.Ts)
+    if form not in ("velocity-loop", "force-input"):
+        raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
     if form == "force-input":
         if trial.u is None:
-            raise ValueError(f"{trial.path}: the force-input form needs a force command 'u', which the trial lacks; "
-                             "use --form velocity-loop")
+            raise ParameterError(f"{trial.path}: the force-input form needs a force command 'u', which the trial "
+                                 "lacks; use form='velocity-loop'", "form")
         exo, exo_name = trial.u, "u"
     else:
         exo, exo_name = trial.v_ref, "v_ref"
@@ -694,26 +705,26 @@ def identify(
         raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
                          f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
     if v.size - 1 > MAX_SAMPLES:
-        raise ValueError(f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
-                         f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the "
-                         "kernel candidates costs O(N²)); identify a window of the trial (feedmon identify --start/--end, s "
-                         "from its first sample; Trial.window), e.g. a stretch that holds the motion and the disturbance "
-                         "of interest")
+        raise ParameterError(
+            f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
+            f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the kernel "
+            "candidates costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first "
+            "sample), e.g. a stretch that holds the motion and the disturbance of interest", "start", "end")
     steps = np.diff(trial.seq)
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
         raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
     psis, psi_source = periods_in_play(trial, period, spindle_rpm)
-    for name, value in (("--sigma1", sigma1), ("--sigma2", sigma2), ("--gamma", gamma)):
+    for name, value in (("sigma1", sigma1), ("sigma2", sigma2), ("gamma", gamma)):
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
+            raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
 
     gain = loop_gain if loop_gain is not None else meta.loop_gain
     if form == "force-input":
         gain = None
     omega_used = dead_band(v) if omega is None else float(omega)
     if not (math.isfinite(omega_used) and omega_used >= 0):
-        raise ValueError(f"--omega must be a finite number ≥ 0 (m/s), got {omega!r}")
+        raise ParameterError(f"omega must be a finite number ≥ 0 (m/s), got {omega!r}", "omega")
     notes: list[str] = []
     n_pos = int(np.sum(v[:-1] > omega_used))
     n_neg = int(np.sum(v[:-1] < -omega_used))
@@ -728,9 +739,9 @@ def identify(
         coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
         if coulomb_used and not reversal:
             empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
-            raise ValueError(f"--coulomb: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω), "
-                             f"so the Coulomb column {empty!r} cannot be identified; use --no-coulomb (or leave the "
-                             "choice to identify) or record a trial with reversals")
+            raise ParameterError(f"coulomb=True: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} "
+                                 f"below −Ω), so the Coulomb column {empty!r} cannot be identified; use coulomb=False "
+                                 "(or None: identify chooses) or record a trial with reversals", "coulomb")
     if not coulomb_used and coulomb is None:
         notes.append(coulomb_note)
     rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES

@@ -12,6 +12,7 @@ from trial_edit import rewrite_samples
 
 from feedio.mcapio import iter_blocks, read_trial
 from feedmon.cli import main
+from kernels.errors import ParameterError
 from monitor.identify import MAX_SAMPLES, identify
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
@@ -293,9 +294,10 @@ def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identi
     path = simulated("shaker-control", seed=3, duration=185.0)  # 61 605 samples at 333 Hz
     code, doc, err = run_identify(path)
     assert code == 2 and doc is None
-    assert f"({MAX_SAMPLES} samples" in err and "--start/--end" in err
+    assert f"({MAX_SAMPLES} samples" in err and "trial.window(start, end)" in err
+    assert err.rstrip().endswith("(command line: --start, --end)")
     code, _, err = run_identify(path, "--start", 40, "--end", 30)
-    assert code == 2 and "--start/--end: window start (40 s) must come before its end (30 s)" in err
+    assert code == 2 and "window start (40 s) must come before its end (30 s) (command line: --start, --end)" in err
     code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
     assert code == 0, err
     assert any(n.startswith("identified on the window 5 … 34.99") for n in doc["ls"]["notes"])
@@ -389,7 +391,30 @@ def test_clear_errors(simulated, capsys):
     assert "shorter than two samples" in capsys.readouterr().err
     assert main(["identify", str(simulated("milling-inc")), "--coulomb"]) == 2
     err = capsys.readouterr().err
-    assert "-sigma_n" in err and "--no-coulomb" in err
+    assert "-sigma_n" in err and "use coulomb=False" in err and "(command line: --coulomb/--no-coulomb)" in err
+    assert main(["identify", str(trial), "--period", "1e-5"]) == 2
+    assert capsys.readouterr().err.rstrip().endswith("(command line: --period)")
+
+
+@pytest.mark.parametrize(("kwargs", "parameter", "flag", "text"), [
+    ({"omega": -1.0}, "omega", "--omega", "omega must be a finite number ≥ 0 (m/s), got -1.0"),
+    ({"period": 1e-5}, "period", "--period", "period: period 1e-05 s is shorter than two samples"),
+    ({"spindle_rpm": -5.0}, "spindle_rpm", "--spindle-rpm", "spindle_rpm must be positive, got -5.0"),
+    ({"sigma2": 0.0}, "sigma2", "--sigma2", "sigma2 must be a positive number, got 0.0"),
+])
+def test_a_bad_argument_names_the_parameter_and_the_cli_names_the_flag(simulated, capsys, kwargs, parameter, flag,
+                                                                        text):
+    """style.md, library vs CLI: identify() names its parameter (never a flag); ``feedmon identify`` with the
+    same bad value exits 2 with the same message and the flag that sets it."""
+    trial_path = simulated("shaker-control", duration=20.0)
+    with pytest.raises(ParameterError) as err:
+        identify(read_trial(trial_path), **kwargs)
+    assert err.value.parameters == (parameter,) and text in str(err.value) and "--" not in str(err.value)
+    assert isinstance(err.value, ValueError)  # existing `except ValueError` callers keep working
+    value = next(iter(kwargs.values()))
+    assert main(["identify", str(trial_path), flag, str(value), "--no-tune", "--method", "ls"]) == 2
+    out = capsys.readouterr().err
+    assert out.startswith("feedmon identify: error: ") and text in out and f"(command line: {flag})" in out
 
 
 def test_a_failing_periodic_tune_stops_the_squared_exponential_one(simulated):

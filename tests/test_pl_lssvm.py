@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
+from kernels.errors import ParameterError
 from kernels.least_squares import least_squares
 from kernels.pl_lssvm import pl_lssvm
 from replay.streams import shaker_stream, simulate
@@ -168,8 +169,9 @@ def test_errors():
 def test_no_reversal_error_names_coulomb_column():
     s = simulate(1600, seed=3, reversals=False)
     reg = s.regression()
-    with pytest.raises(ValueError, match=r"'-sigma_n'.*No speed reversal.*coulomb=False / --no-coulomb"):
+    with pytest.raises(ParameterError, match=r"'-sigma_n'.*No speed reversal.*\(coulomb=False\)") as err:
         pl_lssvm(reg.Z, reg.y, THESIS_KERNEL, GAMMA, Ts=s.Ts, names=reg.names)
+    assert err.value.parameters == ("coulomb",) and "--" not in str(err.value)
     s2 = simulate(1600, seed=3, reversals=False, coulomb=False)
     reg2 = s2.regression()
     res = pl_lssvm(reg2.Z, reg2.y, THESIS_KERNEL, GAMMA, Ts=s2.Ts)
