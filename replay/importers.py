@@ -15,6 +15,7 @@ import numpy as np
 
 from feedio import schema as S
 from feedio.digest import file_sha256
+from kernels.errors import ParameterError
 
 __all__ = [
     "ImportedTrial",
@@ -76,7 +77,7 @@ def load_emps(path, *, rate: int = 333, cutoff: float = 100.0, order: int = 4) -
 
     path = Path(path)
     if rate not in (333, 1000):
-        raise ValueError(f"--rate must be 333 or 1000 (Hz), got {rate}")
+        raise ParameterError(f"rate must be 333 or 1000 (Hz), got {rate!r}", "rate")
     if not path.is_file():
         raise OSError(f"EMPS file {path} not found; {EMPS_HOWTO}")
     try:
@@ -194,6 +195,7 @@ FIELD_DIMENSION = {
 
 
 def _parse_pairs(text: str | None, what: str) -> dict[str, str]:
+    """``"k=v,k=v"`` (fields of :data:`FIELD_DIMENSION`) as a dict; errors name the parameter ``what``."""
     out: dict[str, str] = {}
     if not text:
         return out
@@ -202,10 +204,10 @@ def _parse_pairs(text: str | None, what: str) -> dict[str, str]:
         if not part:
             continue
         if "=" not in part:
-            raise ValueError(f"{what}: {part!r} is not FIELD=VALUE (e.g. t=time)")
+            raise ParameterError(f"{what}: {part!r} is not FIELD=VALUE (e.g. t=time)", what)
         k, v = (s.strip() for s in part.split("=", 1))
         if k not in FIELD_DIMENSION:
-            raise ValueError(f"{what}: unknown field {k!r}; fields: {', '.join(FIELD_DIMENSION)}")
+            raise ParameterError(f"{what}: unknown field {k!r}; fields: {', '.join(FIELD_DIMENSION)}", what)
         out[k] = v
     return out
 
@@ -235,19 +237,22 @@ def read_csv_trial(
     column (default SI). ``Ts`` defaults to the median time step.
     """
     path = Path(path)
-    mapping = _parse_pairs(mapping, "--map") if isinstance(mapping, str) else dict(mapping)
-    units = _parse_pairs(units, "--units") if isinstance(units, str) or units is None else dict(units)
+    mapping = _parse_pairs(mapping, "mapping") if isinstance(mapping, str) else dict(mapping)
+    units = _parse_pairs(units, "units") if isinstance(units, str) or units is None else dict(units)
     if form not in ("velocity-loop", "force-input"):
-        raise ValueError(f"--form must be velocity-loop or force-input, got {form!r}")
+        raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
     need = ["t", "v_meas"] + (["v_ref"] if form == "velocity-loop" else ["u"])
     lacking = [f for f in need if f not in mapping]
     if lacking:
-        raise ValueError(f"--map must give the column of {', '.join(lacking)} for the {form} form")
+        raise ParameterError(f"mapping must give the column of {', '.join(lacking)} for the {form} form", "mapping")
     for field, unit in units.items():
+        if field not in FIELD_DIMENSION:
+            raise ParameterError(f"units: unknown field {field!r}; fields: {', '.join(FIELD_DIMENSION)}", "units")
         if unit not in UNIT_FACTORS:
-            raise ValueError(f"--units {field}={unit}: unknown unit; known: {', '.join(UNIT_FACTORS)}")
+            raise ParameterError(f"units {field}={unit}: unknown unit; known: {', '.join(UNIT_FACTORS)}", "units")
         if UNIT_FACTORS[unit][0] != FIELD_DIMENSION[field]:
-            raise ValueError(f"--units {field}={unit}: {unit} is a {UNIT_FACTORS[unit][0]} unit, {field} needs a {FIELD_DIMENSION[field]} unit")
+            raise ParameterError(f"units {field}={unit}: {unit} is a {UNIT_FACTORS[unit][0]} unit, {field} needs a "
+                                 f"{FIELD_DIMENSION[field]} unit", "units")
     try:
         fh = open(path, newline="", encoding="utf-8-sig")
     except OSError as exc:

@@ -6,9 +6,10 @@ import pytest
 
 from feedio.mcapio import read_trial
 from feedmon.cli import main
+from kernels.errors import ParameterError
 from kernels.feed_drive import beta_to_physical, regressors
 from kernels.least_squares import least_squares
-from replay.importers import EMPS_REFERENCE, read_csv_trial
+from replay.importers import EMPS_REFERENCE, load_emps, read_csv_trial
 
 OMEGA = 1e-3  # Coulomb dead band for the EMPS (m/s)
 
@@ -103,6 +104,36 @@ def test_csv_missing_column_lists_available(tmp_path, capsys):
         read_csv_trial(src, "t=time,v_ref=vr,v_meas=vm", "v_meas=N")
     with pytest.raises(ValueError, match="must give the column of u"):
         read_csv_trial(src, "t=time,v_meas=vm", form="force-input")
+
+
+@pytest.mark.parametrize(("kwargs", "parameter", "flag", "text"), [
+    ({"units": "v_meas=parsec"}, "units", "--units", "units v_meas=parsec: unknown unit; known: s, ms"),
+    ({"units": "v_meas=N"}, "units", "--units", "units v_meas=N: N is a force unit, v_meas needs a velocity unit"),
+    ({"mapping": "t=time,v_meas=vm"}, "mapping", "--map", "mapping must give the column of v_ref for the "
+                                                          "velocity-loop form"),
+    ({"mapping": "t=time,speed=vm"}, "mapping", "--map", "mapping: unknown field 'speed'; fields: t, v_ref"),
+    ({"form": "force-input"}, "mapping", "--map", "mapping must give the column of u for the force-input form"),
+])
+def test_a_bad_argument_names_the_parameter_and_the_cli_names_the_flag(tmp_path, capsys, kwargs, parameter, flag,
+                                                                        text):
+    """style.md, library vs CLI: read_csv_trial names its parameter (never a flag); ``feedmon import csv`` with
+    the same bad option exits 2 with the same message and the flag."""
+    src = tmp_path / "ctl.csv"
+    src.write_text(CSV)
+    args = {"mapping": "t=time,v_ref=vr,v_meas=vm", "units": None, "form": "velocity-loop"} | kwargs
+    with pytest.raises(ParameterError) as err:
+        read_csv_trial(src, args["mapping"], args["units"], form=args["form"])
+    assert err.value.parameters == (parameter,) and text in str(err.value) and "--" not in str(err.value)
+    argv = ["import", "csv", str(src), "-o", str(tmp_path / "o.mcap"), "--map", args["mapping"], "--form", args["form"]]
+    assert main(argv + (["--units", args["units"]] if args["units"] else [])) == 2
+    out = capsys.readouterr().err
+    assert out.startswith("feedmon import: error: ") and text in out and f"(command line: {flag})" in out
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def test_emps_rate_names_the_parameter(tmp_path):
+    with pytest.raises(ParameterError, match=r"^rate must be 333 or 1000 \(Hz\), got 500$"):
+        load_emps(tmp_path / "DATA_EMPS.mat", rate=500)
     bad = tmp_path / "bad.csv"
     bad.write_text("time,vr,vm\n0,1,1\n1,x,1\n2,1,1\n")
     with pytest.raises(ValueError, match=r"line 3, column 'vr' \(for v_ref\): 'x' is not a number"):
