@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
@@ -124,6 +125,8 @@ def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, conso
     from monitor.sinks.rerun_process import RerunProcessSink
     from replay.player import replay
 
+    from .replay_cmd import ProgressBar
+
     axes = load_axes([model_path])
     warm_up(axes)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -138,7 +141,8 @@ def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, conso
         monitor.start()
         console.print(f"[3/5] monitor listening on {endpoint}")
         client = open_session(connect=endpoint)
-        stats = replay(trial_path, client, rate=rate, progress=sys.stderr.isatty(), wait_for_subscriber=10.0)
+        with ProgressBar(trial_path) if sys.stderr.isatty() else contextlib.nullcontext() as bar:
+            stats = replay(trial_path, client, rate=rate, progress=bar, wait_for_subscriber=10.0)
         console.print(f"[4/5] replayed {stats.samples} samples at {rate:g}× in {stats.wall_time:.1f} s")
         ax = next(iter(axes.values()))
         deadline = time.monotonic() + 30.0

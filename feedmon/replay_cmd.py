@@ -15,9 +15,45 @@ By default the replay is a Zenoh peer connecting to the monitor's endpoint
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 
 from feedio.transport import add_zenoh_arguments, session_from_args
+
+
+class ProgressBar:
+    """The replay's rich progress bar, fed by :func:`replay.player.replay`'s ``progress(sent, total)``
+    callback: it appears when sending starts (the first call) and stays when the ``with`` block ends."""
+
+    def __init__(self, path) -> None:
+        self._name = os.path.basename(os.fspath(path))
+        self._bar = None
+        self._task = None
+
+    def __call__(self, sent: int, total: int | None) -> None:
+        if self._bar is None:
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
+            self._bar = Progress(TextColumn("[bold]replay[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("samples"), TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+            self._bar.start()
+            self._task = self._bar.add_task(self._name, total=total)
+        self._bar.update(self._task, completed=sent)
+
+    def __enter__(self) -> ProgressBar:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._bar.stop()
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -61,18 +97,19 @@ def run(args: argparse.Namespace) -> int:
     interactive = sys.stdout.isatty() and not args.quiet
     session = session_from_args(args)
     try:
-        stats = replay(
-            args.trial,
-            session,
-            rate=rate,
-            block=args.block,
-            loop=True if args.loop else (args.passes or 1),
-            prefix=args.prefix,
-            progress=interactive,
-            axis=args.axis,
-            truth=not args.no_truth,
-            wait_for_subscriber=args.wait,
-        )
+        with ProgressBar(args.trial) if interactive else contextlib.nullcontext() as bar:
+            stats = replay(
+                args.trial,
+                session,
+                rate=rate,
+                block=args.block,
+                loop=True if args.loop else (args.passes or 1),
+                prefix=args.prefix,
+                progress=bar,
+                axis=args.axis,
+                truth=not args.no_truth,
+                wait_for_subscriber=args.wait,
+            )
     finally:
         session.close()
     if not stats.matched:

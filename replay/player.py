@@ -51,7 +51,7 @@ import itertools
 import math
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,6 +61,7 @@ import zenoh
 from feedio import schema as S
 from feedio.mcapio import iter_axes, iter_file, list_axes
 from feedio.transport import DEFAULT_PREFIX, samples_key, truth_key
+from kernels.errors import ParameterError
 
 __all__ = ["ReplayStats", "replay", "scan_trial", "TrialScan"]
 
@@ -253,32 +254,6 @@ def _pass_stream(path: str, scan: TrialScan, block: int | None, k: int,
 
 
 # ---- replay ----------------------------------------------------------------------------------
-def _progress(enabled: bool, total: int | None, path: str):
-    if not enabled:
-        return None
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    p = Progress(
-        TextColumn("[bold]replay[/] {task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("samples"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        transient=False,
-    )
-    p.start()
-    task = p.add_task(os.path.basename(path), total=total)
-    return p, task
-
-
 def replay(
     path: str | os.PathLike,
     session: zenoh.Session,
@@ -287,7 +262,7 @@ def replay(
     block: int | None = None,
     loop: bool | int = False,
     prefix: str = DEFAULT_PREFIX,
-    progress: bool = False,
+    progress: Callable[[int, int | None], None] | None = None,
     axis: str | None = None,
     truth: bool = True,
     wait_for_subscriber: float = 0.0,
@@ -303,6 +278,11 @@ def replay(
     axis' samples key before starting. ``stop``: a ``threading.Event`` that ends the
     replay early. Ctrl-C also ends it; both set ``interrupted``.
 
+    ``progress(sent, total)`` is called with the samples sent so far and the samples of the whole
+    replay (None when looping forever): ``(0, total)`` when sending starts (after the wait for a
+    subscriber), then after each sample block. It runs on the sending thread, so it must be quick
+    (``feedmon replay`` draws its progress bar with it).
+
     Raises ``ValueError`` (incl. :class:`feedio.mcapio.TrialFileError`) for a bad
     file or arguments, ``OSError`` if it cannot be read.
     """
@@ -310,9 +290,9 @@ def replay(
     if rate is not None and math.isinf(rate):
         rate = None
     if rate is not None and not rate > 0:
-        raise ValueError(f"rate must be > 0 (or use --max), got {rate}")
+        raise ParameterError(f"rate must be > 0 (or None: as fast as possible), got {rate}", "rate")
     if block is not None and block < 1:
-        raise ValueError(f"block must be at least 1 sample, got {block}")
+        raise ParameterError(f"block must be at least 1 sample, got {block}", "block")
     if loop is True:
         passes: int | None = None
     elif loop is False:
@@ -320,7 +300,10 @@ def replay(
     else:
         passes = int(loop)
         if passes < 1:
-            raise ValueError(f"loop must be True/False or a number of passes ≥ 1, got {loop}")
+            raise ParameterError(f"loop must be True/False or a number of passes ≥ 1, got {loop}", "loop")
+    if progress is not None and not callable(progress):
+        raise ParameterError(f"progress must be a callable progress(sent, total) or None, got {progress!r}",
+                             "progress")
     if not os.path.exists(path):
         raise FileNotFoundError(f"trial file {path!r} does not exist")
 
@@ -345,7 +328,6 @@ def replay(
             declared.append(pubs[(name, "truth")])
 
     kinds = _KINDS if truth else ("samples",)
-    bar = None
     try:
         deadline = time.monotonic() + max(0.0, wait_for_subscriber)
         sample_pubs = [pubs[(a, "samples")] for a in scan.axes]
@@ -364,7 +346,8 @@ def replay(
                 time.sleep(0.01)
 
         total = None if passes is None else scan.total_samples * passes
-        bar = _progress(progress, total, path)
+        if progress is not None:
+            progress(0, total)
         start = time.monotonic()
         last_put = start
         for k in itertools.count() if passes is None else range(passes):
@@ -387,8 +370,8 @@ def replay(
                 if kind == "samples":
                     stats.blocks += 1
                     stats.samples += len(b.t)
-                    if bar is not None:
-                        bar[0].advance(bar[1], len(b.t))
+                    if progress is not None:
+                        progress(stats.samples, total)
                 else:
                     stats.truth_blocks += 1
                     stats.truth_samples += len(b.t)
@@ -401,8 +384,6 @@ def replay(
         stats.interrupted = True
         stats.wall_time = time.monotonic() - start if "start" in locals() else 0.0
     finally:
-        if bar is not None:
-            bar[0].stop()
         for p in declared:
             try:
                 p.undeclare()

@@ -12,6 +12,7 @@ import pytest
 from feedio import schema as S
 from feedio import transport as T
 from feedio.mcapio import TrialWriter
+from kernels.errors import ParameterError
 from replay.player import ReplayStats, _reblock, replay, scan_trial
 
 TS = 1.0 / 333.0
@@ -146,15 +147,64 @@ def test_replay_max_is_faster_and_reblocks_and_loops(trial, sessions):
     assert "feedmon/mill/Y/samples" not in col.by_key
 
 
+def test_replay_progress_callback_counts_up_to_the_total(trial, sessions):
+    """``progress(sent, total)``: (0, total) when sending starts, then after every sample block a growing
+    count, ending at the total (two axes, two passes, re-cut into blocks of 7)."""
+    mon, pub, _ = sessions
+    col = Collector(mon)
+    calls: list[tuple[int, int | None]] = []
+    try:
+        stats = replay(trial, pub, rate=None, block=7, loop=2, truth=False, wait_for_subscriber=WAIT,
+                       progress=lambda sent, total: calls.append((sent, total)))
+        col.wait({"feedmon/mill/X/samples": 2 * N, "feedmon/mill/Y/samples": 2 * N})
+    finally:
+        col.close()
+    total = 2 * 2 * N
+    assert stats.samples == total and stats.blocks == 2 * 2 * math.ceil(N / 7)
+    assert calls[0] == (0, total) and calls[-1] == (total, total)
+    assert len(calls) == stats.blocks + 1 and {t for _, t in calls} == {total}
+    steps = [b[0] - a[0] for a, b in zip(calls, calls[1:])]
+    assert all(0 < d <= 7 for d in steps) and sum(steps) == total
+
+
+def test_cli_progress_bar_is_fed_by_the_callback(trial, sessions, capsys):
+    """``feedmon replay``'s rich bar (:class:`feedmon.replay_cmd.ProgressBar`) as the library's callback: it
+    ends at every sample of the replay."""
+    from feedmon.replay_cmd import ProgressBar
+
+    mon, pub, _ = sessions
+    col = Collector(mon)
+    try:
+        with ProgressBar(trial) as bar:
+            stats = replay(trial, pub, rate=None, axis="X", truth=False, wait_for_subscriber=WAIT, progress=bar)
+        col.wait({"feedmon/mill/X/samples": N})
+    finally:
+        col.close()
+    out = capsys.readouterr().out
+    assert stats.samples == N and "replay trial.mcap" in out and f"{N}/{N} samples" in out
+
+
+def test_replay_bad_arguments_name_the_parameter(trial, sessions):
+    _, pub, _ = sessions
+    for kwargs, name in (({"rate": 0.0}, "rate"), ({"block": 0}, "block"), ({"loop": 0}, "loop"),
+                         ({"progress": True}, "progress")):
+        with pytest.raises(ParameterError, match=f"^{name} must be") as err:
+            replay(trial, pub, **kwargs)
+        assert err.value.parameters == (name,) and "--" not in str(err.value)
+
+
 def test_replay_stop_event_and_no_subscriber(trial, sessions):
     _, pub, _ = sessions
     stop = threading.Event()
     threading.Timer(0.2, stop.set).start()
     t0 = time.monotonic()
-    stats = replay(trial, pub, rate=1.0, loop=True, prefix="nobody", wait_for_subscriber=0.05, stop=stop)
+    calls: list[tuple[int, int | None]] = []
+    stats = replay(trial, pub, rate=1.0, loop=True, prefix="nobody", wait_for_subscriber=0.05, stop=stop,
+                   progress=lambda sent, total: calls.append((sent, total)))
     assert time.monotonic() - t0 < WAIT
     assert stats.interrupted and not stats.matched and stats.passes == 0
     assert 0 < stats.samples < 2 * N
+    assert calls[0] == (0, None) and calls[-1] == (stats.samples, None)  # looping forever: no total
 
 
 def test_reblock_never_glues_across_a_gap():
@@ -191,6 +241,8 @@ def test_cli_errors_are_clear(tmp_path, capsys):
     rc = main(["replay", str(tmp_path / "missing.mcap"), "--connect", f"tcp/127.0.0.1:{T.free_tcp_port()}"])
     err = capsys.readouterr().err
     assert rc == 2 and "feedmon replay: error:" in err
+    # nothing listens there: the library names its parameter, the CLI adds the flag
+    assert "check the connect endpoints) (command line: --connect)" in err
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"not an mcap file at all")
     port = T.free_tcp_port()
