@@ -38,3 +38,30 @@ def test_run_without_models(capsys):
     assert err.value.parameters == ("model_paths",)
     assert main(["run", "--from", "trial.mcap", "-o", "out.mcap"]) == 2
     assert "--model" in capsys.readouterr().err
+
+
+def test_no_library_error_names_a_flag():
+    """Every ``raise`` in kernels/, feedio/, monitor/, replay/ words its message without a command-line flag
+    (the CLI's argparse helpers in feedio.transport excepted: they are the CLI's own code)."""
+    import ast
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    cli_helpers = {("feedio/transport.py", "config_from_args"), ("feedio/transport.py", "add_zenoh_arguments")}
+    flag = re.compile(r"(?<![\w-])--[a-z]")
+    found = []
+    for package in ("kernels", "feedio", "monitor", "replay"):
+        for path in sorted((root / package).rglob("*.py")):
+            rel = path.relative_to(root).as_posix()
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            for func in [n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)]:
+                if (rel, func.name) in cli_helpers:
+                    continue
+                for node in ast.walk(func):
+                    if isinstance(node, ast.Raise) and node.exc is not None:
+                        for const in ast.walk(node.exc):
+                            if isinstance(const, ast.Constant) and isinstance(const.value, str) \
+                                    and flag.search(const.value):
+                                found.append(f"{rel}:{node.lineno}: {const.value!r}")
+    assert not found, "\n".join(found)
