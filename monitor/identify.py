@@ -683,205 +683,62 @@ def identify(
     "ls" or "pl-lssvm". ``progress(label, evaluations, values, ll, best)`` is called while tuning.
     A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
     the flag, :mod:`feedmon.errors`).
+
+    The steps, in order (each one function below):
+
+    1. the signals, checked (:func:`_signals`), and the periods in play (:func:`periods_in_play`);
+    2. the friction columns: dead band Ω, Coulomb kept or dropped, rest or not (:func:`_friction_columns`);
+    3. the regression shared by all candidates and its LS candidate (:class:`_Problem`);
+    4. the periods to tune at: given, the spindle's, else found in the LS residual (:func:`_periods_to_try`);
+    5. the kernel candidates, tuned by REML (:func:`_kernel_candidates`, :func:`_spindle_candidates`);
+    6. with a given or spindle period, the period found in the data, tuned and weighed against it
+       (:func:`_detected_alternative`, :func:`_weigh_alternative`);
+    7. validity rule 2 (:func:`_efficiency_check`), the choice (:func:`_choose`), the fits and the
+       low-speed check (:func:`_low_speed_check`).
     """
     started = time.perf_counter()
-    if method not in ("auto", "ls", "pl-lssvm"):
-        raise ParameterError(f"method must be 'auto', 'ls' or 'pl-lssvm', got {method!r}", "method")
-    meta = trial.meta
-    form = form or meta.form
-    Ts = float(meta.Ts)
-    if form not in ("velocity-loop", "force-input"):
-        raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
-    if form == "force-input":
-        if trial.u is None:
-            raise ParameterError(f"{trial.path}: the force-input form needs a force command 'u', which the trial "
-                                 "lacks; use form='velocity-loop'", "form")
-        exo, exo_name = trial.u, "u"
-    else:
-        exo, exo_name = trial.v_ref, "v_ref"
-    v = trial.v_meas
-    bad = ~(np.isfinite(v) & np.isfinite(exo))
-    if bad.any():
-        raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
-                         f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
-    if v.size - 1 > MAX_SAMPLES:
-        raise ParameterError(
-            f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
-            f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the kernel "
-            "candidates costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first "
-            "sample), e.g. a stretch that holds the motion and the disturbance of interest", "start", "end")
-    steps = np.diff(trial.seq)
-    if steps.size and np.any(steps != 1):
-        k = int(np.argmax(steps != 1))
-        raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    form, exo, exo_name = _signals(trial, form, method)
+    Ts, v = float(trial.meta.Ts), trial.v_meas
     psis, psi_source = periods_in_play(trial, period, spindle_rpm)
     for name, value in (("sigma1", sigma1), ("sigma2", sigma2), ("gamma", gamma)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
-
-    gain = loop_gain if loop_gain is not None else meta.loop_gain
-    if form == "force-input":
-        gain = None
-    omega_used = dead_band(v) if omega is None else float(omega)
-    if not (math.isfinite(omega_used) and omega_used >= 0):
-        raise ParameterError(f"omega must be a finite number ≥ 0 (m/s), got {omega!r}", "omega")
+    gain = None if form == "force-input" else (loop_gain if loop_gain is not None else trial.meta.loop_gain)
     notes: list[str] = []
-    n_pos = int(np.sum(v[:-1] > omega_used))
-    n_neg = int(np.sum(v[:-1] < -omega_used))
-    reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES
-    if coulomb is None:
-        coulomb_used = reversal
-        coulomb_note = ("Coulomb columns kept (trial reverses direction)" if reversal else
-                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω); "
-                        "the constant column holds the friction of the direction of motion")
-    else:
-        coulomb_used = bool(coulomb)
-        coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
-        if coulomb_used and not reversal:
-            empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
-            raise ParameterError(f"coulomb=True: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} "
-                                 f"below −Ω), so the Coulomb column {empty!r} cannot be identified; use coulomb=False "
-                                 "(or None: identify chooses) or record a trial with reversals", "coulomb")
-    if not coulomb_used and coulomb is None:
-        notes.append(coulomb_note)
-    rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES
-    if coulomb_used and not rest:
-        notes.append("the trial has no rest (only passes through ±Ω during reversals): the Coulomb asymmetry "
-                     "cannot be told from the force offset — coulomb_pos = coulomb_neg = the symmetric Coulomb "
-                     "friction, and offset holds asymmetry + offset")
+    omega_used, coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega, coulomb, notes)
 
     reg = regressors(form, v, v_ref=trial.v_ref if form == "velocity-loop" else None,
                      u=trial.u if form == "force-input" else None, omega=omega_used, coulomb=coulomb_used,
                      intercept=True)
     T, id_names = friction_transform(reg.names, rest)
     prob = _Problem(form, Ts, gain, reg.names, T, reg.Z @ T, id_names, reg.y, exo, v, omega_used, coulomb_used)
-    n = prob.n
-    duration = n * Ts
-
+    duration = prob.n * Ts
     ls_c = prob.candidate("ls", None, None, None, {}, 0)
-    candidates = [ls_c]
     init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
             "gamma": gamma or THESIS_DEFAULTS["gamma"]}
+    se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
 
-    # periods: given / spindle, else detected in the LS residual; for a given period, a check
-    ls_resid = reg.y - reg.Z @ ls_c.beta
-    ref = trial.v_ref[:-1] if trial.v_ref is not None and np.all(np.isfinite(trial.v_ref)) else None
-    try:
-        detected, motion = detect_periods(ls_resid, Ts, reference=ref)
-    except ValueError:
-        detected, motion = [], None
-    detected = [d for d in detected if 2.0 * Ts <= d.period <= min(duration / MIN_CYCLES, MAX_PERIOD_FRACTION * duration)]
-    suggested = None
-    k_period = 0
-    if not psis and detected:
-        psis, psi_source, k_period = [detected[0].period], "detected", 1
-        notes.append(f"period ψ = {detected[0].period:.6g} s found in the LS residual (harmonic-sum score "
-                     f"{detected[0].score:.0f} over {detected[0].harmonics} harmonics)")
-    elif not psis:
-        notes.append("no periodic disturbance found in the LS residual" +
-                     (f" (the motion itself repeats every {motion:.4g} s)" if motion else "") +
-                     "; give --period or --spindle-rpm if there is one")
-    if motion is not None and psi_source in ("given", "spindle"):
-        for psi in psis:
-            if harmonically_related(psi, motion, max_ratio=4):
-                notes.append(f"ψ = {psi:.6g} s is locked to the motion, which repeats every {motion:.4g} s: a "
-                             "disturbance with that period cannot be told from the drive's response to the motion")
-
+    psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z @ ls_c.beta, Ts, duration,
+                                                           psis, psi_source, notes)
     tuned_kw = dict(tune=tune, progress=progress)
-    if tune:  # it depends on no other candidate: tuned on a second thread beside the periodic ones
-        se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
-        beside = _TunedBeside(prob, "squared_exponential", None, se_init, k_extra=0, label="squared exponential",
-                              **tuned_kw)
-    else:
-        beside = contextlib.nullcontext()
-        notes.append("--no-tune: the squared-exponential candidate has no given or thesis hyperparameters "
-                     "and is left out")
-    periodic, final_psis = [], []
-    with beside:
-        for psi in psis:
-            cand = prob.tuned("locally_periodic", psi, init, k_extra=k_period,
-                              label=f"locally periodic ψ = {psi:.6g} s", **tuned_kw)
-            if psi_source == "detected" and tune:
-                cand = _harmonic_alternatives(prob, cand, psi, duration, progress)
-            periodic.append(cand)
-            zero_init = dict(cand.hyperparameters) if tune else init
-            periodic.append(prob.tuned("locally_periodic_zero_mean", cand.period, zero_init,
-                                       k_extra=cand.k - 3 if tune else k_period,
-                                       label=f"zero-mean locally periodic ψ = {cand.period:.6g} s", refine=True,
-                                       **tuned_kw))
-            final_psis.append(cand.period)
-        if tune:
-            candidates.append(beside.result())  # listed before the periodic ones, as when tuned in turn
-    candidates += periodic
-    psis = final_psis
-    unused = []
-    alt = None  # the detected period's candidate when the period came from elsewhere
-    if psi_source in ("given", "spindle") and detected:
-        found = detected[0]
-        if not any(abs(psi - found.period) <= 0.02 * found.period for psi in psis):
-            alt = prob.tuned("locally_periodic", found.period, init, k_extra=1,
-                             label=f"locally periodic ψ = {found.period:.6g} s", **tuned_kw)
-            why = _efficiency_check(alt, ls_c)
-            if why:
-                alt.valid, alt.why_not = False, why if alt.why_not is None else f"{alt.why_not}; {why}"
-
+    kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, duration,
+                                                 notes, **tuned_kw)
+    candidates = [ls_c, *kernel_candidates]
+    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, **tuned_kw)
     candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
-
-    off_spindle = False
+    off_spindle, suggested, unused = False, None, []
     if alt is not None:
-        locked = max((c for c in candidates if c.kernel in PERIODIC_KINDS or c.kernel == "spindle"),
-                     key=lambda c: c.log_evidence)
-        margin = alt.log_evidence - locked.log_evidence
-        # a speed read from the samples or the trial's metadata is a presumption about the disturbance, not
-        # the user's word: when the data clearly prefer another period, the disturbance does not follow the
-        # spindle (a shaker, a pump, a neighbouring machine) and that period competes like any other
-        teeth = int(trial.meta.teeth or 1)
-        # a (folded) harmonic of the spindle line follows the spindle: the periodic kernel at ψ has it
-        related = psi_source == "spindle" and any(sampled_harmonic(alt.period, psi, Ts, max_harmonic=max(8, 2 * teeth))
-                                                  for psi in psis)
-        off_spindle = psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN and not related
+        off_spindle, suggested = _weigh_alternative(alt, candidates, trial, psis, psi_source, spindle_rpm, notes)
         if off_spindle:
-            notes.append(f"the disturbance does not follow the spindle: ψ = {alt.period:.6g} s, found in the data, "
-                         f"explains it better than every model locked to the spindle's speed (log evidence "
-                         f"{margin:+.1f} over the {locked.label}); that period competes like any other, and the "
-                         "tracker runs on time, not on the spindle's angle")
             psi_source, psis = "detected", [alt.period]
         else:
-            if related:
-                notes.append(f"the line found at {1 / alt.period:.5g} Hz is a harmonic of the spindle's (as sampled, "
-                             "folded at half the sample rate): the spindle period explains it")
-            elif alt.valid and margin > SUGGEST_MARGIN:
-                suggested = alt.period
-                notes.append(f"the data prefer ψ = {alt.period:.6g} s to the {psi_source} period (log evidence "
-                             f"{margin:+.1f} over the {locked.label}); check the period (--period {alt.period:.6g})")
-            source = {"given": "--period", "spindle": "the spindle speed"}[psi_source]
-            alt.notes.append(f"ψ = {alt.period:.6g} s was found in the data; not a choice, the period comes from {source}")
-            alt.eligible = False
             unused.append(alt)
 
-    # validity rule 2: determined at least as well as LS
-    for c in candidates[1:]:
-        why = _efficiency_check(c, ls_c)
-        if why:
-            c.valid = False
-            c.why_not = why if c.why_not is None else f"{c.why_not}; {why}"
-    if off_spindle:  # checked above, with its own evidence of being in play
+    for c in candidates[1:]:  # validity rule 2: determined at least as well as LS
+        _invalidate(c, _efficiency_check(c, ls_c))
+    if off_spindle:  # checked in _detected_alternative, with its own evidence of being in play
         candidates.append(alt)
-
-    pool = {"auto": candidates, "ls": [ls_c], "pl-lssvm": candidates[1:]}[method]
-    valid = [c for c in pool if c.valid]
-    chosen = max(valid, key=lambda c: c.log_evidence) if valid else None
-    refusal = None
-    if chosen is None:
-        best = max(pool, key=lambda c: c.log_evidence) if pool else None
-        what = {"auto": "no candidate", "ls": "the LS model", "pl-lssvm": "no PL-LSSVM candidate"}[method]
-        refusal = f"{what} is a valid model of this drive" + (f": {best.label}: {best.why_not}" if best else "")
-    pl_pool = [c for c in candidates if c.method == "pl_lssvm"]
-    pl_best = None
-    if pl_pool:
-        pl_valid = [c for c in pl_pool if c.valid]
-        pl_best = max(pl_valid or pl_pool, key=lambda c: c.log_evidence)
-    written = chosen if chosen is not None else (max(pool, key=lambda c: c.log_evidence) if pool else None)
+    chosen, refusal, pl_best, written = _choose(candidates, method)
 
     ls_res = prob.fit(ls_c, exo_name)
     pl_res = prob.fit(pl_best, exo_name) if pl_best is not None else None
@@ -892,7 +749,6 @@ def identify(
         model_res = pl_res
     elif written is not None:
         model_res = prob.fit(written, exo_name)
-
     low_speed = _low_speed_check(prob, model_res, notes)
 
     periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
@@ -913,6 +769,221 @@ def identify(
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     return ident
+
+
+def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str]:
+    """Step 1: the input form (``form`` or the trial's) and its exogenous signal (``v_ref`` or ``u``)
+    with its name, after checking ``method``, ``form`` and the record: every sample finite, at most
+    :data:`MAX_SAMPLES`, no sequence gap."""
+    if method not in ("auto", "ls", "pl-lssvm"):
+        raise ParameterError(f"method must be 'auto', 'ls' or 'pl-lssvm', got {method!r}", "method")
+    form = form or trial.meta.form
+    if form not in ("velocity-loop", "force-input"):
+        raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
+    if form == "force-input":
+        if trial.u is None:
+            raise ParameterError(f"{trial.path}: the force-input form needs a force command 'u', which the trial "
+                                 "lacks; use form='velocity-loop'", "form")
+        exo, exo_name = trial.u, "u"
+    else:
+        exo, exo_name = trial.v_ref, "v_ref"
+    v = trial.v_meas
+    bad = ~(np.isfinite(v) & np.isfinite(exo))
+    if bad.any():
+        raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
+                         f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
+    if v.size - 1 > MAX_SAMPLES:
+        Ts = float(trial.meta.Ts)
+        raise ParameterError(
+            f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
+            f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the kernel "
+            "candidates costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first "
+            "sample), e.g. a stretch that holds the motion and the disturbance of interest", "start", "end")
+    steps = np.diff(trial.seq)
+    if steps.size and np.any(steps != 1):
+        k = int(np.argmax(steps != 1))
+        raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    return form, exo, exo_name
+
+
+def _friction_columns(v: np.ndarray, Ts: float, omega: float | None, coulomb: bool | None,
+                      notes: list[str]) -> tuple[float, bool, str, bool]:
+    """Step 2: the dead band Ω used (``omega`` or :func:`dead_band`), whether the Coulomb columns are kept
+    (``coulomb``, or when the trial reverses direction), the note saying why, and whether the trial rests
+    (the Coulomb asymmetry can then be told from the offset: :func:`kernels.feed_drive.friction_transform`)."""
+    omega_used = dead_band(v) if omega is None else float(omega)
+    if not (math.isfinite(omega_used) and omega_used >= 0):
+        raise ParameterError(f"omega must be a finite number ≥ 0 (m/s), got {omega!r}", "omega")
+    n_pos = int(np.sum(v[:-1] > omega_used))
+    n_neg = int(np.sum(v[:-1] < -omega_used))
+    reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES
+    if coulomb is None:
+        coulomb_used = reversal
+        coulomb_note = ("Coulomb columns kept (trial reverses direction)" if reversal else
+                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω); "
+                        "the constant column holds the friction of the direction of motion")
+        if not reversal:
+            notes.append(coulomb_note)
+    else:
+        coulomb_used = bool(coulomb)
+        coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
+        if coulomb_used and not reversal:
+            empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
+            raise ParameterError(f"coulomb=True: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} "
+                                 f"below −Ω), so the Coulomb column {empty!r} cannot be identified; use coulomb=False "
+                                 "(or None: identify chooses) or record a trial with reversals", "coulomb")
+    rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES
+    if coulomb_used and not rest:
+        notes.append("the trial has no rest (only passes through ±Ω during reversals): the Coulomb asymmetry "
+                     "cannot be told from the force offset — coulomb_pos = coulomb_neg = the symmetric Coulomb "
+                     "friction, and offset holds asymmetry + offset")
+    return omega_used, coulomb_used, coulomb_note, rest
+
+
+def _periods_to_try(trial, ls_resid: np.ndarray, Ts: float, duration: float, psis: list[float], psi_source: str,
+                    notes: list[str]) -> tuple[list[float], str, int, list]:
+    """Step 4: the periods the kernel candidates are tuned at, their source and ``k_period`` (1 when the
+    period was found in the data: one more fitted hyperparameter), and the periods found in the LS
+    residual ``ls_resid`` (within two samples and :data:`MAX_PERIOD_FRACTION` of the record). Without a
+    given or spindle period the strongest one found is used; notes say so, say when none is found, and
+    when a given period is locked to the motion."""
+    ref = trial.v_ref[:-1] if trial.v_ref is not None and np.all(np.isfinite(trial.v_ref)) else None
+    try:
+        detected, motion = detect_periods(ls_resid, Ts, reference=ref)
+    except ValueError:
+        detected, motion = [], None
+    detected = [d for d in detected if 2.0 * Ts <= d.period <= min(duration / MIN_CYCLES, MAX_PERIOD_FRACTION * duration)]
+    k_period = 0
+    if not psis and detected:
+        psis, psi_source, k_period = [detected[0].period], "detected", 1
+        notes.append(f"period ψ = {detected[0].period:.6g} s found in the LS residual (harmonic-sum score "
+                     f"{detected[0].score:.0f} over {detected[0].harmonics} harmonics)")
+    elif not psis:
+        notes.append("no periodic disturbance found in the LS residual" +
+                     (f" (the motion itself repeats every {motion:.4g} s)" if motion else "") +
+                     "; give --period or --spindle-rpm if there is one")
+    if motion is not None and psi_source in ("given", "spindle"):
+        for psi in psis:
+            if harmonically_related(psi, motion, max_ratio=4):
+                notes.append(f"ψ = {psi:.6g} s is locked to the motion, which repeats every {motion:.4g} s: a "
+                             "disturbance with that period cannot be told from the drive's response to the motion")
+    return psis, psi_source, k_period, detected
+
+
+def _kernel_candidates(prob: _Problem, psis: list[float], psi_source: str, k_period: int, init: dict,
+                       se_init: dict | None, duration: float, notes: list[str], *, tune: bool,
+                       progress) -> tuple[list[Candidate], list[float]]:
+    """Step 5: the squared-exponential candidate (tuned on a second thread, :class:`_TunedBeside`; listed
+    first) and, at each period, the locally periodic candidate (with its multiples when the period was
+    found in the data: :func:`_harmonic_alternatives`) followed by the zero-mean one, started from its
+    optimum. Returns the candidates and the periods they were tuned at."""
+    tuned_kw = dict(tune=tune, progress=progress)
+    if tune:  # it depends on no other candidate: tuned on a second thread beside the periodic ones
+        beside = _TunedBeside(prob, "squared_exponential", None, se_init, k_extra=0, label="squared exponential",
+                              **tuned_kw)
+    else:
+        beside = contextlib.nullcontext()
+        notes.append("--no-tune: the squared-exponential candidate has no given or thesis hyperparameters "
+                     "and is left out")
+    first, periodic, tuned_psis = [], [], []
+    with beside:
+        for psi in psis:
+            cand = prob.tuned("locally_periodic", psi, init, k_extra=k_period,
+                              label=f"locally periodic ψ = {psi:.6g} s", **tuned_kw)
+            if psi_source == "detected" and tune:
+                cand = _harmonic_alternatives(prob, cand, psi, duration, progress)
+            periodic.append(cand)
+            zero_init = dict(cand.hyperparameters) if tune else init
+            periodic.append(prob.tuned("locally_periodic_zero_mean", cand.period, zero_init,
+                                       k_extra=cand.k - 3 if tune else k_period,
+                                       label=f"zero-mean locally periodic ψ = {cand.period:.6g} s", refine=True,
+                                       **tuned_kw))
+            tuned_psis.append(cand.period)
+        if tune:
+            first.append(beside.result())  # listed before the periodic ones, as when tuned in turn
+    return first + periodic, tuned_psis
+
+
+def _detected_alternative(prob: _Problem, psis: list[float], psi_source: str, detected: list, init: dict,
+                          ls: Candidate, *, tune: bool, progress) -> Candidate | None:
+    """Step 6a: with a given or spindle period, the locally periodic candidate at the period found in the
+    data when it is more than 2 % from every period tuned (validity rule 2 applied), else None."""
+    if psi_source not in ("given", "spindle") or not detected:
+        return None
+    found = detected[0]
+    if any(abs(psi - found.period) <= 0.02 * found.period for psi in psis):
+        return None
+    alt = prob.tuned("locally_periodic", found.period, init, tune=tune, k_extra=1, progress=progress,
+                     label=f"locally periodic ψ = {found.period:.6g} s")
+    _invalidate(alt, _efficiency_check(alt, ls))
+    return alt
+
+
+def _weigh_alternative(alt: Candidate, candidates: list[Candidate], trial, psis: list[float], psi_source: str,
+                       spindle_rpm: float | None, notes: list[str]) -> tuple[bool, float | None]:
+    """Step 6b: ``(off_spindle, suggested)`` for the candidate at the period found in the data.
+
+    A speed read from the samples or the trial's metadata is a presumption about the disturbance, not the
+    user's word: when the data clearly prefer another period (by :data:`SUGGEST_MARGIN` over every
+    candidate locked to the spindle) that is not a (folded) harmonic of the spindle line, the disturbance
+    does not follow the spindle (a shaker, a pump, a neighbouring machine) and that period competes like
+    any other (``off_spindle``). Otherwise ``alt`` is listed but not eligible, and a period the user gave
+    is kept, with the better one named (``suggested``) when it is valid and wins by the margin."""
+    locked = max((c for c in candidates if c.kernel in PERIODIC_KINDS or c.kernel == "spindle"),
+                 key=lambda c: c.log_evidence)
+    margin = alt.log_evidence - locked.log_evidence
+    teeth = int(trial.meta.teeth or 1)
+    # a (folded) harmonic of the spindle line follows the spindle: the periodic kernel at ψ has it
+    related = psi_source == "spindle" and any(
+        sampled_harmonic(alt.period, psi, float(trial.meta.Ts), max_harmonic=max(8, 2 * teeth)) for psi in psis)
+    if psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN and not related:
+        notes.append(f"the disturbance does not follow the spindle: ψ = {alt.period:.6g} s, found in the data, "
+                     f"explains it better than every model locked to the spindle's speed (log evidence "
+                     f"{margin:+.1f} over the {locked.label}); that period competes like any other, and the "
+                     "tracker runs on time, not on the spindle's angle")
+        return True, None
+    suggested = None
+    if related:
+        notes.append(f"the line found at {1 / alt.period:.5g} Hz is a harmonic of the spindle's (as sampled, "
+                     "folded at half the sample rate): the spindle period explains it")
+    elif alt.valid and margin > SUGGEST_MARGIN:
+        suggested = alt.period
+        notes.append(f"the data prefer ψ = {alt.period:.6g} s to the {psi_source} period (log evidence "
+                     f"{margin:+.1f} over the {locked.label}); check the period (--period {alt.period:.6g})")
+    source = {"given": "--period", "spindle": "the spindle speed"}[psi_source]
+    alt.notes.append(f"ψ = {alt.period:.6g} s was found in the data; not a choice, the period comes from {source}")
+    alt.eligible = False
+    return False, suggested
+
+
+def _invalidate(cand: Candidate, why: str | None) -> None:
+    """Mark ``cand`` invalid for ``why`` (kept after any earlier reason); nothing when ``why`` is None."""
+    if why:
+        cand.valid = False
+        cand.why_not = why if cand.why_not is None else f"{cand.why_not}; {why}"
+
+
+def _choose(candidates: list[Candidate], method: str) -> tuple[Candidate | None, str | None, Candidate | None,
+                                                               Candidate | None]:
+    """Step 7: ``(chosen, refusal, pl_best, written)`` — the valid candidate of ``method``'s pool with the
+    highest evidence (None, with the refusal saying why, when none is valid), the best PL-LSSVM candidate
+    (the best valid one, else the best; for the report), and the candidate written to the model file (the
+    chosen one, else, for ``--force``, the best of the pool)."""
+    pool = {"auto": candidates, "ls": candidates[:1], "pl-lssvm": candidates[1:]}[method]
+    valid = [c for c in pool if c.valid]
+    chosen = max(valid, key=lambda c: c.log_evidence) if valid else None
+    refusal = None
+    if chosen is None:
+        best = max(pool, key=lambda c: c.log_evidence) if pool else None
+        what = {"auto": "no candidate", "ls": "the LS model", "pl-lssvm": "no PL-LSSVM candidate"}[method]
+        refusal = f"{what} is a valid model of this drive" + (f": {best.label}: {best.why_not}" if best else "")
+    pl_pool = [c for c in candidates if c.method == "pl_lssvm"]
+    pl_best = None
+    if pl_pool:
+        pl_valid = [c for c in pl_pool if c.valid]
+        pl_best = max(pl_valid or pl_pool, key=lambda c: c.log_evidence)
+    written = chosen if chosen is not None else (max(pool, key=lambda c: c.log_evidence) if pool else None)
+    return chosen, refusal, pl_best, written
 
 
 def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str]) -> LowSpeedFriction | None:
