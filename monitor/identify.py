@@ -83,6 +83,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from feedio.limits import PHYSICAL
 from kernels import LocallyPeriodic, SquaredExponential
 from kernels.feed_drive import (
     COULOMB_Z,
@@ -693,6 +694,14 @@ def identify(
     if bad.any():
         raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
                          f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
+    exo_max, exo_unit = (PHYSICAL.u_max, "N") if exo_name == "u" else (PHYSICAL.v_max, "m/s")
+    absurd = (np.abs(v) > PHYSICAL.v_max) | (np.abs(exo) > exo_max)
+    if absurd.any():  # (least squares would call such a column "collinear")
+        k = int(np.argmax(absurd))
+        raise ValueError(f"{trial.path}: {int(absurd.sum())} sample(s) with an absurd magnitude, first at seq "
+                         f"{int(trial.seq[k])} (v_meas = {v[k]:.6g} m/s, {exo_name} = {exo[k]:.6g} {exo_unit}; limits "
+                         f"{PHYSICAL.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
+                         "without it (--start/--end) or fix the file")
     if v.size - 1 > MAX_SAMPLES:
         raise ValueError(f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
                          f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the "
@@ -1088,7 +1097,8 @@ def _attach_truth(ident: Identification, trial) -> None:
                 continue
             if true_beta is not None:
                 n_cmp = 2 if not (ident.coulomb and truth_meta.coulomb) else true_beta.size - 1
-                rel = np.abs(res.beta[:n_cmp] - true_beta[:n_cmp]) / np.abs(true_beta[:n_cmp])
+                err = np.abs(res.beta[:n_cmp] - true_beta[:n_cmp])  # absolute where the true value is 0 (as below)
+                rel = np.divide(err, np.abs(true_beta[:n_cmp]), out=err.copy(), where=true_beta[:n_cmp] != 0)
                 doc[f"{key}_beta_rel_error"] = rel.tolist()
             errs = {}
             for name, value in res.physical.items():

@@ -331,6 +331,36 @@ def test_json_document_has_exactly_the_documented_shape(simulated):
     json.dumps(doc, allow_nan=False)  # strict JSON
 
 
+def test_json_is_strict_for_a_drive_without_coulomb_friction(tmp_path):
+    # a true β of 0 (no Coulomb friction) once gave a relative error of inf: `Infinity` in the JSON
+    # document (not JSON) and a RuntimeWarning on stderr
+    sc = load_scenario("shaker-control", {"drive": {"coulomb_pos": 0.0, "coulomb_neg": 0.0}}, duration=6.0)
+    trial = tmp_path / "frictionless.mcap"
+    write_trial(simulate(sc, seed=1), trial)
+    code, doc, err = run_identify(trial, "--method", "ls", "--coulomb")
+    assert code == 0 and doc["truth"]["physical"]["coulomb"] == 0.0
+    assert "RuntimeWarning" not in err
+    json.dumps(doc, allow_nan=False)  # strict JSON
+    assert all(math.isfinite(x) for x in doc["truth"]["ls_beta_rel_error"])
+
+
+def test_an_absurd_sample_is_named_not_called_collinear(simulated, tmp_path):
+    # one v_ref of 1e300 m/s (a unit or recording fault) once ended in "columns 'v_ref' are collinear"
+    import msgspec
+
+    def spike(b):
+        v = list(b.v_ref)
+        if b.seq <= 250 < b.seq + len(v):
+            v[250 - b.seq] = 1e300
+        return msgspec.structs.replace(b, v_ref=v)
+
+    bad = rewrite_samples(simulated("shaker-control", duration=6.0), tmp_path / "spike.mcap", spike)
+    code, doc, err = run_identify(bad, "--method", "ls")
+    assert code == 2 and doc is None
+    assert "1 sample(s) with an absurd magnitude, first at seq 250" in err and "v_ref = 1e+300 m/s" in err
+    assert "collinear" not in err and "Traceback" not in err
+
+
 def test_without_loop_gain_only_ratios(simulated):
     trial = read_trial(simulated("shaker-control", duration=20.0))
     trial.meta.loop_gain = None
