@@ -720,6 +720,10 @@ def identify(
     gain = loop_gain if loop_gain is not None else meta.loop_gain
     if form == "force-input":
         gain = None
+    if gain is not None and not (math.isfinite(gain) and gain > 0):
+        what = "--loop-gain" if loop_gain is not None else f"{trial.path}: the trial's loop_gain"
+        raise ValueError(f"{what} must be a positive number (N·s/m), got {gain!r}; give the velocity-loop gain K "
+                         "(--loop-gain), or leave it out to identify J/K and B/K")
     omega_used = dead_band(v) if omega is None else float(omega)
     if not (math.isfinite(omega_used) and omega_used >= 0):
         raise ValueError(f"--omega must be a finite number ≥ 0 (m/s), got {omega!r}")

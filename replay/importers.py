@@ -243,6 +243,8 @@ def read_csv_trial(
     units = _parse_pairs(units, "--units") if isinstance(units, str) or units is None else dict(units)
     if form not in ("velocity-loop", "force-input"):
         raise ValueError(f"--form must be velocity-loop or force-input, got {form!r}")
+    if loop_gain is not None and not (np.isfinite(loop_gain) and loop_gain > 0):
+        raise ValueError(f"--loop-gain must be a positive number (N·s/m), got {loop_gain!r}")
     need = ["t", "v_meas"] + (["v_ref"] if form == "velocity-loop" else ["u"])
     lacking = [f for f in need if f not in mapping]
     if lacking:

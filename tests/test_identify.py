@@ -361,6 +361,15 @@ def test_an_absurd_sample_is_named_not_called_collinear(simulated, tmp_path):
     assert "collinear" not in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("gain", ["0", "-5", "nan"])
+def test_a_loop_gain_that_is_not_a_gain_is_refused(simulated, gain):
+    # --loop-gain 0 once ended in a ZeroDivisionError traceback, -5 in "Coulomb friction negative",
+    # nan in a model-file error after the whole identification
+    code, doc, err = run_identify(simulated("shaker-control", duration=6.0), "--method", "ls", "--loop-gain", gain)
+    assert code == 2 and doc is None and "Traceback" not in err
+    assert f"--loop-gain must be a positive number (N·s/m), got {float(gain)!r}" in err
+
+
 def test_without_loop_gain_only_ratios(simulated):
     trial = read_trial(simulated("shaker-control", duration=20.0))
     trial.meta.loop_gain = None

@@ -124,6 +124,8 @@ def test_csv_gap_other_rate_and_absurd_values_are_refused(tmp_path, capsys):
         read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", Ts=0.001)
     with pytest.raises(ValueError, match="--Ts must be a positive number of seconds, got -1"):
         read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", Ts=-1.0)
+    with pytest.raises(ValueError, match=r"--loop-gain must be a positive number \(N·s/m\), got 0\.0"):
+        read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", loop_gain=0.0)  # identify once divided by it
     big = tmp_path / "big.csv"
     big.write_text("time,vr,vm\n" + "".join(f"{k * 0.003:.6f},{'1e300' if k == 7 else '0.01'},0.0099\n" for k in range(20)))
     with pytest.raises(ValueError, match=r"big\.csv, line 9, column 'vr' \(for v_ref\): 1e\+300 \(1e\+300 m/s\) is "
