@@ -187,8 +187,9 @@ def periods_in_play(trial, period: float | None = None, spindle_rpm: float | Non
             raise ValueError(f"--spindle-rpm must be positive, got {spindle_rpm!r}")
         return [_check_period(60.0 / spindle_rpm, "--spindle-rpm", Ts, duration)], "spindle"
     meta_rpm = trial.meta.spindle_rpm
-    if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0:
-        return [_check_period(60.0 / meta_rpm, "trial metadata spindle_rpm", Ts, duration)], "spindle"
+    if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0 and (
+            2.0 * Ts <= 60.0 / meta_rpm <= MAX_PERIOD_FRACTION * duration):  # else as the samples' speeds below
+        return [60.0 / meta_rpm], "spindle"
     col = getattr(trial, "spindle_rpm", None)
     if col is not None:
         rpm = np.asarray(col, dtype=np.float64)
@@ -728,6 +729,12 @@ def identify(
     if not (math.isfinite(omega_used) and omega_used >= 0):
         raise ValueError(f"--omega must be a finite number ≥ 0 (m/s), got {omega!r}")
     notes: list[str] = []
+    meta_rpm = meta.spindle_rpm
+    if period is None and spindle_rpm is None and psi_source != "spindle" and meta_rpm and math.isfinite(meta_rpm):
+        notes.append(f"the spindle period 60/{meta_rpm:g} rpm = {60.0 / meta_rpm:.6g} s (trial metadata) is "
+                     + (f"shorter than two samples (Ts = {Ts:.6g} s): its lines are folded at half the sample rate"
+                        if 60.0 / meta_rpm < 2.0 * Ts else f"longer than half the record ({len(v) * Ts:.6g} s)")
+                     + "; not used as the disturbance period (give --period to insist on one)")
     n_pos = int(np.sum(v[:-1] > omega_used))
     n_neg = int(np.sum(v[:-1] < -omega_used))
     reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES

@@ -370,6 +370,20 @@ def test_a_loop_gain_that_is_not_a_gain_is_refused(simulated, gain):
     assert f"--loop-gain must be a positive number (N·s/m), got {float(gain)!r}" in err
 
 
+def test_a_spindle_too_fast_for_the_sample_rate_is_left_out_not_fatal(tmp_path):
+    # 19 000 rpm at 333 Hz: the spindle period (3.2 ms) is under two samples; the metadata speed once
+    # refused the trial outright, even with --method ls (the samples' speed column was already skipped)
+    sc = load_scenario("milling-dec", {"disturbance": {"spindle_rpm": 19000.0}}, duration=6.0)
+    trial = tmp_path / "fast-spindle.mcap"
+    write_trial(simulate(sc, seed=1), trial)
+    assert read_trial(trial).meta.spindle_rpm == 19000.0
+    code, doc, err = run_identify(trial, "--method", "ls")
+    assert code == 0 and doc["period"]["source"] != "spindle", err
+    assert any("60/19000 rpm = 0.00315789 s (trial metadata) is shorter than two samples" in n
+               for n in doc["ls"]["notes"])
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(1500.0, rel=0.05)
+
+
 def test_without_loop_gain_only_ratios(simulated):
     trial = read_trial(simulated("shaker-control", duration=20.0))
     trial.meta.loop_gain = None
