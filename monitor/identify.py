@@ -713,6 +713,11 @@ def identify(
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
         raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    dt = float(np.median(np.diff(trial.t))) if trial.t.size > 1 else Ts
+    if not math.isclose(dt, Ts, rel_tol=0.01):  # β, J, B are of the metadata's Ts: a wrong one scales them silently
+        raise ValueError(f"{trial.path}: the samples are {dt:.6g} s apart but the trial's metadata give Ts = {Ts:.6g} s; "
+                         "the model is of one sampling time — re-create the trial with the right one (feedmon import "
+                         "... --Ts)")
     psis, psi_source = periods_in_play(trial, period, spindle_rpm)
     for name, value in (("--sigma1", sigma1), ("--sigma2", sigma2), ("--gamma", gamma)):
         if value is not None and not (math.isfinite(value) and value > 0):

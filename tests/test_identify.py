@@ -384,6 +384,21 @@ def test_a_spindle_too_fast_for_the_sample_rate_is_left_out_not_fatal(tmp_path):
     assert doc["model"]["physical"]["inertia"] == pytest.approx(1500.0, rel=0.05)
 
 
+def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp_path):
+    # metadata Ts = 1 ms on samples 3 ms apart once gave J = 101.6 ± 0.29 kg (truth 300) and self-check "ok"
+    import msgspec
+
+    from feedio.mcapio import write_arrays
+
+    src = read_trial(simulated("shaker-control", duration=6.0))
+    bad = tmp_path / "wrong-ts.mcap"
+    write_arrays(bad, msgspec.structs.replace(src.meta, Ts=0.001), dict(t=src.t, v_ref=src.v_ref, v_meas=src.v_meas),
+                 start=0)
+    code, doc, err = run_identify(bad, "--method", "ls")
+    assert code == 2 and doc is None and "Traceback" not in err
+    assert "the samples are 0.003003 s apart but the trial's metadata give Ts = 0.001 s" in err
+
+
 def test_without_loop_gain_only_ratios(simulated):
     trial = read_trial(simulated("shaker-control", duration=20.0))
     trial.meta.loop_gain = None
