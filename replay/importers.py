@@ -258,38 +258,43 @@ def read_csv_trial(
         fh = open(path, newline="", encoding="utf-8-sig")
     except OSError as exc:
         raise OSError(f"cannot read CSV file {path}: {exc.strerror or exc}") from exc
-    with fh:
-        sample = fh.read(65536)
-        fh.seek(0)
-        try:
-            dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
-        except csv.Error:
-            dialect = csv.excel
-        reader = csv.reader(fh, dialect)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ValueError(f"CSV file {path} is empty") from None
-        missing = [f"{c!r} (for {f})" for f, c in mapping.items() if c not in header]
-        if missing:
-            raise ValueError(
-                f"CSV file {path}: column {', '.join(missing)} not found; available columns: {', '.join(map(repr, header))}"
-            )
-        cols = {f: header.index(c) for f, c in mapping.items()}
-        data: dict[str, list] = {f: [] for f in cols}
-        lines: list[int] = []
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            lines.append(lineno)
-            for f, j in cols.items():
-                try:
-                    data[f].append(_float(row[j]))
-                except (ValueError, IndexError):
-                    cell = row[j] if j < len(row) else "<missing>"
-                    raise ValueError(
-                        f"CSV file {path}, line {lineno}, column {mapping[f]!r} (for {f}): {cell!r} is not a number"
-                    ) from None
+    reader = None
+    try:
+        with fh:
+            sample = fh.read(65536)
+            fh.seek(0)
+            try:
+                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
+            except csv.Error:
+                dialect = csv.excel
+            reader = csv.reader(fh, dialect)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise ValueError(f"CSV file {path} is empty") from None
+            missing = [f"{c!r} (for {f})" for f, c in mapping.items() if c not in header]
+            if missing:
+                raise ValueError(
+                    f"CSV file {path}: column {', '.join(missing)} not found; available columns: {', '.join(map(repr, header))}"
+                )
+            cols = {f: header.index(c) for f, c in mapping.items()}
+            data: dict[str, list] = {f: [] for f in cols}
+            lines: list[int] = []
+            for lineno, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                lines.append(lineno)
+                for f, j in cols.items():
+                    try:
+                        data[f].append(_float(row[j]))
+                    except (ValueError, IndexError):
+                        cell = row[j] if j < len(row) else "<missing>"
+                        raise ValueError(
+                            f"CSV file {path}, line {lineno}, column {mapping[f]!r} (for {f}): {cell!r} is not a number"
+                        ) from None
+    except (csv.Error, UnicodeDecodeError) as exc:  # a binary file, a field beyond csv.field_size_limit
+        where = f", line {reader.line_num}" if reader is not None and reader.line_num else ""
+        raise ValueError(f"CSV file {path}{where}: not a readable CSV text file ({exc})") from None
     if len(data["t"]) < 3:
         raise ValueError(f"CSV file {path} has {len(data['t'])} data rows; a trial needs at least 3")
     arrays = {}

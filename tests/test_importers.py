@@ -136,3 +136,18 @@ def test_csv_gap_other_rate_and_absurd_values_are_refused(tmp_path, capsys):
                                            for k in range(20)))
     tr = read_csv_trial(ok, "t=time,v_ref=vr,v_meas=vm")
     assert len(tr) == 20 and np.isnan(tr.v_ref[5])
+
+
+def test_csv_that_is_not_csv_text_is_named_not_a_traceback(tmp_path, capsys):
+    # a field beyond csv.field_size_limit once escaped as `_csv.Error` (a traceback); bytes that are
+    # not UTF-8 gave a bare "'utf-8' codec can't decode …" without the file
+    long = tmp_path / "long.csv"
+    long.write_text("time,vr,vm\n0," + "x" * 300_000 + ",0\n0.003,0,0\n0.006,0,0\n")
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"\xff\xfe\x00time,vr,vm\n")
+    for src, says in ((long, "long.csv, line 2: not a readable CSV text file (field larger than field limit"),
+                      (binary, "binary.csv: not a readable CSV text file ('utf-8' codec can't decode")):
+        out = tmp_path / "o.mcap"
+        assert main(["import", "csv", str(src), "-o", str(out), "--map", "t=time,v_ref=vr,v_meas=vm"]) == 2
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err and not out.exists(), err
