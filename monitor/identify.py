@@ -83,6 +83,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from feedio.limits import PHYSICAL
 from kernels import LocallyPeriodic, SquaredExponential
 from kernels.errors import ParameterError
 from kernels.feed_drive import (
@@ -193,8 +194,9 @@ def periods_in_play(trial, period: float | None = None, spindle_rpm: float | Non
             raise ParameterError(f"spindle_rpm must be positive, got {spindle_rpm!r}", "spindle_rpm")
         return [_check_period(60.0 / spindle_rpm, "spindle_rpm", Ts, duration, "spindle_rpm")], "spindle"
     meta_rpm = trial.meta.spindle_rpm
-    if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0:
-        return [_check_period(60.0 / meta_rpm, "trial metadata spindle_rpm", Ts, duration)], "spindle"
+    if meta_rpm is not None and math.isfinite(meta_rpm) and meta_rpm > 0 and (
+            2.0 * Ts <= 60.0 / meta_rpm <= MAX_PERIOD_FRACTION * duration):  # else as the samples' speeds below
+        return [60.0 / meta_rpm], "spindle"
     col = getattr(trial, "spindle_rpm", None)
     if col is not None:
         rpm = np.asarray(col, dtype=np.float64)
@@ -704,7 +706,14 @@ def identify(
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
     gain = None if form == "force-input" else (loop_gain if loop_gain is not None else trial.meta.loop_gain)
+    if gain is not None and not (math.isfinite(gain) and gain > 0):
+        if loop_gain is not None:
+            raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {gain!r}; give the velocity-loop "
+                                 "gain K, or leave it out to identify J/K and B/K", "loop_gain")
+        raise ValueError(f"{trial.path}: the trial's loop_gain must be a positive number (N·s/m), got {gain!r}; give "
+                         "the velocity-loop gain K (loop_gain), or leave it out to identify J/K and B/K")
     notes: list[str] = []
+    _note_unused_spindle(trial, period, spindle_rpm, psi_source, notes)
     omega_used, coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega, coulomb, notes)
 
     reg = regressors(form, v, v_ref=trial.v_ref if form == "velocity-loop" else None,
@@ -792,8 +801,16 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
     if bad.any():
         raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
                          f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
+    exo_max, exo_unit = (PHYSICAL.u_max, "N") if exo_name == "u" else (PHYSICAL.v_max, "m/s")
+    absurd = (np.abs(v) > PHYSICAL.v_max) | (np.abs(exo) > exo_max)
+    if absurd.any():  # (least squares would call such a column "collinear")
+        k = int(np.argmax(absurd))
+        raise ValueError(f"{trial.path}: {int(absurd.sum())} sample(s) with an absurd magnitude, first at seq "
+                         f"{int(trial.seq[k])} (v_meas = {v[k]:.6g} m/s, {exo_name} = {exo[k]:.6g} {exo_unit}; limits "
+                         f"{PHYSICAL.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
+                         "without it (trial.window(start, end)) or fix the file")
+    Ts = float(trial.meta.Ts)
     if v.size - 1 > MAX_SAMPLES:
-        Ts = float(trial.meta.Ts)
         raise ParameterError(
             f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
             f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the kernel "
@@ -803,7 +820,24 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
         raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    dt = float(np.median(np.diff(trial.t))) if trial.t.size > 1 else Ts
+    if not math.isclose(dt, Ts, rel_tol=0.01):  # β, J, B are of the metadata's Ts: a wrong one scales them silently
+        raise ValueError(f"{trial.path}: the samples are {dt:.6g} s apart but the trial's metadata give Ts = {Ts:.6g} s; "
+                         "the model is of one sampling time — re-create the trial with the right one (feedmon import "
+                         "... --Ts)")
     return form, exo, exo_name
+
+
+def _note_unused_spindle(trial, period: float | None, spindle_rpm: float | None, psi_source: str,
+                         notes: list[str]) -> None:
+    """A note when the trial's metadata give a spindle speed whose period the record cannot hold (under two
+    samples, or over half the record): :func:`periods_in_play` then leaves it out."""
+    meta_rpm, Ts, duration = trial.meta.spindle_rpm, float(trial.meta.Ts), len(trial.v_meas) * float(trial.meta.Ts)
+    if period is None and spindle_rpm is None and psi_source != "spindle" and meta_rpm and math.isfinite(meta_rpm):
+        notes.append(f"the spindle period 60/{meta_rpm:g} rpm = {60.0 / meta_rpm:.6g} s (trial metadata) is "
+                     + (f"shorter than two samples (Ts = {Ts:.6g} s): its lines are folded at half the sample rate"
+                        if 60.0 / meta_rpm < 2.0 * Ts else f"longer than half the record ({duration:.6g} s)")
+                     + "; not used as the disturbance period (give a period to insist on one)")
 
 
 def _friction_columns(v: np.ndarray, Ts: float, omega: float | None, coulomb: bool | None,
@@ -1170,7 +1204,8 @@ def _attach_truth(ident: Identification, trial) -> None:
                 continue
             if true_beta is not None:
                 n_cmp = 2 if not (ident.coulomb and truth_meta.coulomb) else true_beta.size - 1
-                rel = np.abs(res.beta[:n_cmp] - true_beta[:n_cmp]) / np.abs(true_beta[:n_cmp])
+                err = np.abs(res.beta[:n_cmp] - true_beta[:n_cmp])  # absolute where the true value is 0 (as below)
+                rel = np.divide(err, np.abs(true_beta[:n_cmp]), out=err.copy(), where=true_beta[:n_cmp] != 0)
                 doc[f"{key}_beta_rel_error"] = rel.tolist()
             errs = {}
             for name, value in res.physical.items():

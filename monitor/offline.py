@@ -211,6 +211,10 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
         ax = axes[key]
         if ax.model.form != meta.form:
             raise ValueError(f"axis {key[0]}/{key[1]}: model form {ax.model.form!r} but the trial is {meta.form!r}")
+        if not math.isclose(float(ax.model.Ts), float(meta.Ts), rel_tol=0.01):
+            raise ValueError(f"axis {key[0]}/{key[1]}: the model file has Ts = {float(ax.model.Ts):.6g} s but the trial "
+                             f"is sampled at Ts = {float(meta.Ts):.6g} s; β is a discrete-time model of one sampling "
+                             "rate: identify the model on a trial at this rate (feedmon identify)")
         details = dict(meta.provenance.details)
         details.update(estimated_by="feedmon run --from", model_file=ax.status.model_path,
                        model_sha256=ax.status.model_sha256, tracker_state=ax.status.state)

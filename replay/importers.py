@@ -15,6 +15,7 @@ import numpy as np
 
 from feedio import schema as S
 from feedio.digest import file_sha256
+from feedio.limits import PHYSICAL
 from kernels.errors import ParameterError
 
 __all__ = [
@@ -188,6 +189,9 @@ UNIT_FACTORS: dict[str, tuple[str, float]] = {
     "m": ("length", 1.0), "mm": ("length", 1e-3), "um": ("length", 1e-6),
     "rpm": ("speed", 1.0), "rev/s": ("speed", 60.0),
 }
+#: dimension → (|value| beyond which a sample is absurd for a machine-tool axis, SI unit); feedio.limits
+_ABSURD = {"velocity": (PHYSICAL.v_max, "m/s"), "force": (PHYSICAL.u_max, "N"), "speed": (PHYSICAL.spindle_rpm_max, "rpm")}
+
 FIELD_DIMENSION = {
     "t": "time", "v_ref": "velocity", "v_meas": "velocity", "u": "force",
     "current": "current", "position": "length", "spindle_rpm": "speed",
@@ -241,6 +245,8 @@ def read_csv_trial(
     units = _parse_pairs(units, "units") if isinstance(units, str) or units is None else dict(units)
     if form not in ("velocity-loop", "force-input"):
         raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
+    if loop_gain is not None and not (np.isfinite(loop_gain) and loop_gain > 0):
+        raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {loop_gain!r}", "loop_gain")
     need = ["t", "v_meas"] + (["v_ref"] if form == "velocity-loop" else ["u"])
     lacking = [f for f in need if f not in mapping]
     if lacking:
@@ -257,36 +263,43 @@ def read_csv_trial(
         fh = open(path, newline="", encoding="utf-8-sig")
     except OSError as exc:
         raise OSError(f"cannot read CSV file {path}: {exc.strerror or exc}") from exc
-    with fh:
-        sample = fh.read(65536)
-        fh.seek(0)
-        try:
-            dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
-        except csv.Error:
-            dialect = csv.excel
-        reader = csv.reader(fh, dialect)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ValueError(f"CSV file {path} is empty") from None
-        missing = [f"{c!r} (for {f})" for f, c in mapping.items() if c not in header]
-        if missing:
-            raise ValueError(
-                f"CSV file {path}: column {', '.join(missing)} not found; available columns: {', '.join(map(repr, header))}"
-            )
-        cols = {f: header.index(c) for f, c in mapping.items()}
-        data: dict[str, list] = {f: [] for f in cols}
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            for f, j in cols.items():
-                try:
-                    data[f].append(_float(row[j]))
-                except (ValueError, IndexError):
-                    cell = row[j] if j < len(row) else "<missing>"
-                    raise ValueError(
-                        f"CSV file {path}, line {lineno}, column {mapping[f]!r} (for {f}): {cell!r} is not a number"
-                    ) from None
+    reader = None
+    try:
+        with fh:
+            sample = fh.read(65536)
+            fh.seek(0)
+            try:
+                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
+            except csv.Error:
+                dialect = csv.excel
+            reader = csv.reader(fh, dialect)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise ValueError(f"CSV file {path} is empty") from None
+            missing = [f"{c!r} (for {f})" for f, c in mapping.items() if c not in header]
+            if missing:
+                raise ValueError(
+                    f"CSV file {path}: column {', '.join(missing)} not found; available columns: {', '.join(map(repr, header))}"
+                )
+            cols = {f: header.index(c) for f, c in mapping.items()}
+            data: dict[str, list] = {f: [] for f in cols}
+            lines: list[int] = []
+            for lineno, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                lines.append(lineno)
+                for f, j in cols.items():
+                    try:
+                        data[f].append(_float(row[j]))
+                    except (ValueError, IndexError):
+                        cell = row[j] if j < len(row) else "<missing>"
+                        raise ValueError(
+                            f"CSV file {path}, line {lineno}, column {mapping[f]!r} (for {f}): {cell!r} is not a number"
+                        ) from None
+    except (csv.Error, UnicodeDecodeError) as exc:  # a binary file, a field beyond csv.field_size_limit
+        where = f", line {reader.line_num}" if reader is not None and reader.line_num else ""
+        raise ValueError(f"CSV file {path}{where}: not a readable CSV text file ({exc})") from None
     if len(data["t"]) < 3:
         raise ValueError(f"CSV file {path} has {len(data['t'])} data rows; a trial needs at least 3")
     arrays = {}
@@ -294,6 +307,13 @@ def read_csv_trial(
         factor = UNIT_FACTORS[units.get(f, {"time": "s", "velocity": "m/s", "force": "N", "current": "A",
                                              "length": "m", "speed": "rpm"}[FIELD_DIMENSION[f]])][1]
         arrays[f] = np.array(vals, dtype=np.float64) * factor
+        limit = _ABSURD.get(FIELD_DIMENSION[f])
+        over = np.flatnonzero(np.isfinite(arrays[f]) & (np.abs(arrays[f]) > limit[0])) if limit else []
+        if len(over):  # (an empty or non-finite cell is a missing sample)
+            k = int(over[0])
+            raise ValueError(f"CSV file {path}, line {lines[k]}, column {mapping[f]!r} (for {f}): {vals[k]:g} "
+                             f"({arrays[f][k]:.6g} {limit[1]}) is beyond the {limit[0]:g} {limit[1]} of any machine-tool "
+                             f"axis ({len(over)} such value(s)): check --units, or remove the faulty rows")
     t = arrays["t"]
     if not np.all(np.isfinite(t)):
         raise ValueError(f"CSV file {path}: column {mapping['t']!r} (t) has empty or non-numeric times at rows {np.flatnonzero(~np.isfinite(t))[:5] + 2}")
@@ -304,6 +324,14 @@ def read_csv_trial(
     if t[0] < 0:
         raise ValueError(f"CSV file {path}: times must be ≥ 0 s (first is {t[0]:g} s)")
     Ts_ = float(Ts) if Ts is not None else float(np.median(dts))
+    if not (np.isfinite(Ts_) and Ts_ > 0):
+        raise ParameterError(f"Ts must be a positive number of seconds, got {Ts!r}", "Ts")
+    off = np.flatnonzero((dts < 0.5 * Ts_) | (dts > 1.5 * Ts_))
+    if off.size:  # a gap (lost rows) or another rate: consecutive rows would pose as consecutive samples
+        k = int(off[0])
+        raise ValueError(f"CSV file {path}: the time step from line {lines[k]} to {lines[k + 1]} is {dts[k]:.6g} s, not "
+                         f"the sampling time Ts = {Ts_:.6g} s ({off.size} such step(s)): the file has a gap or is not "
+                         "sampled at one rate; split it at the gap, resample it to one rate, or give the right --Ts")
     n = t.size
     meta = S.TrialMeta(
         Ts=Ts_,

@@ -44,6 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+from feedio.limits import PHYSICAL
+
+_V_MAX = PHYSICAL.v_max  # m/s
+
 __all__ = [
     "SCENARIOS",
     "list_scenarios",
@@ -74,6 +78,9 @@ SCENARIOS = (
 VARYING = ("inertia", "damping", "coulomb_pos", "coulomb_neg")
 #: the highest spindle speed a scenario may command (rpm); beyond it the angular step count explodes
 MAX_SPINDLE_RPM = 100_000.0
+#: the most samples one simulated trial holds (at the controller rate, and at fine_rate with --fine): the
+#: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz)
+MAX_SIM_SAMPLES = 10_000_000
 
 
 def list_scenarios() -> list[str]:
@@ -183,9 +190,28 @@ def check(sc: dict) -> None:
         raise ValueError("fine_rate must be ≥ rate")
     if sc["duration"] * sc["rate"] < 10:
         raise ValueError(f"duration {sc['duration']} s is shorter than 10 samples")
+    if sc["duration"] * sc["rate"] > MAX_SIM_SAMPLES:
+        raise ValueError(f"duration {sc['duration']:g} s at rate {sc['rate']:g} Hz is {sc['duration'] * sc['rate']:.4g} "
+                         f"samples, more than one simulated trial holds ({MAX_SIM_SAMPLES:,}: every sample is kept in "
+                         f"memory); simulate at most {MAX_SIM_SAMPLES / sc['rate']:g} s at this rate")
     kind = sc["trajectory"]["kind"]
     if kind not in ("identification", "feed-steps"):
         raise ValueError(f"trajectory.kind must be identification or feed-steps, got {kind!r}")
+    _pos(sc, "trajectory.accel")
+    lists = ("amplitudes", "sine_amplitudes", "sine_frequencies") if kind == "identification" else ("levels",)
+    for p in ("rest", "hold", "dwell") if kind == "identification" else ("lead_in", "lead_out"):
+        _pos(sc, f"trajectory.{p}", allow_zero=True)
+    if kind == "identification":
+        _pos(sc, "trajectory.sine_cycles")
+    for name in lists:
+        values = sc["trajectory"][name]
+        if not isinstance(values, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                   and math.isfinite(x) and (x > 0 if name == "sine_frequencies"
+                                                                             else abs(x) <= _V_MAX) for x in values):
+            raise ValueError(f"trajectory.{name} must be a list of finite numbers "
+                             + {"sine_frequencies": "> 0 (Hz)", "levels": f"within ±{_V_MAX:g} (mm per tooth)"}.get(
+                                 name, f"within ±{_V_MAX:g} m/s")
+                             + f", got {values!r}")
     dk = sc["disturbance"]["kind"]
     if dk not in ("none", "shaker", "milling", "step"):
         raise ValueError(f"disturbance.kind must be none, shaker, milling or step, got {dk!r}")
@@ -300,28 +326,30 @@ def spindle_profile(sc: dict):
 # ---------------------------------------------------------------------------------------------
 # trajectories (sampled at Ts; the velocity loop holds v_r over each interval)
 # ---------------------------------------------------------------------------------------------
-def _ramp(v0: float, v1: float, accel: float, Ts: float) -> np.ndarray:
+# Every part is cut at ``limit`` samples (the trial's length): the trial keeps only its first n samples,
+# so a longer part changes nothing but would be allocated in full (a 1e6 s hold took 24 GB).
+def _ramp(v0: float, v1: float, accel: float, Ts: float, limit: int) -> np.ndarray:
     n = max(int(math.ceil(abs(v1 - v0) / (accel * Ts))), 1)
-    return v0 + (v1 - v0) * np.arange(1, n + 1) / n
+    return v0 + (v1 - v0) * np.arange(1, min(n, limit) + 1) / n
 
 
-def _hold(v: float, seconds: float, Ts: float) -> np.ndarray:
-    return np.full(max(int(round(seconds / Ts)), 0), float(v))
+def _hold(v: float, seconds: float, Ts: float, limit: int) -> np.ndarray:
+    return np.full(min(max(int(round(seconds / Ts)), 0), limit), float(v))
 
 
-def _identification_cycle(tr: dict, Ts: float) -> np.ndarray:
-    parts = []
+def _identification_cycle(tr: dict, Ts: float, limit: int) -> np.ndarray:
+    parts = [np.zeros(0)]
     v = 0.0
     for amp in tr["amplitudes"]:
         for target in (amp, -amp, 0.0):
-            parts.append(_ramp(v, target, tr["accel"], Ts))
+            parts.append(_ramp(v, target, tr["accel"], Ts, limit))
             v = target
-            parts.append(_hold(v, tr["hold"] if target else tr["dwell"], Ts))
+            parts.append(_hold(v, tr["hold"] if target else tr["dwell"], Ts, limit))
     for amp, freq in zip(tr["sine_amplitudes"], tr["sine_frequencies"], strict=True):
         n = int(round(tr["sine_cycles"] / freq / Ts))
-        k = np.arange(1, n + 1)
+        k = np.arange(1, min(n, limit) + 1)
         parts.append(amp * np.sin(2 * np.pi * freq * k * Ts))
-        parts.append(_hold(0.0, tr["dwell"], Ts))
+        parts.append(_hold(0.0, tr["dwell"], Ts, limit))
     return np.concatenate(parts)
 
 
@@ -329,8 +357,10 @@ def reference_velocity(sc: dict, n: int, Ts: float) -> np.ndarray:
     """Reference velocity v_r(k), k = 0…n−1 (m/s)."""
     tr = sc["trajectory"]
     if tr["kind"] == "identification":
-        rest = _hold(0.0, tr["rest"], Ts)
-        cycle = _identification_cycle(tr, Ts)
+        rest = _hold(0.0, tr["rest"], Ts, n)
+        cycle = _identification_cycle(tr, Ts, n)
+        if cycle.size == 0:  # no amplitudes, no sines, no dwell: the axis stays at rest
+            cycle = np.zeros(1)
         reps = int(math.ceil(max(n - rest.size, 0) / cycle.size)) + 1
         v = np.concatenate([rest, np.tile(cycle, reps)])
         return v[:n].copy()
@@ -344,17 +374,17 @@ def reference_velocity(sc: dict, n: int, Ts: float) -> np.ndarray:
     if t_levels <= 0:
         raise ValueError("duration too short for trajectory.lead_in + lead_out")
     per = t_levels / len(feeds)
-    parts = [_ramp(0.0, feeds[0], accel, Ts)]
-    parts.append(_hold(feeds[0], tr["lead_in"] - parts[0].size * Ts, Ts))
+    parts = [_ramp(0.0, feeds[0], accel, Ts, n)]
+    parts.append(_hold(feeds[0], tr["lead_in"] - parts[0].size * Ts, Ts, n))
     v = feeds[0]
     for i, f in enumerate(feeds):
         if i:
-            parts.append(_ramp(v, f, accel, Ts))
+            parts.append(_ramp(v, f, accel, Ts, n))
             v = f
         start = sum(p.size for p in parts)
         end_level = int(round((tr["lead_in"] + per * (i + 1)) / Ts))
-        parts.append(_hold(v, (end_level - start) * Ts, Ts))
-    parts.append(_ramp(v, 0.0, accel, Ts))
+        parts.append(_hold(v, (end_level - start) * Ts, Ts, n))
+    parts.append(_ramp(v, 0.0, accel, Ts, n))
     out = np.concatenate(parts)
     if out.size < n:
         out = np.concatenate([out, np.zeros(n - out.size)])

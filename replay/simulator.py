@@ -48,6 +48,7 @@ import numpy as np
 from numba import njit
 
 from feedio import schema as S
+from kernels.errors import ParameterError
 from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_beta
 
 from . import scenarios as SC
@@ -236,8 +237,8 @@ def check_closed_loop(Ts: float, inertia, damping, loop_gain: float, *, t=None, 
     )
     k_max = stable_gain_limit(Ts, Jk, Bk)
     fixes = [f"a loop gain in 0 < drive.loop_gain < {k_max:.6g} N·s/m (stable for this J, B, Ts)"]
-    if K > Bk:
-        ln = math.log((K + Bk) / (K - Bk))
+    ln = math.log1p(2.0 * Bk / (K - Bk)) if K > Bk else 0.0  # log((K + B)/(K − B)), exact for K ≫ B
+    if ln > 0.0:
         fixes.append(f"an inertia > {Bk * Ts / ln:.6g} kg for this gain and damping")
         fixes.append(f"rate > {Bk / (Jk * ln):.6g} Hz")
     raise UnstableLoopError(
@@ -479,6 +480,10 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
         n_sub = int(round(sc["fine_rate"] * Ts))
         if n_sub < 2:
             raise ValueError(f"fine_rate {sc['fine_rate']} Hz gives {n_sub} substeps per Ts; need ≥ 2")
+        if n * n_sub > SC.MAX_SIM_SAMPLES:
+            raise ParameterError(f"fine=True: {n} samples × {n_sub} substeps at fine_rate {sc['fine_rate']:g} Hz are more than "
+                             f"one simulated trial holds ({SC.MAX_SIM_SAMPLES:,} samples, every one kept in memory); "
+                             f"simulate at most {SC.MAX_SIM_SAMPLES / n_sub / sc['rate']:g} s with fine=True, or lower fine_rate", "fine")
     check_closed_loop(Ts, J, B, K, t=t, n_sub=n_sub)
 
     nz = sc["noise"]

@@ -333,6 +333,75 @@ def test_json_document_has_exactly_the_documented_shape(simulated):
     json.dumps(doc, allow_nan=False)  # strict JSON
 
 
+def test_json_is_strict_for_a_drive_without_coulomb_friction(tmp_path):
+    # a true β of 0 (no Coulomb friction) once gave a relative error of inf: `Infinity` in the JSON
+    # document (not JSON) and a RuntimeWarning on stderr
+    sc = load_scenario("shaker-control", {"drive": {"coulomb_pos": 0.0, "coulomb_neg": 0.0}}, duration=6.0)
+    trial = tmp_path / "frictionless.mcap"
+    write_trial(simulate(sc, seed=1), trial)
+    code, doc, err = run_identify(trial, "--method", "ls", "--coulomb")
+    assert code == 0 and doc["truth"]["physical"]["coulomb"] == 0.0
+    assert "RuntimeWarning" not in err
+    json.dumps(doc, allow_nan=False)  # strict JSON
+    assert all(math.isfinite(x) for x in doc["truth"]["ls_beta_rel_error"])
+
+
+def test_an_absurd_sample_is_named_not_called_collinear(simulated, tmp_path):
+    # one v_ref of 1e300 m/s (a unit or recording fault) once ended in "columns 'v_ref' are collinear"
+    import msgspec
+
+    def spike(b):
+        v = list(b.v_ref)
+        if b.seq <= 250 < b.seq + len(v):
+            v[250 - b.seq] = 1e300
+        return msgspec.structs.replace(b, v_ref=v)
+
+    bad = rewrite_samples(simulated("shaker-control", duration=6.0), tmp_path / "spike.mcap", spike)
+    code, doc, err = run_identify(bad, "--method", "ls")
+    assert code == 2 and doc is None
+    assert "1 sample(s) with an absurd magnitude, first at seq 250" in err and "v_ref = 1e+300 m/s" in err
+    assert "collinear" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("gain", ["0", "-5", "nan"])
+def test_a_loop_gain_that_is_not_a_gain_is_refused(simulated, gain):
+    # --loop-gain 0 once ended in a ZeroDivisionError traceback, -5 in "Coulomb friction negative",
+    # nan in a model-file error after the whole identification
+    code, doc, err = run_identify(simulated("shaker-control", duration=6.0), "--method", "ls", "--loop-gain", gain)
+    assert code == 2 and doc is None and "Traceback" not in err
+    assert f"loop_gain must be a positive number (N·s/m), got {float(gain)!r}" in err
+    assert err.rstrip().endswith("(command line: --loop-gain)")
+
+
+def test_a_spindle_too_fast_for_the_sample_rate_is_left_out_not_fatal(tmp_path):
+    # 19 000 rpm at 333 Hz: the spindle period (3.2 ms) is under two samples; the metadata speed once
+    # refused the trial outright, even with --method ls (the samples' speed column was already skipped)
+    sc = load_scenario("milling-dec", {"disturbance": {"spindle_rpm": 19000.0}}, duration=6.0)
+    trial = tmp_path / "fast-spindle.mcap"
+    write_trial(simulate(sc, seed=1), trial)
+    assert read_trial(trial).meta.spindle_rpm == 19000.0
+    code, doc, err = run_identify(trial, "--method", "ls")
+    assert code == 0 and doc["period"]["source"] != "spindle", err
+    assert any("60/19000 rpm = 0.00315789 s (trial metadata) is shorter than two samples" in n
+               for n in doc["ls"]["notes"])
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(1500.0, rel=0.05)
+
+
+def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp_path):
+    # metadata Ts = 1 ms on samples 3 ms apart once gave J = 101.6 ± 0.29 kg (truth 300) and self-check "ok"
+    import msgspec
+
+    from feedio.mcapio import write_arrays
+
+    src = read_trial(simulated("shaker-control", duration=6.0))
+    bad = tmp_path / "wrong-ts.mcap"
+    write_arrays(bad, msgspec.structs.replace(src.meta, Ts=0.001), dict(t=src.t, v_ref=src.v_ref, v_meas=src.v_meas),
+                 start=0)
+    code, doc, err = run_identify(bad, "--method", "ls")
+    assert code == 2 and doc is None and "Traceback" not in err
+    assert "the samples are 0.003003 s apart but the trial's metadata give Ts = 0.001 s" in err
+
+
 def test_without_loop_gain_only_ratios(simulated):
     trial = read_trial(simulated("shaker-control", duration=20.0))
     trial.meta.loop_gain = None

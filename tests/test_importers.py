@@ -138,3 +138,47 @@ def test_emps_rate_names_the_parameter(tmp_path):
     bad.write_text("time,vr,vm\n0,1,1\n1,x,1\n2,1,1\n")
     with pytest.raises(ValueError, match=r"line 3, column 'vr' \(for v_ref\): 'x' is not a number"):
         read_csv_trial(bad, "t=time,v_ref=vr,v_meas=vm")
+
+
+def test_csv_gap_other_rate_and_absurd_values_are_refused(tmp_path, capsys):
+    # rows 20…29 lost: the rows before and after the gap would pose as consecutive samples of the
+    # drive's difference equation (a 3 s gap once gave J −4 %, B −20 %, Coulomb +60 % "ok")
+    rows = [f"{k * 0.003:.6f},0.01,{0.0099 + 1e-4 * (k % 3)}" for k in range(60) if not 20 <= k < 30]
+    gap = tmp_path / "gap.csv"
+    gap.write_text("time,vr,vm\n" + "\n".join(rows) + "\n")
+    out = tmp_path / "o.mcap"
+    assert main(["import", "csv", str(gap), "-o", str(out), "--map", "t=time,v_ref=vr,v_meas=vm"]) == 2
+    err = capsys.readouterr().err
+    assert "gap.csv: the time step from line 21 to 22 is 0.033 s, not the sampling time Ts = 0.003 s" in err
+    assert "Traceback" not in err and not out.exists()
+    with pytest.raises(ValueError, match=r"the time step from line 2 to 3 is 0\.003 s, not the sampling time Ts = 0\.001 s"):
+        read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", Ts=0.001)
+    with pytest.raises(ValueError, match="^Ts must be a positive number of seconds, got -1"):
+        read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", Ts=-1.0)
+    with pytest.raises(ValueError, match=r"^loop_gain must be a positive number \(N·s/m\), got 0\.0"):
+        read_csv_trial(gap, "t=time,v_ref=vr,v_meas=vm", loop_gain=0.0)  # identify once divided by it
+    big = tmp_path / "big.csv"
+    big.write_text("time,vr,vm\n" + "".join(f"{k * 0.003:.6f},{'1e300' if k == 7 else '0.01'},0.0099\n" for k in range(20)))
+    with pytest.raises(ValueError, match=r"big\.csv, line 9, column 'vr' \(for v_ref\): 1e\+300 \(1e\+300 m/s\) is "
+                                         r"beyond the 50 m/s"):
+        read_csv_trial(big, "t=time,v_ref=vr,v_meas=vm")
+    ok = tmp_path / "ok.csv"  # jitter of a logger's clock, an empty (missing) cell: still one trial
+    ok.write_text("time,vr,vm\n" + "".join(f"{k * 0.003 + (0.0004 if k % 2 else 0):.6f},{'' if k == 5 else 0.01},0.0099\n"
+                                           for k in range(20)))
+    tr = read_csv_trial(ok, "t=time,v_ref=vr,v_meas=vm")
+    assert len(tr) == 20 and np.isnan(tr.v_ref[5])
+
+
+def test_csv_that_is_not_csv_text_is_named_not_a_traceback(tmp_path, capsys):
+    # a field beyond csv.field_size_limit once escaped as `_csv.Error` (a traceback); bytes that are
+    # not UTF-8 gave a bare "'utf-8' codec can't decode …" without the file
+    long = tmp_path / "long.csv"
+    long.write_text("time,vr,vm\n0," + "x" * 300_000 + ",0\n0.003,0,0\n0.006,0,0\n")
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"\xff\xfe\x00time,vr,vm\n")
+    for src, says in ((long, "long.csv, line 2: not a readable CSV text file (field larger than field limit"),
+                      (binary, "binary.csv: not a readable CSV text file ('utf-8' codec can't decode")):
+        out = tmp_path / "o.mcap"
+        assert main(["import", "csv", str(src), "-o", str(out), "--map", "t=time,v_ref=vr,v_meas=vm"]) == 2
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err and not out.exists(), err

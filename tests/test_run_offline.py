@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import time
 from types import SimpleNamespace
 
@@ -65,6 +66,19 @@ def test_offline_errors_are_clear(work, capsys, tmp_path):
     assert "model file not found" in capsys.readouterr().err
     assert _run("--from", work / "trial.mcap", "-o", tmp_path / "o.mcap") == 2
     assert "--model" in capsys.readouterr().err
+
+
+def test_offline_refuses_a_model_of_another_sampling_rate(work, capsys, tmp_path):
+    # β is discrete-time: a model identified at 1 kHz on a 333 Hz trial estimates nonsense (and the
+    # health check blames the drive: "inertia drift −65 %"), so the mismatch is refused up front
+    text = (work / "z.model.toml").read_text()
+    other = tmp_path / "fast.model.toml"
+    other.write_text(re.sub(r"(?m)^Ts = .*$", "Ts = 0.001", text, count=1))
+    out = tmp_path / "o.mcap"
+    assert _run("--from", work / "trial.mcap", "-o", out, "--model", other) == 2
+    err = capsys.readouterr().err
+    assert "Ts = 0.001 s" in err and "Ts = 0.003003 s" in err and "feedmon identify" in err
+    assert "Traceback" not in err and not out.exists()
 
 
 def test_monitor_counts_malformed_no_model_and_queue_full(work):

@@ -239,3 +239,34 @@ def test_cli_refuses_and_writes_nothing(tmp_path, capsys):
     assert main(["simulate", "shaker-constant", "-o", str(out), "--config", str(cfg), "--duration", "2"]) == 2
     err = capsys.readouterr().err
     assert "force = nan N" in err and not out.exists()
+
+
+def test_absurd_lengths_are_refused_or_bounded_not_allocated(tmp_path, capsys):
+    # a hold of 1e9 s at 333 Hz once built 3e11 samples before keeping the trial's first n (MemoryError;
+    # 1e6 s: 24 GB, killed), --duration 1e9 a 2.4 TiB array, loop_gain = 1e300 a ZeroDivisionError in
+    # the refusal message; an accel or sine frequency of 0 a ZeroDivisionError
+    base = simulate_scenario("shaker-constant", duration=3.0, seed=1)
+    held = simulate_scenario("shaker-constant", duration=3.0, seed=1, config={"trajectory": {"hold": 1e9}})
+    assert len(held.t) == len(base.t) == 999
+    n_rest = int(round(0.2 * 333)) + int(round(0.02 / (1.0 / 333)))  # rest, then the ramp to 0.02 m/s
+    np.testing.assert_array_equal(held.v_ref[:n_rest], base.v_ref[:n_rest])
+    assert np.all(held.v_ref[n_rest + 1:] == 0.02)  # holding the first level to the end
+    milling = simulate_scenario("milling-dec", duration=3.0, config={"trajectory": {"accel": 1e-9}})
+    assert len(milling.t) == 999
+    out = tmp_path / "never.mcap"
+    for argv, says in ((["--duration", "1e9"], "more than one simulated trial holds (10,000,000"),
+                       (["--config", "lg.toml"], "or an inertia > 1.5015e+297 kg"),
+                       (["--config", "acc.toml"], "trajectory.accel must be a finite number > 0"),
+                       (["--config", "freq.toml"], "trajectory.sine_frequencies must be a list of finite numbers > 0"),
+                       (["--config", "amp.toml"], "trajectory.amplitudes must be a list of finite numbers within ±50 m/s"),
+                       (["--config", "fine.toml", "--fine"], "--fine: 999 samples × 30030 substeps")):
+        (tmp_path / "lg.toml").write_text("[drive]\nloop_gain = 1e300\n")
+        (tmp_path / "acc.toml").write_text("[trajectory]\naccel = 0.0\n")
+        (tmp_path / "freq.toml").write_text("[trajectory]\nsine_frequencies = [0.0, 1.0, 2.0, 4.0, 8.0]\n")
+        (tmp_path / "amp.toml").write_text("[trajectory]\namplitudes = [1e6]\n")
+        (tmp_path / "fine.toml").write_text("fine_rate = 1e7\n")
+        args = [a if not a.endswith(".toml") else str(tmp_path / a) for a in argv]
+        assert main(["simulate", "shaker-constant", "-o", str(out), *(args if "--duration" in args else
+                                                                     [*args, "--duration", "3"])]) == 2, argv
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err and not out.exists(), (argv, err)
