@@ -311,9 +311,10 @@ def read_csv_trial(
         over = np.flatnonzero(np.isfinite(arrays[f]) & (np.abs(arrays[f]) > limit[0])) if limit else []
         if len(over):  # (an empty or non-finite cell is a missing sample)
             k = int(over[0])
-            raise ValueError(f"CSV file {path}, line {lines[k]}, column {mapping[f]!r} (for {f}): {vals[k]:g} "
-                             f"({arrays[f][k]:.6g} {limit[1]}) is beyond the {limit[0]:g} {limit[1]} of any machine-tool "
-                             f"axis ({len(over)} such value(s)): check --units, or remove the faulty rows")
+            raise ParameterError(f"CSV file {path}, line {lines[k]}, column {mapping[f]!r} (for {f}): {vals[k]:g} "
+                                 f"({arrays[f][k]:.6g} {limit[1]}) is beyond the {limit[0]:g} {limit[1]} of any "
+                                 f"machine-tool axis ({len(over)} such value(s)): check the units, or remove the faulty "
+                                 "rows", "units")
     t = arrays["t"]
     if not np.all(np.isfinite(t)):
         raise ValueError(f"CSV file {path}: column {mapping['t']!r} (t) has empty or non-numeric times at rows {np.flatnonzero(~np.isfinite(t))[:5] + 2}")

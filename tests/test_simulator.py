@@ -259,7 +259,7 @@ def test_absurd_lengths_are_refused_or_bounded_not_allocated(tmp_path, capsys):
                        (["--config", "acc.toml"], "trajectory.accel must be a finite number > 0"),
                        (["--config", "freq.toml"], "trajectory.sine_frequencies must be a list of finite numbers > 0"),
                        (["--config", "amp.toml"], "trajectory.amplitudes must be a list of finite numbers within ±50 m/s"),
-                       (["--config", "fine.toml", "--fine"], "--fine: 999 samples × 30030 substeps")):
+                       (["--config", "fine.toml", "--fine"], "fine=True: 999 samples × 30030 substeps")):
         (tmp_path / "lg.toml").write_text("[drive]\nloop_gain = 1e300\n")
         (tmp_path / "acc.toml").write_text("[trajectory]\naccel = 0.0\n")
         (tmp_path / "freq.toml").write_text("[trajectory]\nsine_frequencies = [0.0, 1.0, 2.0, 4.0, 8.0]\n")
