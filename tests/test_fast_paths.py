@@ -422,7 +422,9 @@ def test_scalars_channel_of_the_offline_file_is_per_sample_and_finite(two_axes):
 def test_sink_processes_run_below_the_monitor(tmp_path, priority):
     """The MCAP and Rerun processes yield the CPU to the monitor: 'idle' (default) is Linux's SCHED_IDLE
     (they run only on a core nothing else wants), 'low' nice 10 only; both are niced. A priority that is
-    neither is refused before any process starts."""
+    neither is refused before any process starts. Finishing moves them out of the idle class
+    (:func:`monitor.sinks.child.leave_idle`), nice kept."""
+    from monitor.sinks.child import leave_idle
     from monitor.sinks.rerun_process import RerunProcessSink
 
     base = os.getpriority(os.PRIO_PROCESS, 0)
@@ -433,6 +435,12 @@ def test_sink_processes_run_below_the_monitor(tmp_path, priority):
             pid = sink._proc.pid
             want = os.SCHED_IDLE if priority == "idle" else os.SCHED_OTHER
             assert os.sched_getscheduler(pid) == want, (sink.name, os.sched_getscheduler(pid))
+            assert os.getpriority(os.PRIO_PROCESS, pid) >= min(19, base + 10)
+        for sink in sinks:  # what finishing does first: out of the idle class, so a busy machine cannot starve it
+            pid = sink._proc.pid
+            assert leave_idle(pid) >= (1 if priority == "idle" else 0)
+            threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+            assert len(threads) > 1 and all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in threads)
             assert os.getpriority(os.PRIO_PROCESS, pid) >= min(19, base + 10)
     finally:
         for sink in sinks:

@@ -18,8 +18,8 @@ from typing import Any, Literal, get_args
 
 from .queued import QueuedSink
 
-__all__ = ["ChildProcessSink", "start_reporter", "send_final", "background_priority", "check_priority", "Priority",
-           "PRIORITIES"]
+__all__ = ["ChildProcessSink", "start_reporter", "send_final", "background_priority", "leave_idle", "check_priority",
+           "Priority", "PRIORITIES"]
 
 #: how a sink's child process yields the CPU to the monitor (``feedmon run`` ``[run] sink_priority``)
 Priority = Literal["idle", "low"]
@@ -53,6 +53,27 @@ def background_priority(priority: str) -> str:
         except (AttributeError, OSError):
             return "low"
     return "low"
+
+
+def leave_idle(pid: int) -> int:
+    """Move every thread of process ``pid`` out of ``SCHED_IDLE`` into the normal class (its ``nice`` 10
+    kept: the ``"low"`` priority); returns how many threads were moved. Called when a sink is asked to
+    finish: no estimate waits any more, and on a machine kept busy by other work an idle-class process
+    would get no CPU at all and never finish its file (seen in CI: "sink mcap did not finish within
+    30 s"). Linux only (``/proc``); elsewhere, or without permission, nothing is changed."""
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except (OSError, ValueError):
+        return 0
+    moved = 0
+    for tid in tids:  # the policy is per thread: the child's writer threads were started in the idle class
+        try:
+            if os.sched_getscheduler(tid) == os.SCHED_IDLE:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                moved += 1
+        except (AttributeError, OSError):
+            pass
+    return moved
 
 
 class ChildProcessSink(QueuedSink):
@@ -100,6 +121,7 @@ class ChildProcessSink(QueuedSink):
 
     def finish(self) -> None:
         try:
+            leave_idle(self._proc.pid)  # the queue must drain and the file close, however busy the machine
             self._conn.send_bytes(b"Q")
             self._take_reports(self.finish_timeout)
         finally:
