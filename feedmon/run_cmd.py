@@ -155,16 +155,22 @@ def _run_offline(args, cfg: RunConfig) -> int:
     res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
+    lost = 0
     for ax in axes.values():
         c = ax.estimator.counters
         refused = f", {ax.status.counters['too_large']} blocks refused (too_large)" \
             if ax.status.counters.get("too_large") else ""
+        failed = ax.status.counters.get("estimator_error", 0)
+        if failed:
+            lost += failed
+            refused += (f"; {failed} samples LOST to estimator errors, tracker restarted {c['tracker_restarts']} "
+                        "time(s) (see the log above)")
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
              f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
     procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
           f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
-    return 0
+    return 1 if lost else 0  # the file is complete but for the lost blocks: say so in the exit code
 
 
 def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:

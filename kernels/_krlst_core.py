@@ -786,8 +786,9 @@ def _update(st, y, out):
     g2q = gamma2                                  # γ² of the Q update (refined below)
     prune = n + 1 > M
     refine = ist[I_REFINE] != 0
-    if gamma2 < jit:
-        r = n                                     # roundoff guard: drop the new sample
+    if not (gamma2 >= jit and gamma2 > 0.0):
+        r = n                                     # roundoff guard: drop the new sample (also γ² = 0 with
+                                                  # ε_j = 0, and a NaN γ² of a damaged state)
     elif prune or refine:
         # u = Q μ_new (row/column s of Q is zero); with refine also w = Q (k_t − K_D q), one
         # step of iterative refinement for the Q update: q ← q + w, γ² ← k_tt − k_tᵀ q. Without

@@ -322,6 +322,24 @@ class KRLST:
         Q, K = self.Q, self.K
         return float(np.max(np.abs(Q @ K - np.eye(Q.shape[0]))))
 
+    def breakdown(self) -> str | None:
+        """Why the state has left what exact arithmetic allows, or None (O(1): a few armed scalars).
+
+        A GP posterior never exceeds its prior: the armed ``σ_f² ≤ k_tt`` (eq. 2.17), with forgetting too
+        (``Σ ← λΣ + (1−λ)K_D`` stays ≤ ``K_D``). ``σ_f² > 2 k_tt``, or a non-finite ``s0²``, ``ŷ`` or ``σ_f²``,
+        means ``Q ≈ K_D⁻¹`` was lost to roundoff: measured with a jitter ε_j of 0 to 1e-10 on simulated drives
+        (σ_f²/k_tt from 13 to 1e127, then NaN), never above 1.0 with ε_j ≥ 1e-9 on the same data. The state
+        never recovers by itself."""
+        if self._st is None:
+            return None
+        f = self._st.fst
+        s02, y_mean, sf2, ktt = (float(f[i]) for i in (core.F_S02, core.F_YM, core.F_SF2, core.F_KTT))
+        if not (math.isfinite(s02) and math.isfinite(y_mean) and math.isfinite(sf2)):
+            return f"non-finite state (s0² = {s02:.3g}, ŷ = {y_mean:.3g}, σ_f² = {sf2:.3g})"
+        if sf2 > 2.0 * ktt:
+            return f"posterior variance above the prior (σ_f² = {sf2:.3g} > k_tt = {ktt:.3g})"
+        return None
+
     def get_params(self) -> dict:
         """Hyperparameters (scikit-learn style)."""
         return {"kernel": self.kernel, "gamma": self.gamma, "forgetting": self.forgetting,

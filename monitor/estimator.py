@@ -43,7 +43,12 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
 * stale samples — the controller repeated the previous measured velocity while
   the axis moves (the thesis' recording glitch): STALE flag, the tracker is not
   trained on them (predict only) and the model's velocity prediction stands in
-  for the repeated value in the next regressor.
+  for the repeated value in the next regressor;
+* a tracker step that raises, or a state that broke down numerically
+  (:meth:`kernels.krlst.KRLST.breakdown`: posterior variance above the prior, a non-finite value —
+  it would never recover): the block's estimates are dropped, the tracker, online β and health
+  start over from the model file (``tracker_restarts``), and :class:`TrackerBreakdown` (or the
+  error) is raised for the caller to count and log (``estimator_error`` in the monitor).
 
 Online β and health (issue 11, :mod:`monitor.online_settings`): β̂ and its covariance run beside
 the tracker (:class:`kernels.beta_tracker.OnlineBeta`, mode ``[adaptation] mode``), the health
@@ -75,7 +80,7 @@ from .model_file import AxisModel
 from .online_settings import OnlineSettings, spindle_of
 from .state_check import StateError, check_snapshot
 
-__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError"]
+__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
@@ -153,6 +158,13 @@ class EstimateRows:
         return {"v_meas": self.v_meas, "f": r[online.R_F], "f_var": r[online.R_FVAR], "f_next": r[online.R_FNEXT],
                 "force": None if fc is None else fc[0], "force_var": None if fc is None else fc[1],
                 "force_next": None if fc is None else fc[2], "flags": self.irows[online.R_FLAGS]}
+
+
+class TrackerBreakdown(ArithmeticError):
+    """The tracker's state left what exact arithmetic allows; the estimator started over."""
+
+
+_JITTER_HINT = " (a jitter ε_j < 1e-7 makes K_D nearly singular: use 1e-6)"
 
 
 class AxisEstimator:
@@ -344,9 +356,19 @@ class AxisEstimator:
                 sp[1] = _as_column(block.spindle_rpm)
         rows, irows, counts = online.new_rows(n)
         ticks = online.new_ticks(n, self._tick_min, self._change_min)
-        first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
-                                   *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows, irows,
-                                   counts, ticks, self._scratch)
+        try:
+            first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
+                                       *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows,
+                                       irows, counts, ticks, self._scratch)
+        except Exception:  # a state half-way through a step is not trusted: start over, then say why
+            self._start_over()
+            raise
+        why = self.tracker.breakdown()
+        if why is not None:
+            self._start_over()
+            raise TrackerBreakdown(
+                f"axis {block.machine}/{block.axis}: the tracker's numerics broke down ({why}); {n} samples "
+                f"dropped, tracker restarted{_JITTER_HINT if self.model.tracker.jitter < 1e-7 else ''}")
         self.block_counts = counts
         for name, k in zip(online.COUNTERS, counts.tolist()):
             if k:
@@ -361,6 +383,18 @@ class AxisEstimator:
             t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
         return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
                             self._force(rows))
+
+    def _start_over(self) -> None:
+        """Tracker, online β, health statistics and regressor chain as the model file starts them (counted
+        ``tracker_restarts``): after a step that failed or a state that broke down
+        (:meth:`kernels.krlst.KRLST.breakdown`), which would otherwise never recover."""
+        notes, mode = self.notes, self.mode
+        self.tracker = self._new_tracker()
+        self.online = self._new_online(self.tracker)
+        self.health = self._new_health()
+        self.notes, self.mode = notes, mode  # as decided at the start (the model is the same)
+        self._state = online.new_state()
+        self.counters["tracker_restarts"] += 1
 
     def _force(self, rows: np.ndarray) -> np.ndarray | None:
         """``force``, ``force_var``, ``force_next`` (N) of the rows: F = −f/b, var F = var f / b²,

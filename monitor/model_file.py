@@ -161,8 +161,8 @@ class _TrackerT(msgspec.Struct, **_Opts):
     teeth: _int(1, 1000, "cutting edges (spindle kernel)") | None = None
     spindle_rpm: _num(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
     forgetting: _num(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
-    budget: _int(1, 4096, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
-    jitter: _num(0.0, 0.1) = OS.TRACKER_DEFAULTS["jitter"]
+    budget: _int(*OS.BUDGET_RANGE, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
+    jitter: _num(*OS.JITTER_RANGE) = OS.TRACKER_DEFAULTS["jitter"]
 
 
 class _CandidateT(msgspec.Struct, **_Opts):

@@ -38,13 +38,20 @@ from kernels.errors import ParameterError
 from kernels.health import HealthConfig
 from kernels.spindle_phase import spindle_phase_kernel
 
-__all__ = ["TRACKER_DEFAULTS", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
+__all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
            "TrackerOverride", "AdaptationOverride", "HealthOverride", "build_tracker_kernel", "check_kernel_desc",
            "tracker_table", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
                     "jitter": 1e-6}
+#: dictionary size M, for the model file's ``[tracker]`` and ``[run.tracker]`` alike: the step costs ∝ M²
+#: (M = 400: ~70 µs; 2000: ~1.8 ms, real time at 333 Hz only; 4096 ran at 94 samples/s), and below 4 the
+#: tracker holds too little of the disturbance to follow it
+BUDGET_RANGE = (4, 2000)
+#: jitter ε_j on K_D's diagonal (normalised kernel), for both files: below ~1e-9 Q ≈ K_D⁻¹ is lost to
+#: roundoff (ε_j = 0, 1e-12 and 1e-10 broke down on simulated drives, :meth:`kernels.krlst.KRLST.breakdown`)
+JITTER_RANGE = (1e-8, 0.1)
 SPINDLE = "spindle"
 PER = ("revolution", "tooth")
 MODES = ("off", "track", "apply")
@@ -216,8 +223,9 @@ class TrackerOverride(msgspec.Struct, **_OPTS):
     ``sigma1`` (s), ``sigma2``, ``gamma`` (kernel hyperparameters, method §5; γ = signal/noise)."""
 
     forgetting: _num(0.5, 1.0, "λ per sample", open_lo=True) | None = None
-    budget: Annotated[int, msgspec.Meta(ge=4, le=2000, description="dictionary size M")] | None = None
-    jitter: _num(0.0, 1e-2, "ε_j") | None = None
+    budget: Annotated[int, msgspec.Meta(ge=BUDGET_RANGE[0], le=BUDGET_RANGE[1], description="dictionary size M")] \
+        | None = None
+    jitter: _num(*JITTER_RANGE, "ε_j") | None = None
     sigma1: _num(0.0, 1e4, "s", open_lo=True) | None = None
     sigma2: _num(0.0, 1e3, "", open_lo=True) | None = None
     gamma: _num(0.0, 1e12, "γ", open_lo=True) | None = None

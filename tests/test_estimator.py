@@ -376,3 +376,28 @@ def test_velocity_loop_intercept_enters_the_residual():
     assert abs(np.mean(out["residual"][1:])) < 1e-6 < c  # without the 1 the residual would carry c
     without = _run(AxisEstimator(_model()), _blocks(t, v_ref, v, 50))
     assert abs(np.mean(without["residual"][1:]) - c) < 1e-6
+
+
+def test_a_tracker_that_broke_down_starts_over_and_its_block_is_dropped():
+    """A state that left what exact arithmetic allows (here: μ poisoned with NaN, as a Q lost to roundoff
+    leaves it) never recovers by itself: the block is dropped with :class:`TrackerBreakdown` naming the
+    axis and the reason, the tracker, online β and health start over from the model file
+    (``tracker_restarts``), and the next blocks are estimated again, every value finite."""
+    from monitor.estimator import TrackerBreakdown
+
+    t, v_ref, v, _ = _stream(900)
+    est = AxisEstimator(_model())
+
+    def block(a, b):
+        return S.SampleBlock(machine="m", axis="x", seq=a, t=t[a:b].tolist(), v_ref=v_ref[a:b].tolist(),
+                             v_meas=v[a:b].tolist())
+
+    assert est.process(block(0, 300)) is not None and est.tracker.size > 0
+    est.tracker.core_state(np.zeros(1)).mu[:] = np.nan
+    with pytest.raises(TrackerBreakdown, match=r"axis m/x: the tracker's numerics broke down \(non-finite state"):
+        est.process(block(300, 350))
+    assert est.counters["tracker_restarts"] == 1 and est.tracker.size == 0 and est.tracker.breakdown() is None
+    out = est.process(block(350, 900))
+    f_next = np.array(out.f_next, dtype=float)
+    assert len(f_next) == 550 and np.all(np.isfinite(f_next[1:])) and est.tracker.size > 0
+    assert est.counters["tracker_restarts"] == 1

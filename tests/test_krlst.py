@@ -209,6 +209,35 @@ def _set_k(st, i, j, v):
         st.K[min(i, j), max(i, j)] = v
 
 
+@pytest.mark.parametrize("refine", [False, True])
+def test_a_repeated_input_with_zero_jitter_is_a_reduced_update(refine):
+    """With ε_j = 0 a repeated input has γ² = k_tt − k_tᵀ Q k_t = 0 exactly: the step once divided by it
+    (ZeroDivisionError, and a state of NaN from then on in the monitor). It is now the roundoff guard's
+    reduced update: the dictionary keeps one element, μ and Σ are updated, every number finite."""
+    tr = KRLST(SquaredExponential(1.0), gamma=100.0, forgetting=1.0, budget=10, jitter=0.0, refine=refine)
+    tr.learn_one(np.array([0.0]), 1.0)
+    step = tr.learn_one(np.array([0.0]), 1.2)
+    assert step.gamma2 == 0.0 and step.reduced and tr.size == 1
+    mean, var = tr.predict_one(np.array([0.0]))
+    assert math.isfinite(mean) and math.isfinite(var) and 1.0 < mean < 1.2
+    assert tr.breakdown() is None
+
+
+def test_breakdown_names_a_posterior_above_the_prior_and_a_non_finite_state():
+    tr = KRLST(SquaredExponential(1.0), gamma=100.0, forgetting=0.99, budget=10)
+    assert tr.breakdown() is None  # not started
+    for i in range(20):
+        tr.learn_one(np.array([0.1 * i]), math.sin(0.1 * i))
+    tr.predict_next(np.array([2.05]))
+    assert tr.breakdown() is None
+    st = tr.core_state(np.zeros(1))
+    st.fst[core.F_SF2] = 3.0 * st.fst[core.F_KTT]
+    assert "posterior variance above the prior" in tr.breakdown()
+    st.fst[core.F_SF2] = 0.5 * st.fst[core.F_KTT]
+    st.fst[core.F_S02] = math.nan
+    assert "non-finite state" in tr.breakdown()
+
+
 def test_refresh_keeps_q_when_k_is_singular():
     tr = KRLST(SquaredExponential(1.0), gamma=100.0, forgetting=1.0, budget=10, jitter=0.0, refresh_every=0)
     for i in range(5):

@@ -163,3 +163,30 @@ def test_offline_applies_the_block_limit_like_live(work, capsys, tmp_path):
     assert len(read_trial(out)) == kept < len(src)
     est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
     assert sum(len(b.t) for b in est) == kept
+
+
+def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, caplog, monkeypatch):
+    """A tracker whose numerics break down (fault injected: :meth:`KRLST.breakdown` reports it once, on
+    the 5th block) loses that block, starts over and estimates the rest; the run says how many samples
+    were lost, the file holds every other estimate, and the exit code is 1 (it was 0, with NaN)."""
+    from kernels.krlst import KRLST
+
+    calls = {"n": 0}
+    real = KRLST.breakdown
+
+    def breaks_once(self):
+        calls["n"] += 1
+        return "posterior variance above the prior (injected)" if calls["n"] == 5 else real(self)
+
+    monkeypatch.setattr(KRLST, "breakdown", breaks_once)
+    out = work / "lost.mcap"
+    assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml", "--jobs", 1) == 1
+    err = capsys.readouterr().err
+    blocks = [b for _, b in iter_blocks(work / "trial.mcap", kinds=("samples",))]
+    lost = len(blocks[4].t)
+    assert f"{lost} samples LOST to estimator errors, tracker restarted 1 time(s)" in err
+    assert f"the tracker's numerics broke down (posterior variance above the prior (injected)); {lost} samples " \
+           "dropped, tracker restarted" in caplog.text
+    est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
+    assert sum(len(b.t) for b in est) == sum(len(b.t) for b in blocks) - lost
+    assert blocks[4].seq not in {b.seq for b in est}
