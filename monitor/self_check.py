@@ -53,7 +53,7 @@ class SelfCheck:
 
     def summary(self) -> str:
         """One line for the terminal and the model file."""
-        if self.reports == 0:
+        if self.reports == 0 and not self.reasons:
             return "not run: the trial gave no health report (too short for one)"
         if self.ok:
             return f"ok: the monitor over this trial with this model raised nothing ({self.reports} health reports)"
@@ -93,7 +93,7 @@ def self_check(trial_path: str, model, seq_range: tuple[int, int] | None = None)
     from feedio.mcapio import iter_axes
     from feedio.schema import HEALTH_STATES
 
-    from .estimator import AxisEstimator
+    from .estimator import AxisEstimator, TrackerBreakdown
 
     if model.online.adaptation.mode == "off":  # β must be estimated to be compared
         online = msgspec.structs.replace(model.online,
@@ -102,16 +102,23 @@ def self_check(trial_path: str, model, seq_range: tuple[int, int] | None = None)
     est = AxisEstimator(model)
     name = f"{model.machine}/{model.axis}"
     reports = []
+    breakdowns: list[str] = []
     for _, _, block in iter_axes(trial_path, [name], kinds=("samples",))[name]:
         if seq_range is not None:
             block = _within(block, *seq_range)
             if block is None:
                 continue
-        est.process_rows(block)
+        try:
+            est.process_rows(block)
+        except TrackerBreakdown as exc:  # the monitor would drop the block and start over: so does the check
+            breakdowns.append(str(exc))
         reports += est.take_health()
     flagged = [h for h in reports if h.state != "ok"]
     worst = max((h.state for h in flagged), key=HEALTH_STATES.index, default="ok")
     reasons: dict[str, str] = {}                   # the first reason of each kind, in order
+    if breakdowns:  # the tracker cannot run this model on these data: the strongest finding there is
+        worst = "alarm"
+        reasons["breakdown"] = f"the tracker broke down {len(breakdowns)} time(s): {breakdowns[0]}"
     for r in (r for h in flagged for r in h.reasons if " drift " in r or r.startswith("innovation")):
         reasons.setdefault(_kind(r), r)
     last = reports[-1] if reports else None

@@ -190,3 +190,26 @@ def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, 
     est = [b for _, b in iter_blocks(out, kinds=("disturbance",))]
     assert sum(len(b.t) for b in est) == sum(len(b.t) for b in blocks) - lost
     assert blocks[4].seq not in {b.seq for b in est}
+
+
+def test_self_check_reports_a_tracker_breakdown_as_an_alarm(work, monkeypatch):
+    """identify's self-check runs the same estimator: a breakdown there (injected once) is not a crash
+    of identify but the strongest finding, an alarm naming it."""
+    from kernels.krlst import KRLST
+    from monitor.model_file import load_model
+    from monitor.self_check import self_check
+
+    model = load_model(work / "z.model.toml")
+    assert self_check(str(work / "trial.mcap"), model).state == "ok"
+    calls = {"n": 0}
+    real = KRLST.breakdown
+
+    def breaks_once(self):
+        calls["n"] += 1
+        return "non-finite state (injected)" if calls["n"] == 3 else real(self)
+
+    monkeypatch.setattr(KRLST, "breakdown", breaks_once)
+    check = self_check(str(work / "trial.mcap"), model)
+    assert check.state == "alarm" and check.reports > 0
+    assert "the tracker broke down 1 time(s): axis linear-drive/Z: the tracker's numerics broke down " \
+           "(non-finite state (injected))" in check.summary()
