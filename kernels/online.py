@@ -106,9 +106,13 @@ __all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REOR
 #: counters of the ``counts`` output, in slot order (each a number of samples unless said)
 COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of_range", "rejected_seq_range",
             "gaps", "missing_samples", "seq_resets", "time_backwards", "restarts", "stale", "trained",
-            "spindle_fallback", "health_reports", "beta_updates")
+            "spindle_fallback", "health_reports", "beta_updates", "interval_mismatch")
 (C_DUP, C_OOO, C_NONFINITE, C_RANGE, C_SEQ_RANGE, C_GAPS, C_MISSING, C_RESET, C_BACK, C_RESTART, C_STALE,
- C_TRAINED, C_SPINDLE_FALLBACK, C_TICKS, C_BETA_UPDATES) = range(len(COUNTERS))
+ C_TRAINED, C_SPINDLE_FALLBACK, C_TICKS, C_BETA_UPDATES, C_INTERVAL) = range(len(COUNTERS))
+#: a sample that follows the previous one (next ``seq``) more than this fraction of Ts early or late
+#: is counted ``interval_mismatch``: β is of one sampling time (a stream at another rate than the
+#: model's, or a controller that skipped cycles without skipping sequence numbers)
+INTERVAL_TOLERANCE = 0.25
 
 #: adaptation modes (:attr:`OnlineConfig.mode`), in code order
 MODES = ("off", "track", "apply")
@@ -525,6 +529,8 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
             counts[C_BACK] += 1
             fl |= GAP_BIT
             cont = False
+        elif where == _NEXT and abs((tj - st.last_t[0]) * cfg.inv_ts - 1.0) > INTERVAL_TOLERANCE:
+            counts[C_INTERVAL] += 1               # (False while no sample was accepted: NaN)
         stale = False
         if cont and cfg.stale_detection and vj == st.last_v_raw[0]:
             stale = abs(vj) > cfg.omega or ej != st.last_e[0]   # repeated while moving

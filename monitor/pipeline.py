@@ -56,6 +56,8 @@ _LOGGED_REASONS = (
     ("seq_resets", "with sequence numbers restarted (new bridge session, or seq jumped inconsistently with time): "
                    "chain restarted"),
     ("rejected_seq_range", "refused: sequence numbers beyond int64"),
+    ("interval_mismatch", "at another interval than the model's Ts (more than 25 % off the previous sample): β is of "
+                          "one sampling time — a stream at another rate needs a model identified at that rate"),
     ("spindle_fallback", "without usable spindle data (spindle_angle / spindle_rpm): the spindle-phase kernel runs on "
                          "the model's nominal speed, i.e. the time kernel with a fixed period"),
 )

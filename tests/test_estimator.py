@@ -401,3 +401,17 @@ def test_a_tracker_that_broke_down_starts_over_and_its_block_is_dropped():
     f_next = np.array(out.f_next, dtype=float)
     assert len(f_next) == 550 and np.all(np.isfinite(f_next[1:])) and est.tracker.size > 0
     assert est.counters["tracker_restarts"] == 1
+
+
+def test_samples_at_another_interval_than_the_models_ts_are_counted():
+    """β is of one sampling time: a stream at 1 kHz into a 333 Hz model (each sample the next ``seq``)
+    is counted ``interval_mismatch`` sample by sample (the offline path refuses such a trial outright, the
+    live stream has no metadata to refuse); ±10 % jitter of the controller's clock is not."""
+    t, v_ref, v, _ = _stream(400)
+    rng = np.random.default_rng(1)
+    for times, expected in ((np.arange(400) * 1e-3, 399), (t + rng.uniform(-0.1, 0.1, 400) * TS, 0)):
+        est = AxisEstimator(_model())
+        for a in range(0, 400, 50):
+            est.process(S.SampleBlock(machine="m", axis="x", seq=a, t=times[a:a + 50].tolist(),
+                                      v_ref=v_ref[a:a + 50].tolist(), v_meas=v[a:a + 50].tolist()))
+        assert est.counters["interval_mismatch"] == expected
