@@ -387,6 +387,23 @@ def test_a_spindle_too_fast_for_the_sample_rate_is_left_out_not_fatal(tmp_path):
     assert doc["model"]["physical"]["inertia"] == pytest.approx(1500.0, rel=0.05)
 
 
+def test_parameters_that_move_with_the_disturbance_model_are_not_a_valid_model(tmp_path):
+    """Validity rule 3. Milling with the spindle at 300 rpm (5 Hz, inside the feed's band), J = 1500 kg: LS
+    once gave J = 27 953 ± 4 501 kg and was chosen (self-check ok). The periodic candidates explain the
+    data far better (log evidence +11 768), determine J better than LS, and put it 4.2 s.e. away — with
+    a negative Coulomb friction (rule 1). No candidate is then a valid model: refused, not printed."""
+    sc = load_scenario("milling-incdec", {"disturbance": {"spindle_rpm": 300.0}}, duration=20.0)
+    trial = tmp_path / "slow-spindle.mcap"
+    write_trial(simulate(sc, seed=3), trial)
+    ident = identify(read_trial(trial))
+    ls = ident.candidates[0]
+    assert ident.chosen is None and ident.refusal.startswith("no candidate is a valid model of this drive")
+    assert ls.why_not.startswith("biased by the disturbance it leaves out: PL-LSSVM, locally periodic")
+    assert " puts inertia at " in ls.why_not
+    witness = max(ident.candidates, key=lambda c: c.log_evidence)
+    assert witness.log_evidence > ls.log_evidence + 1000 and "Coulomb friction negative" in witness.why_not
+
+
 def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp_path):
     # metadata Ts = 1 ms on samples 3 ms apart once gave J = 101.6 ± 0.29 kg (truth 300) and self-check "ok"
     import msgspec
