@@ -67,6 +67,8 @@ from .mcapwriter import MESSAGE_HEADER, McapWriter
 
 __all__ = [
     "TrialFileError",
+    "TrialTooLong",
+    "MAX_TRIAL_SAMPLES",
     "TrialWriter",
     "write_arrays",
     "Trial",
@@ -1042,10 +1044,25 @@ def _seq(blocks) -> np.ndarray:
     return np.concatenate([np.arange(b.seq, b.seq + len(b.t), dtype=np.int64) for b in blocks])
 
 
-def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS) -> Trial:
+#: most samples :func:`read_trial` keeps of one axis (the decoded blocks take ~200 bytes per sample while
+#: reading: ~2 GB at this limit); ``feedmon run --from`` and ``replay`` stream a trial of any length
+MAX_TRIAL_SAMPLES = 10_000_000
+
+
+class TrialTooLong(TrialFileError):
+    """The axis holds more than the ``max_samples`` :func:`read_trial` was given (``limit``)."""
+
+    def __init__(self, message: str, limit: int) -> None:
+        super().__init__(message)
+        self.limit = limit
+
+
+def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS,
+               max_samples: int = MAX_TRIAL_SAMPLES) -> Trial:
     """Read one axis of a trial file into arrays.
 
-    ``axis`` "X" or "machine/X"; required when the file holds several axes.
+    ``axis`` "X" or "machine/X"; required when the file holds several axes. Reading stops with
+    :class:`TrialTooLong` as soon as the axis has more than ``max_samples`` samples (memory stays bounded).
     Raises :class:`TrialFileError` (a ValueError) naming file, channel and problem.
     """
     with _Open(path, limits) as f:
@@ -1055,8 +1072,14 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
         t_s, t_t = topic(machine, ax, "samples"), topic(machine, ax, "truth")
         topics = [t_s] + ([t_t] if t_t in f.channels else [])
         samples, truths = [], []
+        held = {t_s: 0, t_t: 0}
         for name, _, block in f.messages(topics):
             (samples if name == t_s else truths).append(block)
+            held[name] += len(block.t)
+            if held[name] > max_samples:
+                raise TrialTooLong(f"{f.path}: axis {machine}/{ax} holds more than {max_samples:,} samples, the most "
+                                   "read into memory at once; identify a window of it or a shorter recording ("
+                                   "'feedmon run --from' and 'feedmon replay' stream a trial of any length)", max_samples)
         if not samples:
             raise TrialFileError(f"{f.path}: channel {t_s} has no messages")
         n = sum(len(b.t) for b in samples)

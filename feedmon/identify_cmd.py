@@ -60,8 +60,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from feedio import __version__
-    from feedio.mcapio import read_trial
-    from monitor.identify import identify
+    from feedio.mcapio import TrialTooLong, read_trial
+    from kernels.errors import ParameterError
+    from monitor.identify import MAX_SAMPLES, identify
     from monitor.model_file import save_model
 
     if args.coulomb and args.no_coulomb:
@@ -71,7 +72,16 @@ def run(args) -> int:
     if args.tune and args.no_tune:
         raise ValueError("--tune and --no-tune contradict each other; tuning is the default")
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
-    whole = read_trial(args.trial, axis=args.axis)
+    windowed = args.start is not None or args.end is not None
+    try:  # without a window, more than one identification takes is refused before it is all in memory
+        whole = read_trial(args.trial, axis=args.axis, **({} if windowed else {"max_samples": MAX_SAMPLES + 1}))
+    except TrialTooLong:
+        if windowed:
+            raise
+        raise ParameterError(f"{args.trial}: more than {MAX_SAMPLES} samples, more than one identification takes "
+                             "(the exact likelihood of the kernel candidates costs O(N²)); identify a window of the "
+                             "trial, e.g. a stretch that holds the motion and the disturbance of interest",
+                             "start", "end") from None
     t0 = float(whole.t[0]) if len(whole) else 0.0
     trial = whole.window(args.start, args.end)  # a bad window: the error names start/end (feedmon.errors)
     del whole

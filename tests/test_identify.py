@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from trial_edit import rewrite_samples
 
-from feedio.mcapio import iter_blocks, read_trial
+from feedio.mcapio import TrialTooLong, iter_blocks, read_trial
 from feedmon.cli import main
 from kernels.errors import ParameterError
 from monitor.identify import MAX_SAMPLES, identify
@@ -289,13 +289,22 @@ def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simu
 
 
 def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identified(simulated):
-    """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix;
-    --start/--end identify a window (the self-check runs over the same window)."""
+    """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix —
+    the command before the trial is all in memory (a 3 M-sample trial once took 663 MB first), the
+    library function with the count; --start/--end identify a window (the self-check runs over the
+    same window)."""
     path = simulated("shaker-control", seed=3, duration=185.0)  # 61 605 samples at 333 Hz
     code, doc, err = run_identify(path)
     assert code == 2 and doc is None
-    assert f"({MAX_SAMPLES} samples" in err and "trial.window(start, end)" in err
+    assert f"more than {MAX_SAMPLES} samples, more than one identification takes" in err
     assert err.rstrip().endswith("(command line: --start, --end)")
+    with pytest.raises(TrialTooLong, match=r"holds more than 1,000 samples, the most read into memory") as exc:
+        read_trial(path, max_samples=1000)
+    assert exc.value.limit == 1000
+    with pytest.raises(ParameterError, match=rf"61605 samples \(185 s\) are more than one identification takes "
+                                             rf"\({MAX_SAMPLES} samples") as exc:
+        identify(read_trial(path))
+    assert exc.value.parameters == ("start", "end")
     code, _, err = run_identify(path, "--start", 40, "--end", 30)
     assert code == 2 and "window start (40 s) must come before its end (30 s) (command line: --start, --end)" in err
     code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
