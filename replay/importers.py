@@ -16,6 +16,7 @@ import numpy as np
 from feedio import schema as S
 from feedio.digest import file_sha256
 from feedio.limits import PHYSICAL
+from feedio.mcapio import MAX_TRIAL_SAMPLES
 from kernels.errors import ParameterError
 
 __all__ = [
@@ -288,6 +289,10 @@ def read_csv_trial(
             for lineno, row in enumerate(reader, start=2):
                 if not row or all(not c.strip() for c in row):
                     continue
+                if len(lines) == MAX_TRIAL_SAMPLES:
+                    raise ValueError(f"CSV file {path}, line {lineno}: more than {MAX_TRIAL_SAMPLES:,} data rows, the "
+                                     "most one trial file holds (every row is kept in memory while importing); "
+                                     "split the file")
                 lines.append(lineno)
                 for f, j in cols.items():
                     try:

@@ -182,3 +182,17 @@ def test_csv_that_is_not_csv_text_is_named_not_a_traceback(tmp_path, capsys):
         assert main(["import", "csv", str(src), "-o", str(out), "--map", "t=time,v_ref=vr,v_meas=vm"]) == 2
         err = capsys.readouterr().err
         assert says in err and "Traceback" not in err and not out.exists(), err
+
+
+def test_csv_beyond_the_trial_sample_limit_is_refused_naming_the_line(tmp_path, monkeypatch):
+    """Every row is kept in memory while importing (a 92 MB CSV once took 700 MB): beyond
+    MAX_TRIAL_SAMPLES rows (10 M; lowered to 5 here) the import stops at that line."""
+    import replay.importers as imp
+
+    monkeypatch.setattr(imp, "MAX_TRIAL_SAMPLES", 5)
+    path = tmp_path / "long.csv"
+    path.write_text("time,vr,vm\n" + "".join(f"{k * 0.003:.6f},0.01,0.0099\n" for k in range(8)))
+    with pytest.raises(ValueError, match=r"long\.csv, line 7: more than 5 data rows, the most one trial file holds"):
+        read_csv_trial(path, "t=time,v_ref=vr,v_meas=vm")
+    path.write_text("time,vr,vm\n" + "".join(f"{k * 0.003:.6f},0.01,0.0099\n" for k in range(5)))
+    assert len(read_csv_trial(path, "t=time,v_ref=vr,v_meas=vm").t) == 5
