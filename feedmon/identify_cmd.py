@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -31,8 +33,9 @@ def register(sub) -> None:
     p.add_argument("--period", type=float, help="disturbance period ψ in s (e.g. 0.018182 for 55 Hz); "
                    "default: the spindle speed, else found in the data")
     p.add_argument("--spindle-rpm", type=float, help="spindle speed (rpm): ψ = 60/rpm (tool runout)")
-    p.add_argument("--teeth", type=int, help="tooth count of the tool (informational: with runout ψ is the spindle "
-                   "period; the tooth-passing line is one of its harmonics)")
+    p.add_argument("--teeth", type=int, help="cutting edges of the tool, 1 … 1000 (default: the trial's): with runout "
+                   "ψ is the spindle period and the tooth-passing line one of its harmonics; with a changing spindle "
+                   "speed a spindle-phase candidate per tooth is tried beside the one per revolution")
     p.add_argument("--sigma1", type=float, help="σ1 (s) of the locally periodic kernel (start of tuning; "
                    "kept with --no-tune; default 0.59)")
     p.add_argument("--sigma2", type=float, help="σ2 of the locally periodic kernel (default 0.42)")
@@ -72,6 +75,7 @@ def run(args) -> int:
     if args.tune and args.no_tune:
         raise ValueError("--tune and --no-tune contradict each other; tuning is the default")
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
+    _check_outputs(args)  # before the identification (minutes), not after it
     windowed = args.start is not None or args.end is not None
     try:  # without a window, more than one identification takes is refused before it is all in memory
         whole = read_trial(args.trial, axis=args.axis, **({} if windowed else {"max_samples": MAX_SAMPLES + 1}))
@@ -85,6 +89,10 @@ def run(args) -> int:
     t0 = float(whole.t[0]) if len(whole) else 0.0
     trial = whole.window(args.start, args.end)  # a bad window: the error names start/end (feedmon.errors)
     del whole
+    if args.teeth is not None:
+        import msgspec
+
+        trial = dataclasses.replace(trial, meta=msgspec.structs.replace(trial.meta, teeth=args.teeth))
     err = Console(stderr=True)
     show_progress = not args.no_tune and sys.stderr.isatty() and not args.json
     progress_cb = None
@@ -140,6 +148,24 @@ def run(args) -> int:
             return 1
         err.print(f"[bold yellow]warning:[/] {ident.refusal}; written anyway (--force), 'feedmon run' will refuse it")
     return 0
+
+
+def _check_outputs(args) -> None:
+    """The options checked before the identification runs: ``--teeth`` in range, ``-o`` a file in an existing,
+    writable directory, ``--report`` a directory (or a path to create)."""
+    if args.teeth is not None and not 1 <= args.teeth <= 1000:
+        raise ValueError(f"--teeth must be the tool's number of cutting edges, 1 … 1000, got {args.teeth}")
+    if args.output:
+        out = Path(args.output)
+        folder = out.parent if str(out.parent) else Path(".")
+        if out.is_dir():
+            raise ValueError(f"-o {out}: is a directory; give the model file's name, e.g. {out / 'axis.model.toml'}")
+        if not folder.is_dir():
+            raise ValueError(f"-o {out}: the directory {folder} does not exist; create it first")
+        if not os.access(folder, os.W_OK):
+            raise ValueError(f"-o {out}: the directory {folder} is not writable")
+    if args.report and Path(args.report).exists() and not Path(args.report).is_dir():
+        raise ValueError(f"--report {args.report}: is a file; give a directory for the report's PNGs and summary")
 
 
 def _self_check(trial: str, model, seq_range: tuple[int, int]) -> dict:

@@ -120,7 +120,7 @@ from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
 from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, spindle_phase
 
 from . import online_settings as OS
-from .model_file import AxisModel, TrackerConfig, file_sha256
+from .model_file import OMEGA_MAX, AxisModel, TrackerConfig, file_sha256
 
 __all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "MAX_SAMPLES", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
            "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify", "periods_in_play", "dead_band"]
@@ -889,8 +889,8 @@ def _friction_columns(v: np.ndarray, Ts: float, omega: float | None, coulomb: bo
     (``coulomb``, or when the trial reverses direction), the note saying why, and whether the trial rests
     (the Coulomb asymmetry can then be told from the offset: :func:`kernels.feed_drive.friction_transform`)."""
     omega_used = dead_band(v) if omega is None else float(omega)
-    if not (math.isfinite(omega_used) and omega_used >= 0):
-        raise ParameterError(f"omega must be a finite number ≥ 0 (m/s), got {omega!r}", "omega")
+    if not (math.isfinite(omega_used) and 0 <= omega_used <= OMEGA_MAX):
+        raise ParameterError(f"omega must be a dead band 0 … {OMEGA_MAX:g} m/s, got {omega!r}", "omega")
     n_pos = int(np.sum(v[:-1] > omega_used))
     n_neg = int(np.sum(v[:-1] < -omega_used))
     reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES

@@ -81,6 +81,9 @@ class ModelFileError(ValueError):
 # ---------------------------------------------------------------------------------------------
 # the schema: every number with its range (one mechanism: msgspec.Meta)
 # ---------------------------------------------------------------------------------------------
+#: widest dead band Ω (m/s) a model may have (identify refuses a larger one before it runs)
+OMEGA_MAX = 10.0
+
 def _num(lo: float, hi: float, unit: str = "", *, open_low: bool = False):
     """A float in ``[lo, hi]`` (``(lo, hi]`` when ``open_low``); NaN and ±inf are outside."""
     kw = {"gt": lo} if open_low else {"ge": lo}
@@ -111,7 +114,7 @@ class _ModelT(msgspec.Struct, **_Opts):
     form: Literal["velocity-loop", "force-input"]
     Ts: _num(1e-6, 10.0, "s")
     beta: Annotated[list[_Coef], msgspec.Meta(min_length=2, max_length=6)]
-    omega: _num(0.0, 10.0, "m/s")
+    omega: _num(0.0, OMEGA_MAX, "m/s")
     coulomb: bool
     beta_se: Annotated[list[_Se], msgspec.Meta(min_length=2, max_length=6)] | None = None
     beta_names: Annotated[list[_Short], msgspec.Meta(min_length=2, max_length=6)] | None = None

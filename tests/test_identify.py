@@ -491,8 +491,26 @@ def test_clear_errors(simulated, capsys):
     assert capsys.readouterr().err.rstrip().endswith("(command line: --period)")
 
 
+def test_options_that_cannot_work_are_refused_before_the_identification(simulated, tmp_path, capsys):
+    """--teeth 0 was accepted; -o into a missing or read-only place and --report onto a file failed only
+    after the whole identification (minutes), --report with a raw '[Errno 17]'; --omega 1e9 only when
+    saving the model. Each is now refused at once, naming the option, and nothing is written."""
+    trial = str(simulated("shaker-control", duration=20.0))
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    for argv, says in ((["--teeth", "0"], "--teeth must be the tool's number of cutting edges, 1 … 1000, got 0"),
+                       (["-o", str(tmp_path / "missing" / "m.toml")], "does not exist; create it first"),
+                       (["-o", str(tmp_path)], "is a directory; give the model file's name"),
+                       (["--report", str(a_file)], "is a file; give a directory"),
+                       (["--omega", "1e9"], "omega must be a dead band 0 … 10 m/s, got 1000000000.0")):
+        assert main(["identify", trial, *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err and "Errno" not in err, (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
+
+
 @pytest.mark.parametrize(("kwargs", "parameter", "flag", "text"), [
-    ({"omega": -1.0}, "omega", "--omega", "omega must be a finite number ≥ 0 (m/s), got -1.0"),
+    ({"omega": -1.0}, "omega", "--omega", "omega must be a dead band 0 … 10 m/s, got -1.0"),
     ({"period": 1e-5}, "period", "--period", "period: period 1e-05 s is shorter than two samples"),
     ({"spindle_rpm": -5.0}, "spindle_rpm", "--spindle-rpm", "spindle_rpm must be positive, got -5.0"),
     ({"sigma2": 0.0}, "sigma2", "--sigma2", "sigma2 must be a positive number, got 0.0"),
