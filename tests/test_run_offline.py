@@ -165,10 +165,9 @@ def test_offline_applies_the_block_limit_like_live(work, capsys, tmp_path):
     assert sum(len(b.t) for b in est) == kept
 
 
-def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, caplog, monkeypatch):
-    """A tracker whose numerics break down (fault injected: :meth:`KRLST.breakdown` reports it once, on
-    the 5th block) loses that block, starts over and estimates the rest; the run says how many samples
-    were lost, the file holds every other estimate, and the exit code is 1 (it was 0, with NaN)."""
+def _break_down_once(monkeypatch, at_call: int, why: str) -> None:
+    """Fault injection: :meth:`KRLST.breakdown` (the estimator calls it once per block) reports ``why`` on
+    its ``at_call``-th call, and checks the real state otherwise."""
     from kernels.krlst import KRLST
 
     calls = {"n": 0}
@@ -176,9 +175,16 @@ def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, 
 
     def breaks_once(self):
         calls["n"] += 1
-        return "posterior variance above the prior (injected)" if calls["n"] == 5 else real(self)
+        return why if calls["n"] == at_call else real(self)
 
     monkeypatch.setattr(KRLST, "breakdown", breaks_once)
+
+
+def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, caplog, monkeypatch):
+    """A tracker whose numerics break down (fault injected: :meth:`KRLST.breakdown` reports it once, on
+    the 5th block) loses that block, starts over and estimates the rest; the run says how many samples
+    were lost, the file holds every other estimate, and the exit code is 1 (it was 0, with NaN)."""
+    _break_down_once(monkeypatch, at_call=5, why="posterior variance above the prior (injected)")
     out = work / "lost.mcap"
     assert _run("--from", work / "trial.mcap", "-o", out, "--model", work / "z.model.toml", "--jobs", 1) == 1
     err = capsys.readouterr().err
@@ -195,20 +201,12 @@ def test_offline_says_which_blocks_the_estimator_lost_and_exits_1(work, capsys, 
 def test_self_check_reports_a_tracker_breakdown_as_an_alarm(work, monkeypatch):
     """identify's self-check runs the same estimator: a breakdown there (injected once) is not a crash
     of identify but the strongest finding, an alarm naming it."""
-    from kernels.krlst import KRLST
     from monitor.model_file import load_model
     from monitor.self_check import self_check
 
     model = load_model(work / "z.model.toml")
     assert self_check(str(work / "trial.mcap"), model).state == "ok"
-    calls = {"n": 0}
-    real = KRLST.breakdown
-
-    def breaks_once(self):
-        calls["n"] += 1
-        return "non-finite state (injected)" if calls["n"] == 3 else real(self)
-
-    monkeypatch.setattr(KRLST, "breakdown", breaks_once)
+    _break_down_once(monkeypatch, at_call=3, why="non-finite state (injected)")
     check = self_check(str(work / "trial.mcap"), model)
     assert check.state == "alarm" and check.reports > 0
     assert "the tracker broke down 1 time(s): axis linear-drive/Z: the tracker's numerics broke down " \
