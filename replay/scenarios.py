@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from feedio.limits import PHYSICAL
+from feedio.mcapio import MAX_TRIAL_SAMPLES
 
 _V_MAX = PHYSICAL.v_max  # m/s
 
@@ -79,8 +80,9 @@ VARYING = ("inertia", "damping", "coulomb_pos", "coulomb_neg")
 #: the highest spindle speed a scenario may command (rpm); beyond it the angular step count explodes
 MAX_SPINDLE_RPM = 100_000.0
 #: the most samples one simulated trial holds (at the controller rate, and at fine_rate with --fine): the
-#: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz)
-MAX_SIM_SAMPLES = 10_000_000
+#: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz), and
+#: ``read_trial`` (identify) reads no more
+MAX_SIM_SAMPLES = MAX_TRIAL_SAMPLES
 
 
 def list_scenarios() -> list[str]:

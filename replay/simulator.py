@@ -481,9 +481,10 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
         if n_sub < 2:
             raise ValueError(f"fine_rate {sc['fine_rate']} Hz gives {n_sub} substeps per Ts; need ≥ 2")
         if n * n_sub > SC.MAX_SIM_SAMPLES:
-            raise ParameterError(f"fine=True: {n} samples × {n_sub} substeps at fine_rate {sc['fine_rate']:g} Hz are more than "
-                             f"one simulated trial holds ({SC.MAX_SIM_SAMPLES:,} samples, every one kept in memory); "
-                             f"simulate at most {SC.MAX_SIM_SAMPLES / n_sub / sc['rate']:g} s with fine=True, or lower fine_rate", "fine")
+            raise ParameterError(f"fine=True: {n} samples × {n_sub} substeps at fine_rate {sc['fine_rate']:g} Hz are "
+                                 f"more than one simulated trial holds ({SC.MAX_SIM_SAMPLES:,} samples, every one kept "
+                                 f"in memory); simulate at most {SC.MAX_SIM_SAMPLES / n_sub / sc['rate']:g} s with "
+                                 "fine=True, or lower fine_rate", "fine")
     check_closed_loop(Ts, J, B, K, t=t, n_sub=n_sub)
 
     nz = sc["noise"]
