@@ -1078,8 +1078,8 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
             held[name] += len(block.t)
             if held[name] > max_samples:
                 raise TrialTooLong(f"{f.path}: axis {machine}/{ax} holds more than {max_samples:,} samples, the most "
-                                   "read into memory at once; identify a window of it or a shorter recording ("
-                                   "'feedmon run --from' and 'feedmon replay' stream a trial of any length)", max_samples)
+                                   "read into memory at once; identify a window of it or a shorter recording (the offline "
+                                   "run and the replay stream a trial of any length)", max_samples)
         if not samples:
             raise TrialFileError(f"{f.path}: channel {t_s} has no messages")
         n = sum(len(b.t) for b in samples)
