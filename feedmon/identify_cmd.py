@@ -186,7 +186,7 @@ def _jsonable(x):
 
 
 def _print_table(ident) -> None:
-    from monitor.report import candidate_rows, summary_table
+    from monitor.report import candidate_rows, summary_columns, summary_table
 
     console = Console()
     cands = Table(title=f"{ident.machine}/{ident.axis} — {Path(ident.trial_path).name} ({ident.form}): candidates")
@@ -197,9 +197,7 @@ def _print_table(ident) -> None:
         cands.add_row(*row)
     console.print(cands)
     table = Table(title="parameters (± standard error)")
-    cols = ["parameter", "LS", "PL-LSSVM" + (f" ({ident.pl.candidate.label[10:]})" if ident.pl else ""),
-            "truth / reference"]
-    for col in cols:
+    for col in summary_columns(ident):
         table.add_column(col, justify="right" if col != "parameter" else "left")
     for row in summary_table(ident):
         table.add_row(*row)

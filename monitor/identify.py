@@ -1058,6 +1058,9 @@ def _choose(candidates: list[Candidate], method: str) -> tuple[Candidate | None,
         best = max(pool, key=lambda c: c.log_evidence) if pool else None
         what = {"auto": "no candidate", "ls": "the LS model", "pl-lssvm": "no PL-LSSVM candidate"}[method]
         refusal = f"{what} is a valid model of this drive" + (f": {best.label}: {best.why_not}" if best else "")
+        ls = candidates[0]
+        if method == "auto" and best is not None and best is not ls:  # its advice may name LS: say why LS is not
+            refusal += f"; {ls.label}: {ls.why_not}"
     pl_pool = [c for c in candidates if c.method == "pl_lssvm"]
     pl_best = None
     if pl_pool:

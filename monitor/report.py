@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_report", "summary_table", "candidate_rows", "format_value"]
+__all__ = ["write_report", "summary_table", "summary_columns", "candidate_rows", "format_value"]
 
 
 def _fmt(x, digits=6) -> str:
@@ -66,6 +66,18 @@ _PHYS_ROWS = [
     ("coulomb_neg_over_gain", "Coulomb −/K (m/s)"),
     ("offset_over_gain", "offset/K (m/s)"),
 ]
+
+
+def summary_columns(ident) -> list[str]:
+    """Headers of :func:`summary_table`. A column whose candidate is not valid says so: its numbers are that
+    model's reading of the data, not the drive's (the candidates table says why)."""
+    def head(label: str, cand) -> str:
+        return label if cand.valid else f"{label} — NOT VALID (see candidates)"
+
+    pl = ident.pl
+    return ["parameter", head("LS", ident.ls.candidate),
+            "PL-LSSVM" if pl is None else head(f"PL-LSSVM ({pl.candidate.label[10:]})", pl.candidate),
+            "truth / reference"]
 
 
 def summary_table(ident) -> list[list[str]]:
@@ -247,7 +259,7 @@ def _markdown(ident, png_name: str, self_check: dict | None = None) -> str:
         "",
         "## Parameters (± standard error)",
         "",
-        "| parameter | LS | PL-LSSVM | truth / reference |",
+        "| " + " | ".join(summary_columns(ident)) + " |",
         "|---|---|---|---|",
         *["| " + " | ".join(r) + " |" for r in summary_table(ident)],
         "",

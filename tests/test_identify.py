@@ -409,8 +409,13 @@ def test_parameters_that_move_with_the_disturbance_model_are_not_a_valid_model(t
     assert ident.chosen is None and ident.refusal.startswith("no candidate is a valid model of this drive")
     assert ls.why_not.startswith("biased by the disturbance it leaves out: PL-LSSVM, locally periodic")
     assert " puts inertia at " in ls.why_not
+    assert "; LS: biased by the disturbance it leaves out" in ident.refusal  # the best's advice names LS
     witness = max(ident.candidates, key=lambda c: c.log_evidence)
     assert witness.log_evidence > ls.log_evidence + 1000 and "Coulomb friction negative" in witness.why_not
+    from monitor.report import summary_columns  # the parameter table does not print them as the drive's
+
+    assert summary_columns(ident)[1] == "LS — NOT VALID (see candidates)"
+    assert summary_columns(ident)[2].startswith("PL-LSSVM (") and summary_columns(ident)[2].endswith("NOT VALID (see candidates)")
 
 
 def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp_path):
