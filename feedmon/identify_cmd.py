@@ -64,8 +64,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from feedio import __version__
     from feedio.mcapio import TrialTooLong, read_trial
-    from kernels.errors import ParameterError
-    from monitor.identify import MAX_SAMPLES, identify
+    from monitor.identify import MAX_SAMPLES, identify, too_long
     from monitor.model_file import save_model
 
     if args.coulomb and args.no_coulomb:
@@ -82,10 +81,7 @@ def run(args) -> int:
     except TrialTooLong:
         if windowed:
             raise
-        raise ParameterError(f"{args.trial}: more than {MAX_SAMPLES} samples, more than one identification takes "
-                             "(the exact likelihood of the kernel candidates costs O(N²)); identify a window of the "
-                             "trial, e.g. a stretch that holds the motion and the disturbance of interest",
-                             "start", "end") from None
+        raise too_long(args.trial, f"more than {MAX_SAMPLES} samples,") from None
     t0 = float(whole.t[0]) if len(whole) else 0.0
     trial = whole.window(args.start, args.end)  # a bad window: the error names start/end (feedmon.errors)
     del whole

@@ -206,9 +206,7 @@ class AxisEstimator:
         #: why values of the health reports are not given (static per axis)
         self.notes: list[str] = []
         self.mode = self.settings.adaptation.mode
-        self.tracker = self._new_tracker()
-        self.online = self._new_online(self.tracker)       # may switch the mode off (notes say why)
-        self.health = self._new_health()
+        self._start_fresh()                                # may switch the mode off (notes say why)
         self.notes += self._notes()
         e_max = LIMITS["u"] if model.form == "force-input" else LIMITS["v"]
         sp = self.spindle
@@ -230,7 +228,6 @@ class AxisEstimator:
         self._beta1_to_b = 1.0 if model.form == "force-input" else 1.0 / (model.loop_gain or math.nan)
         #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
         self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
-        self._state = online.new_state()
         self._xdim = 2 if sp is not None else 1
         self._xbuf = np.zeros(self._xdim)  # an example input (its size) for the tracker's buffers
         self._scratch = online.new_scratch(len(names))
@@ -384,16 +381,20 @@ class AxisEstimator:
         return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
                             self._force(rows))
 
-    def _start_over(self) -> None:
-        """Tracker, online β, health statistics and regressor chain as the model file starts them (counted
-        ``tracker_restarts``): after a step that failed or a state that broke down
-        (:meth:`kernels.krlst.KRLST.breakdown`), which would otherwise never recover."""
-        notes, mode = self.notes, self.mode
+    def _start_fresh(self) -> None:
+        """Tracker, online β, health statistics and regressor chain as the model file starts them."""
         self.tracker = self._new_tracker()
         self.online = self._new_online(self.tracker)
         self.health = self._new_health()
-        self.notes, self.mode = notes, mode  # as decided at the start (the model is the same)
         self._state = online.new_state()
+
+    def _start_over(self) -> None:
+        """:meth:`_start_fresh` after a step that failed or a state that broke down
+        (:meth:`kernels.krlst.KRLST.breakdown`), which would otherwise never recover (counted
+        ``tracker_restarts``)."""
+        notes, mode = self.notes, self.mode
+        self._start_fresh()
+        self.notes, self.mode = notes, mode  # as decided at the start (the model is the same)
         self.counters["tracker_restarts"] += 1
 
     def _force(self, rows: np.ndarray) -> np.ndarray | None:

@@ -123,7 +123,7 @@ from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, s
 from . import online_settings as OS
 from .model_file import OMEGA_MAX, AxisModel, TrackerConfig, file_sha256
 
-__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "MAX_SAMPLES", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
+__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "MAX_SAMPLES", "too_long", "UNDETERMINED_RSE", "EFFICIENCY_KEYS", "VIF_FLAG", "SUGGEST_MARGIN",
            "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify", "periods_in_play", "dead_band"]
 
 #: PL-LSSVM hyperparameters when neither given nor tuned (thesis Table 4.1, case study 1)
@@ -827,6 +827,15 @@ def identify(
     return ident
 
 
+def too_long(path, count: str, limit: str = "") -> ParameterError:
+    """The refusal of a record longer than :data:`MAX_SAMPLES` (``count``: how long it is, ending in a verb;
+    ``limit``: the limit in this record's terms), naming the window that fixes it (``start``, ``end``)."""
+    return ParameterError(
+        f"{path}: {count} more than one identification takes ({limit}the exact likelihood of the kernel candidates "
+        "costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first sample), e.g. a "
+        "stretch that holds the motion and the disturbance of interest", "start", "end")
+
+
 def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str]:
     """Step 1: the input form (``form`` or the trial's) and its exogenous signal (``v_ref`` or ``u``)
     with its name, after checking ``method``, ``form`` and the record: every sample finite, at most
@@ -858,11 +867,8 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
                          "without it (trial.window(start, end)) or fix the file")
     Ts = float(trial.meta.Ts)
     if v.size - 1 > MAX_SAMPLES:
-        raise ParameterError(
-            f"{trial.path}: {v.size} samples ({v.size * Ts:.0f} s) are more than one identification takes "
-            f"({MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: the exact likelihood of the kernel "
-            "candidates costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first "
-            "sample), e.g. a stretch that holds the motion and the disturbance of interest", "start", "end")
+        raise too_long(trial.path, f"{v.size} samples ({v.size * Ts:.0f} s) are",
+                       f"{MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: ")
     steps = np.diff(trial.seq)
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
@@ -870,8 +876,7 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
     dt = float(np.median(np.diff(trial.t))) if trial.t.size > 1 else Ts
     if not math.isclose(dt, Ts, rel_tol=0.01):  # β, J, B are of the metadata's Ts: a wrong one scales them silently
         raise ValueError(f"{trial.path}: the samples are {dt:.6g} s apart but the trial's metadata give Ts = {Ts:.6g} s; "
-                         "the model is of one sampling time — re-create the trial with the right one (feedmon import "
-                         "... --Ts)")
+                         "the model is of one sampling time — re-create the trial with the right one (the importer's Ts)")
     return form, exo, exo_name
 
 

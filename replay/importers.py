@@ -335,9 +335,10 @@ def read_csv_trial(
     off = np.flatnonzero((dts < 0.5 * Ts_) | (dts > 1.5 * Ts_))
     if off.size:  # a gap (lost rows) or another rate: consecutive rows would pose as consecutive samples
         k = int(off[0])
-        raise ValueError(f"CSV file {path}: the time step from line {lines[k]} to {lines[k + 1]} is {dts[k]:.6g} s, not "
-                         f"the sampling time Ts = {Ts_:.6g} s ({off.size} such step(s)): the file has a gap or is not "
-                         "sampled at one rate; split it at the gap, resample it to one rate, or give the right --Ts")
+        raise ParameterError(f"CSV file {path}: the time step from line {lines[k]} to {lines[k + 1]} is {dts[k]:.6g} s, "
+                             f"not the sampling time Ts = {Ts_:.6g} s ({off.size} such step(s)): the file has a gap or is "
+                             "not sampled at one rate; split it at the gap, resample it to one rate, or give the right Ts",
+                             "Ts")
     n = t.size
     meta = S.TrialMeta(
         Ts=Ts_,
