@@ -180,6 +180,8 @@ __all__ = [
     "new_beta_buffers",
     "beta_state_views",
     "beta_state_of",
+    "replay_joint",
+    "fast_inertia",
     "validate_beta_state",
     "joint_arm",
     "joint_update",
@@ -200,8 +202,11 @@ PHYSICAL = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offs
 N_PHYS = len(PHYSICAL)
 
 #: slots of ``par`` (settings, fixed for a model)
-(P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD, P_MINSPEED) = range(10)
-N_PAR = 10
+(P_HUBER, P_OMEGA, P_ENABLED, P_GAIN, P_TS, P_IV, P_WARMUP, P_REJECT, P_HOLD, P_MINSPEED, P_FASTLAM) = range(11)
+N_PAR = 11
+#: memory (s of learning samples) of the fast inertia estimate (eq. 9): a payload is an abrupt change that
+#: shows at the few accelerations after it, which the slow memories average away
+FAST_MEMORY = 2.0
 #: largest min_speed (m/s) a model may set: beyond any feed drive's speed
 MIN_SPEED_MAX = 100.0
 #: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
@@ -209,11 +214,13 @@ MIN_SPEED_MAX = 100.0
 N_LAY = 5
 #: slots of ``cnt`` (counters and instrument bookkeeping: state)
 (C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE,
- C_SINCE_FORGET, C_QUIET, C_REJECTED, C_DIR) = range(12)
-N_CNT = 12
-#: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction
-(S_SCALE, S_VHAT) = range(2)
-N_SST = 2
+ C_SINCE_FORGET, C_QUIET, C_REJECTED, C_DIR, C_VSIM_ARM) = range(13)
+N_CNT = 13
+#: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction,
+#: the velocity the model simulates from the command alone (the velocity-loop instrument, eq. 8), the
+#: accumulators of the fast inertia estimate (eq. 9: Σ ζ_J e/R, Σ ζ_J s_J/R, Σ ζ_J²/R)
+(S_SCALE, S_VHAT, S_VSIM, S_FJN, S_FJD, S_FJV) = range(6)
+N_SST = 6
 #: learning samples between two applications of the forgetting (2) (with λ_β^m): keeps the
 #: per-sample work at rank-one updates of Λ⁻¹; the forgetting per sample is 1 − λ_β ≈ 3·10⁻⁴
 FORGET_EVERY = 16
@@ -227,8 +234,8 @@ BOUT = ("residual", "innovation", "nu", "variance", "weight", "learned", "filter
 (B_RESID, B_INNOV, B_NU, B_VAR, B_WEIGHT, B_LEARNED, B_FILTERED, B_ZTN) = range(len(BOUT))
 N_BOUT = len(BOUT)
 #: rows of the scratch ``vec``
-V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X, V_ZTR, V_ZETAR = range(8)  # V_BEFORE: the forgetting's step;
-N_VEC = 8                                                             # V_ZTR, V_ZETAR: z̃, ζ̃ off the rest direction
+V_ZT, V_ZETA, V_G, V_TMP, V_BEFORE, V_X, V_ZTR, V_ZETAR, V_SIM = range(9)  # V_BEFORE: the forgetting's step;
+N_VEC = 9                      # V_ZTR, V_ZETAR: z̃, ζ̃ off the rest direction; V_SIM: the simulation's regressor
 _HEADER = 4                 # int buffer: p, cap, number of constraints, (spare)
 
 
@@ -263,23 +270,25 @@ class BetaState(NamedTuple):
     info0: np.ndarray    # (p, p)
     cons: np.ndarray     # (ncons, p + 1)
     forget: np.ndarray   # (2, p, p): T and S of the forgetting (2)
+    dirj: np.ndarray     # (p,): ∂β/∂J at β₀, the direction of the inertia (eq. 9)
     beta: np.ndarray     # (p,)
     beta_trk: np.ndarray  # (p,)
     cov: np.ndarray      # (p, p)
     psi: np.ndarray      # (p, p)
-    MZ: np.ndarray       # (cap, p)
-    zhat: np.ndarray     # (p,)
+    MZ: np.ndarray       # (cap, p + 1): the regressors' and the instrument's
+    zhat: np.ndarray     # (p + 1,)
     sst: np.ndarray      # (N_SST,)
     info: np.ndarray     # (p, p) scratch
     lu: np.ndarray       # (p, p) scratch
     vec: np.ndarray      # (N_VEC, p) scratch
     work: np.ndarray     # (p, p) scratch of the forgetting
+    zx: np.ndarray       # (p + 1,) scratch: [z̃; ζ̃_sim], the shadow update's step
 
 
 #: the fields that are the estimator's state (snapshots); the others are settings or scratch
 STATE_FIELDS = ("cnt", "beta", "beta_trk", "cov", "psi", "MZ", "zhat", "sst")
 #: the fields fixed by the model and the settings (a restored state must hold the same)
-SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons", "forget")
+SETTINGS_FIELDS = ("lay", "par", "beta0", "info0", "cons", "forget", "dirj")
 
 
 def _offsets(p, cap, ncons):
@@ -294,20 +303,22 @@ def _offsets(p, cap, ncons):
     f_info0 = f_beta0 + p
     f_cons = f_info0 + pp
     f_forget = f_cons + ncons * (p + 1)
-    f_beta = f_forget + 2 * pp
+    f_dirj = f_forget + 2 * pp
+    f_beta = f_dirj + p
     f_btrk = f_beta + p
     f_cov = f_btrk + p
     f_psi = f_cov + pp
     f_mz = f_psi + pp
-    f_zhat = f_mz + cap * p
-    f_sst = f_zhat + p
+    f_zhat = f_mz + cap * (p + 1)
+    f_sst = f_zhat + p + 1
     f_info = f_sst + N_SST
     f_lu = f_info + pp
     f_vec = f_lu + pp
     f_work = f_vec + N_VEC * p
-    f_end = f_work + pp
-    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz,
-            f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_end)
+    f_zx = f_work + pp
+    f_end = f_zx + p + 1
+    return (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_dirj, f_beta, f_btrk, f_cov,
+            f_psi, f_mz, f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_zx, f_end)
 
 
 _offsets_nb = njit(cache=True, nogil=True)(_offsets)
@@ -316,16 +327,16 @@ _offsets_nb = njit(cache=True, nogil=True)(_offsets)
 def beta_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> BetaState:
     """The :class:`BetaState` of the two base buffers, as NumPy views."""
     p, cap, ncons = (int(v) for v in ibuf[:3])
-    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
-     f_sst, f_info, f_lu, f_vec, f_work, f_end) = _offsets(p, cap, ncons)
+    (i_lay, i_cnt, i_piv, i_end, f_par, f_beta0, f_info0, f_cons, f_forget, f_dirj, f_beta, f_btrk, f_cov, f_psi,
+     f_mz, f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_zx, f_end) = _offsets(p, cap, ncons)
     return BetaState(ibuf[:_HEADER], ibuf[i_lay:i_cnt], ibuf[i_cnt:i_piv], ibuf[i_piv:i_end],
                      fbuf[f_par:f_beta0], fbuf[f_beta0:f_info0], fbuf[f_info0:f_cons].reshape(p, p),
-                     fbuf[f_cons:f_forget].reshape(ncons, p + 1), fbuf[f_forget:f_beta].reshape(2, p, p),
-                     fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
+                     fbuf[f_cons:f_forget].reshape(ncons, p + 1), fbuf[f_forget:f_dirj].reshape(2, p, p),
+                     fbuf[f_dirj:f_beta], fbuf[f_beta:f_btrk], fbuf[f_btrk:f_cov],
                      fbuf[f_cov:f_psi].reshape(p, p), fbuf[f_psi:f_mz].reshape(p, p),
-                     fbuf[f_mz:f_zhat].reshape(cap, p), fbuf[f_zhat:f_sst], fbuf[f_sst:f_info],
+                     fbuf[f_mz:f_zhat].reshape(cap, p + 1), fbuf[f_zhat:f_sst], fbuf[f_sst:f_info],
                      fbuf[f_info:f_lu].reshape(p, p), fbuf[f_lu:f_vec].reshape(p, p),
-                     fbuf[f_vec:f_work].reshape(N_VEC, p), fbuf[f_work:f_end].reshape(p, p))
+                     fbuf[f_vec:f_work].reshape(N_VEC, p), fbuf[f_work:f_zx].reshape(p, p), fbuf[f_zx:f_end])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -335,16 +346,16 @@ def beta_state_of(fbuf, ibuf):
     p = ibuf[0]
     cap = ibuf[1]
     ncons = ibuf[2]
-    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_forget, f_beta, f_btrk, f_cov, f_psi, f_mz, f_zhat,
-     f_sst, f_info, f_lu, f_vec, f_work, _) = _offsets_nb(p, cap, ncons)
+    (i_lay, i_cnt, i_piv, _, f_par, f_beta0, f_info0, f_cons, f_forget, f_dirj, f_beta, f_btrk, f_cov, f_psi, f_mz,
+     f_zhat, f_sst, f_info, f_lu, f_vec, f_work, f_zx, _) = _offsets_nb(p, cap, ncons)
     return BetaState(view(ibuf, 0, (_HEADER,)), view(ibuf, i_lay, (N_LAY,)), view(ibuf, i_cnt, (N_CNT,)),
                      view(ibuf, i_piv, (p,)), view(fbuf, f_par, (N_PAR,)), view(fbuf, f_beta0, (p,)),
                      view(fbuf, f_info0, (p, p)), view(fbuf, f_cons, (ncons, p + 1)), view(fbuf, f_forget, (2, p, p)),
-                     view(fbuf, f_beta, (p,)),
+                     view(fbuf, f_dirj, (p,)), view(fbuf, f_beta, (p,)),
                      view(fbuf, f_btrk, (p,)), view(fbuf, f_cov, (p, p)), view(fbuf, f_psi, (p, p)),
-                     view(fbuf, f_mz, (cap, p)), view(fbuf, f_zhat, (p,)), view(fbuf, f_sst, (N_SST,)),
+                     view(fbuf, f_mz, (cap, p + 1)), view(fbuf, f_zhat, (p + 1,)), view(fbuf, f_sst, (N_SST,)),
                      view(fbuf, f_info, (p, p)), view(fbuf, f_lu, (p, p)), view(fbuf, f_vec, (N_VEC, p)),
-                     view(fbuf, f_work, (p, p)))
+                     view(fbuf, f_work, (p, p)), view(fbuf, f_zx, (p + 1,)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -578,15 +589,18 @@ def new_beta_buffers(beta0, names, Ts: float, budget: int, *, omega: float = 0.0
     bs.beta0[:] = beta0
     bs.info0[:] = info0
     bs.cons[:] = cons
-    bs.forget[:] = forgetting_operators(parameter_basis(form, beta0, Ts, par[P_GAIN], i_sp, i_sn, i_one),
-                                        math.exp(-Ts / memory) ** FORGET_EVERY,
+    basis = parameter_basis(form, beta0, Ts, par[P_GAIN], i_sp, i_sn, i_one)
+    bs.forget[:] = forgetting_operators(basis, math.exp(-Ts / memory) ** FORGET_EVERY,
                                         math.exp(-Ts / inertia_memory) ** FORGET_EVERY)
+    bs.dirj[:] = basis[0][:, 0]                 # ∂β/∂J: the inertia is the first physical parameter
+    par[P_FASTLAM] = math.exp(-Ts / FAST_MEMORY)
     bs.beta[:] = beta0
     bs.beta_trk[:] = beta0
     bs.cov[:] = P0
     bs.psi[:] = info0
     bs.sst[S_SCALE] = 1.0
     bs.cnt[C_VHAT_ARM] = -1                     # no velocity prediction stored yet
+    bs.cnt[C_VSIM_ARM] = -1                     # no simulated velocity yet
     return fbuf, ibuf
 
 
@@ -624,7 +638,8 @@ def validate_beta_state(bs: BetaState, fresh: BetaState, occupied: np.ndarray) -
         raise ValueError("beta 'MZ'/'zhat': implausibly large shadow means")
     c = bs.cnt
     if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_TRAINED, C_SINCE_REBASE, C_SINCE_FORGET,
-                 C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1:
+                 C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1 \
+            or c[C_VSIM_ARM] < -1 or c[C_VSIM_ARM] > c[C_ARMS] + 1:
         raise ValueError("beta 'cnt' holds impossible counters")
     if c[C_DIR] not in (-1, 0, 1):
         raise ValueError("beta 'cnt': the previous sample's direction of motion is not −1, 0 or 1")
@@ -932,8 +947,8 @@ def joint_arm(st, bs, x, out):
     bs.cnt[C_ARMS] += 1
     MZ = bs.MZ
     zhat = bs.zhat
-    p = zhat.shape[0]
-    for j in range(p):
+    w = zhat.shape[0]                             # the p regressors and the instrument
+    for j in range(w):
         zhat[j] = 0.0
     if n == 0:
         return
@@ -941,7 +956,7 @@ def joint_arm(st, bs, x, out):
     c = bs.sst[S_SCALE] * math.sqrt(st.fst[core.F_LAM])  # M_Z ← √λ M_Z (on the scale)
     if c < SCALE_FLOOR:
         for i in range(hw):
-            for j in range(p):
+            for j in range(w):
                 MZ[i, j] *= c
         c = 1.0
     bs.sst[S_SCALE] = c
@@ -949,8 +964,9 @@ def joint_arm(st, bs, x, out):
     corr = 0.0
     beta = bs.beta
     btrk = bs.beta_trk
-    for j in range(p):
+    for j in range(w):
         zhat[j] *= c                              # ẑ = M_Zᵀ q
+    for j in range(beta.shape[0]):
         corr += zhat[j] * (beta[j] - btrk[j])
     out[core.A_MEAN] -= corr                      # f̂(x | β̂) = ŷ(β_trk) − ẑᵀ(β̂ − β_trk)
 
@@ -1024,10 +1040,27 @@ def joint_update(st, bs, z, y, gate, out, bout):
         zt[j] = z[j] - zhat[j]                    # z̃ = z − ẑ
         zeta[j] = zt[j]
         shift += zt[j] * (beta[j] - btrk[j])
-    # instrument for the measured velocity: the model's prediction v̂(k) made one step earlier
-    # (independent of the noise of v_m(k) and v_m(k+1)); valid only right after the arm that followed it
-    if par[P_IV] != 0.0 and cnt[C_VHAT_ARM] == cnt[C_ARMS]:
-        zeta[1] = bs.sst[S_VHAT] - zhat[1]        # ζ̃ = ζ − ẑ with ζ = z, v_m(k) → v̂(k)
+    # instrument for the measured velocity (eq. 8). Velocity loop: the velocity the model simulates from
+    # the command alone, v_sim(k+1) = β₀ᵀz(v_ref(k), v_sim(k)) — free of the noise and of the disturbance
+    # (a cutting force excites v_m at the tooth frequency; its prediction errors must not teach the
+    # inertia), with its own shadow mean (column p of M_Z); restarted from v_m after a break of the chain.
+    # Force input (u is the loop's reaction to the disturbance too): the model's one-step prediction
+    # v̂(k), free of the noise; valid only right after the arm that followed it
+    zx = bs.zx
+    form_force = bs.lay[L_FORM] == 1
+    vsim = z[1]
+    if not form_force:
+        if cnt[C_VSIM_ARM] == cnt[C_ARMS]:
+            vsim = bs.sst[S_VSIM]
+        zx[p] = vsim - zhat[p]
+        if par[P_IV] != 0.0:
+            zeta[1] = zx[p]                       # ζ̃ = ζ − ẑ_ζ with ζ = z, v_m(k) → v_sim(k)
+    else:
+        zx[p] = 0.0
+        if par[P_IV] != 0.0 and cnt[C_VHAT_ARM] == cnt[C_ARMS]:
+            zeta[1] = bs.sst[S_VHAT] - zhat[1]    # ζ̃ = ζ − ẑ with ζ = z, v_m(k) → v̂(k)
+    for j in range(p):
+        zx[j] = zt[j]
     resid_trk = y - base_trk                      # what the tracker trains on (its mean goes with β_trk)
     resid = y - base                              # r = y − β̂ᵀz (eq. 2.13)
     e = resid_trk - fst[core.F_YM] - shift        # e = y − β̂ᵀz − f̂(β̂) = ỹ − β̂ᵀz̃
@@ -1036,16 +1069,17 @@ def joint_update(st, bs, z, y, gate, out, bout):
     # shadow means (stored / scale c), the mean part of eq. 2.14 for every regressor column
     inv_sy2 = 1.0 / sy2
     inv_c = 1.0 / bs.sst[S_SCALE]
-    _rows_axpy(MZ, h, inv_sy2 * inv_c, zt, hw)    # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
-    for j in range(p):
-        MZ[s, j] = (zhat[j] + zt[j] * inv_sy2 * sf2) * inv_c
+    w = p + 1
+    _rows_axpy(MZ, h, inv_sy2 * inv_c, zx, hw)    # M_Z ← [M_Z; ẑ] + z̃/σ_y² [h; σ_f²]
+    for j in range(w):
+        MZ[s, j] = (zhat[j] + zx[j] * inv_sy2 * sf2) * inv_c
     core.update(st, resid_trk, out)
     if out[core.O_REDUCED] != 0.0:                # reduced update: the new basis was dropped
-        for j in range(p):
+        for j in range(w):
             MZ[s, j] = 0.0
     elif out[core.O_REMOVED] >= 0.0:              # pruned: the new basis took the pruned one's slot
         t = st.order[ist[core.I_N] - 1]
-        for j in range(p):
+        for j in range(w):
             MZ[t, j] = MZ[s, j]
             MZ[s, j] = 0.0
     R = s02 * sy2                                 # R = s0² σ_y²
@@ -1061,6 +1095,15 @@ def joint_update(st, bs, z, y, gate, out, bout):
     bout[B_ZTN] = math.sqrt(ztn)
     if par[P_ENABLED] != 0.0 and n > 0 and R > 0.0:
         _beta_step(bs, z, e, R, gate, bout)
+    if not form_force:                            # (8) the simulation's next step, with the model file's β₀
+        zs = vec[V_SIM]                           # (stable by the validity rules; β̂ would feed back on itself)
+        regressor(False, bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE], par[P_OMEGA], z[0], vsim, zs)
+        acc = 0.0
+        b0 = bs.beta0
+        for j in range(p):
+            acc += b0[j] * zs[j]
+        bs.sst[S_VSIM] = acc
+        cnt[C_VSIM_ARM] = cnt[C_ARMS] + 1
     # the filtered f at x(k) given β̂: f_filt(β_trk) − z_filtᵀ(β̂ − β_trk), z_filt = ẑ + σ_f² z̃/σ_y²
     filtered = out[core.O_FILT]
     for j in range(p):
@@ -1125,10 +1168,24 @@ def _beta_step(bs, z, e, R, gate, bout):
     if abs(nu) > c:
         w = c / abs(nu)
         cnt[C_DOWNWEIGHTED] += 1
+    # (9) the fast inertia estimate: δ = Σ ζ_J e/R ÷ Σ ζ_J s_J/R over a memory of FAST_MEMORY, with
+    # s_J = z̃ᵀ∂β/∂J and ζ_J = ζ̃ᵀ∂β/∂J — an instrumental-variable estimate of the inertia's change since β̂,
+    # unweighted: the samples that carry an abrupt change are the ones Huber's weight would discount
+    sj = 0.0
+    cj = 0.0
+    dirj = bs.dirj
+    for i in range(p):
+        sj += zt[i] * dirj[i]
+        cj += zeta[i] * dirj[i]
+    sst = bs.sst
+    lf = par[P_FASTLAM]
+    sst[S_FJN] = lf * sst[S_FJN] + cj * e / R
+    sst[S_FJD] = lf * sst[S_FJD] + cj * sj / R
+    sst[S_FJV] = lf * sst[S_FJV] + cj * cj / R
     Rw = R / w
     den = 1.0 / (Rw + ztg)
     coef = e * den
-    meat = R / (Rw * Rw)
+    meat = (w * e / R) ** 2                       # empirical score² (Huber–White sandwich); model-based: R/R_w²
     psi = bs.psi
     for i in range(p):
         beta[i] += g[i] * coef                    # β̂ ← β̂ + Λ⁻¹ζ̃ e / (R_w + z̃ᵀΛ⁻¹ζ̃)
@@ -1237,6 +1294,24 @@ def track_joint(fbuf, ibuf, bfbuf, bibuf, X, e, v, gate, resume, out, bout, zbuf
 
 
 @njit(cache=True, nogil=True)
+def replay_joint(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, x_now, out, bout, zbuf):
+    """Rebuild a fresh tracker and its shadow means from recorded samples: for each ``k``, arm at
+    ``X[k]`` and learn ``(z(exo[k], v[k]), target[k])`` without learning β (the caller has switched
+    β's learning off), then arm at ``x_now``. The samples need not be consecutive: each carries its
+    own regressor and target (``target[k] = v_m`` of the sample after ``k``)."""
+    st = core.unowned(core.state_of(fbuf, ibuf))
+    bs = beta_state_of(bfbuf, bibuf)
+    form_force = bs.lay[L_FORM] == 1
+    i_sp, i_sn, i_one = bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE]
+    omega = bs.par[P_OMEGA]
+    for k in range(X.shape[0]):
+        joint_arm(st, bs, X[k], out)
+        regressor(form_force, i_sp, i_sn, i_one, omega, exo[k], v[k], zbuf)
+        joint_update(st, bs, zbuf, target[k], False, out, bout)
+    joint_arm(st, bs, x_now, out)
+
+
+@njit(cache=True, nogil=True)
 def joint_arm_buffers(fbuf, ibuf, bfbuf, bibuf, x, out):
     """:func:`joint_arm` on the base buffers of the tracker and of the β state."""
     joint_arm(core.state_of(fbuf, ibuf), beta_state_of(bfbuf, bibuf), x, out)
@@ -1258,6 +1333,18 @@ def rebase_buffers(fbuf, ibuf, bfbuf, bibuf):
 def physical_se_buffers(bfbuf, bibuf, theta, se, cov_work):
     """:func:`physical_se` on the base buffers of the β state."""
     return physical_se(beta_state_of(bfbuf, bibuf), theta, se, cov_work)
+
+
+@njit(cache=True, nogil=True)
+def fast_inertia(bs, J):
+    """The fast inertia estimate (eq. 9) ``J + δ`` and its standard error, ``J`` the slow estimate
+    (kg, or kg over K); NaN when the last ``FAST_MEMORY`` seconds of motion held no acceleration, and in
+    the force-input form: there the command is the loop's reaction to the disturbance too, so no
+    instrument free of it exists, and a disturbance step reads as an inertia step over a few samples."""
+    d = bs.sst[S_FJD]
+    if bs.lay[L_FORM] == 1 or not (d != 0.0 and math.isfinite(J)):
+        return np.nan, np.nan
+    return J + bs.sst[S_FJN] / d, math.sqrt(max(bs.sst[S_FJV], 0.0)) / abs(d)
 
 
 @njit(cache=True, nogil=True)
@@ -1508,8 +1595,8 @@ class OnlineBeta:
 
     @property
     def shadow_means(self) -> np.ndarray:
-        """``M_Z`` in the tracker's slots, in signal units (a copy)."""
-        return self.state.MZ * self.state.sst[S_SCALE]
+        """``M_Z`` of the regressors in the tracker's slots, in signal units (a copy)."""
+        return self.state.MZ[:, :len(self.names)] * self.state.sst[S_SCALE]
 
     @property
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
@@ -1589,6 +1676,57 @@ class OnlineBeta:
         self._x = X[-1].copy()
         return {"f_next": rows[:, 0], "f_next_var": rows[:, 1], "learned": rows[:, 2] == 1.0, "nu": rows[:, 3],
                 "residual": rows[:, 4], "filtered": rows[:, 5], "weight": rows[:, 6]}
+
+    def breakdown(self) -> str | None:
+        """Why the β recursion has left what exact arithmetic allows, or None: a non-finite β̂ or
+        covariance factor, or ``Λ⁻¹`` or ``P = Λ⁻¹ΨΛ⁻ᵀ`` no longer positive on the diagonal (roundoff in
+        the rank-one updates on nearly collinear regressors). The recursion never recovers by itself."""
+        st = self.state
+        for name in ("beta", "cov", "psi"):
+            if not np.all(np.isfinite(getattr(st, name))):
+                return f"non-finite {name}"
+        if not np.all(np.diag(st.cov) > 0.0):
+            return "Λ⁻¹ lost its positive diagonal"
+        if not np.all(np.diag(st.cov @ st.psi @ st.cov.T) > 0.0):
+            return "the covariance of β lost its positive diagonal"
+        return None
+
+    def reseated(self, tracker, X, exo, v, target, x_now) -> OnlineBeta:
+        """This β estimate joined to another (fresh) tracker — a new disturbance model: the tracker and
+        its shadow means are rebuilt from recorded samples (:func:`replay_joint`, β not learning), then
+        β̂, its covariance, the instrument's prediction and the counters are carried over. In *apply*
+        mode the tracker learns the residual of the current ``β_trk``."""
+        if tracker.size:
+            raise ValueError("reseated needs a fresh tracker")
+        new = OnlineBeta.__new__(OnlineBeta)
+        new.__dict__.update(self.__dict__)
+        new.tracker = tracker
+        new._buf = new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget, **self._kw)
+        new.state = beta_state_views(*new._buf)
+        new._out = np.zeros(core.N_OUT)
+        new._bout = np.zeros(N_BOUT)
+        new._z = np.zeros(len(self.names))
+        bs, old = new.state, self.state
+        bs.beta_trk[:] = old.beta_trk
+        enabled = bs.par[P_ENABLED]
+        bs.par[P_ENABLED] = 0.0
+        if x_now is None:                         # nothing accepted yet: nothing to replay or arm at
+            new._x = None
+        else:
+            xn = np.ascontiguousarray(np.atleast_1d(np.asarray(x_now, dtype=np.float64)))
+            Xa = np.ascontiguousarray(np.asarray(X, dtype=np.float64).reshape(len(target), xn.size))
+            replay_joint(*tracker.core_buffers(xn), *new._buf, Xa, np.ascontiguousarray(exo, dtype=np.float64),
+                         np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(target, dtype=np.float64),
+                         xn, new._out, new._bout, new._z)
+            new._x = xn
+        bs.par[P_ENABLED] = enabled
+        for name in ("beta", "cov", "psi"):
+            getattr(bs, name)[:] = getattr(old, name)
+        bs.sst[S_FJN:S_FJV + 1] = old.sst[S_FJN:S_FJV + 1]   # the fast inertia estimate goes on
+        arms, vhat_arm = bs.cnt[C_ARMS], bs.cnt[C_VHAT_ARM]
+        bs.cnt[:] = old.cnt
+        bs.cnt[C_ARMS], bs.cnt[C_VHAT_ARM] = arms, vhat_arm   # the instrument's v̂: the new tracker's
+        return new
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:

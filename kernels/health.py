@@ -96,9 +96,13 @@ __all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_healt
            "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
 
 LEVELS = ("ok", "warn", "alarm")
-#: the drift-tested physical parameters (indices into :data:`kernels.beta_tracker.PHYSICAL`)
-PARAMS = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "offset")
-PHYS_INDEX = (0, 1, 2, 3, 5)
+#: the drift-tested physical parameters (indices into :data:`kernels.beta_tracker.PHYSICAL`; the symmetric
+#: Coulomb friction too — the one a trial without rest determines), then the fast inertia estimate
+#: (:func:`kernels.beta_tracker.fast_inertia`, against the model file's inertia), tested for an abrupt
+#: change (a payload): alarm only, at the alarm thresholds
+PARAMS = ("inertia", "damping", "coulomb_pos", "coulomb_neg", "coulomb", "offset", "inertia_step")
+PHYS_INDEX = (0, 1, 2, 3, 4, 5, 0)
+STEP = len(PARAMS) - 1
 #: reasons, in the order of ``HealthState.level``
 REASONS = ("innovation",) + PARAMS
 N_REASON = len(REASONS)
@@ -321,8 +325,8 @@ def health_tick(hs, theta, se):
             lv = 2
         elif lv == 2:
             if az < par[Q_ZW] or r < 0.5 * par[Q_RA]:
-                lv = 1                             # alarm → warn
-        if lv < 2 and det:
+                lv = 1 if j != STEP else 0        # alarm → warn (the step test has no warn level)
+        if lv < 2 and det and j != STEP:
             if az >= par[Q_ZW] and r >= par[Q_RW]:
                 lv = 1
             elif lv == 1 and (az < par[Q_ZC] or r < 0.5 * par[Q_RW]):
@@ -380,9 +384,9 @@ class HealthMonitor:
         s0 = self._vec(se_file)
         sp = self._vec(se_prior)
         if scale is None:
-            fr = [abs(v) for v in (t0[2], t0[3], t0[4]) if math.isfinite(v)]
+            fr = [abs(v) for v in (t0[2], t0[3], t0[5]) if math.isfinite(v)]
             fscale = max(fr + [1.0])
-            scale = [abs(t0[0]), abs(t0[1]), fscale, fscale, fscale]
+            scale = [abs(t0[0]), abs(t0[1]), fscale, fscale, fscale, fscale, abs(t0[0])]
         self.config = (config or HealthConfig()).validate()
         self._buf = new_health_buffers(Ts, t0, s0, sp, self._vec(scale), self.config)
         self.state = health_state_views(*self._buf)
@@ -392,10 +396,10 @@ class HealthMonitor:
         if values is None:
             return np.full(len(PARAMS), np.nan)
         if isinstance(values, dict):
-            unknown = set(values) - set(PARAMS) - {"coulomb"}
+            unknown = set(values) - set(PARAMS)
             if unknown:
                 raise ValueError(f"unknown health parameter(s) {sorted(unknown)}; known: {', '.join(PARAMS)}")
-            return np.array([float(values.get(k, np.nan)) for k in PARAMS])
+            return np.array([float(values.get(k if k != "inertia_step" else "inertia", np.nan)) for k in PARAMS])
         a = np.asarray(values, dtype=np.float64)
         if a.shape != (len(PARAMS),):
             raise ValueError(f"health reference arrays must have {len(PARAMS)} entries ({', '.join(PARAMS)}), "
@@ -457,8 +461,12 @@ def describe(level, z, rel, nu2_mean: float, ewma_max: float) -> list[str]:
     for j, p in enumerate(PARAMS):
         if level[1 + j]:
             sign = "+" if z[j] > 0 else "−"
-            reasons.append(f"{p} drift {sign}{100 * rel[j]:.1f} % of the model file value "
-                           f"({abs(z[j]):.1f} standard errors)")
+            if j == STEP:
+                reasons.append(f"inertia step {sign}{100 * rel[j]:.1f} % of the model file value over the last "
+                               f"accelerations ({abs(z[j]):.1f} standard errors): a payload or a changed drive")
+            else:
+                reasons.append(f"{p} drift {sign}{100 * rel[j]:.1f} % of the model file value "
+                               f"({abs(z[j]):.1f} standard errors)")
     return reasons
 
 
@@ -469,5 +477,6 @@ def _sample_many(hs, nu, out):
 
 
 def physical_vector(theta6) -> np.ndarray:
-    """The :data:`PARAMS` entries of a :data:`kernels.beta_tracker.PHYSICAL` vector."""
+    """The :data:`PARAMS` entries of a :data:`kernels.beta_tracker.PHYSICAL` vector (the inertia stands for the
+    reference of the inertia step)."""
     return np.asarray(theta6, dtype=np.float64)[list(PHYS_INDEX)]

@@ -100,7 +100,7 @@ from ._krlst_simd import view
 from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
 
 __all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REORDER_WINDOW", "MODES", "OnlineConfig",
-           "ConfigBuffers", "config_of", "new_config", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows",
+           "ConfigBuffers", "config_of", "new_config", "set_tracker_input", "new_search", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows",
            "new_scratch", "new_ticks", "track_block"]
 
 #: counters of the ``counts`` output, in slot order (each a number of samples unless said)
@@ -183,6 +183,20 @@ def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: fl
                                    spindle, tick_min], dtype=np.int64),
                          np.array([omega, inv_ts, v_max, e_max, t_max, theta_period, rpm_nominal, rpm_max,
                                    tick_period], dtype=np.float64))
+
+
+def set_tracker_input(cfg: ConfigBuffers, spindle: bool, theta_period: float, rpm_nominal: float | None = None) -> None:
+    """Change what the tracker reads in place (a new disturbance model): ``x = (t, θ)`` with a kernel
+    ``theta_period``-periodic in θ (rad), or ``x = t``; ``rpm_nominal`` the speed θ is integrated at
+    without spindle data (rpm; None: keep)."""
+    if not (math.isfinite(theta_period) and theta_period > 0.0):
+        raise ValueError(f"theta_period must be a positive angle (rad), got {theta_period!r}")
+    cfg.ints[6] = int(bool(spindle))
+    cfg.floats[5] = float(theta_period)
+    if rpm_nominal is not None:
+        if not (math.isfinite(rpm_nominal) and 0.0 <= rpm_nominal <= cfg.floats[7]):
+            raise ValueError(f"rpm_nominal must be in [0, {cfg.floats[7]:g}] rpm, got {rpm_nominal!r}")
+        cfg.floats[6] = float(rpm_nominal)
 
 
 @register_jitable
@@ -281,6 +295,56 @@ N_TICK = _at
 K_SEQ, K_T, K_THETA, K_SE, K_LEVEL, K_Z, K_REL, K_DET, K_NU2, K_EWMAX, K_STATE = (_TICK_AT[n] for n, _ in TICK)
 
 
+#: columns of the ring of recent learned samples the disturbance-model search replays
+#: (:mod:`kernels.disturbance_search`): the sample's time (s), spindle angle (rad; NaN without spindle
+#: data), command (v_ref m/s or u N), the velocity in its regressor (m/s), the measured velocity of
+#: the next sample (the target, m/s), the residual the tracker learned (m/s), and the commanded velocity
+#: v_ref (m/s; NaN when the samples carry none) against which periods locked to the motion are told apart,
+#: and the spindle speed θ was integrated with (rpm; NaN without spindle data)
+RING = ("t", "theta", "exo", "v", "target", "resid", "ref", "rpm")
+G_T, G_THETA, G_EXO, G_V, G_TARGET, G_RESID, G_REF, G_RPM = range(len(RING))
+#: integer slots of the search state (``sint``): the ring's next write position and fill, the learned
+#: samples counted for the search, the counts at which the loop pauses for the next search (routine,
+#: and while the tracker predicts poorly), the count before which health and β do not learn, why
+#: the loop paused (:data:`PAUSE_NONE` …) and the sample index it paused after, whether a second
+#: tracker publishes the disturbance (``dual``: a time kernel short enough to follow the drive's own
+#: regressors is kept away from online β, which keeps a tracker of its own) and whether that one reads θ
+SEARCH_INTS = ("head", "fill", "count", "next_tick", "next_retry", "freeze_until", "pause", "stop", "dual", "pub_spindle")
+(S_HEAD, S_FILL, S_COUNT, S_NEXT_TICK, S_NEXT_RETRY, S_FREEZE, S_PAUSE, S_STOP, S_DUAL,
+ S_PUB_SPINDLE) = range(len(SEARCH_INTS))
+PAUSE_NONE, PAUSE_ROUTINE, PAUSE_POOR = range(3)
+#: float slots (``sflt``): the calibration's EWMAs of the squared innovation e² and of the
+#: predictive variance P of f, the variance scale c² they give, the short EWMAs of ν² and e², then
+#: settings: the residual noise variance σ_ε² ((m/s)², 0: the tracker's own s0²/γ), the EWMA
+#: weights of the calibration and of the short test, the "predicts poorly" level, the θ of the last
+#: accepted sample (NaN without spindle data) and its commanded velocity
+SEARCH_FLOATS = ("cal_e2", "cal_p", "c2", "nu2", "e2", "noise2", "a_cal", "a_short", "poor", "theta_data", "ref")
+(Q_CAL_E2, Q_CAL_P, Q_C2, Q_NU2, Q_E2, Q_NOISE2, Q_A_CAL, Q_A_SHORT, Q_POOR, Q_THETA,
+ Q_REF) = range(len(SEARCH_FLOATS))
+#: the calibration never lets the disturbance's share of the innovation fall below this fraction
+CAL_FLOOR = 0.05
+
+
+def new_search(Ts: float, *, noise2: float = 0.0, cal_tau: float = 2.0, short_tau: float = 0.1, poor: float = 9.0,
+               ring: int = 4096, enabled: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(ring, sint, sflt)``: the ring of ``ring`` learned samples (:data:`RING`) and the search and
+    calibration state (:data:`SEARCH_INTS`, :data:`SEARCH_FLOATS`) of a stream sampled every ``Ts`` s.
+    ``noise2``: the residual's white-noise variance ((m/s)²; 0: unknown, the tracker's own s0²/γ
+    stands in). ``enabled=False``: the loop never pauses for a search (the calibration still runs)."""
+    sint = np.zeros(len(SEARCH_INTS), dtype=np.int64)
+    sint[S_NEXT_TICK] = sint[S_NEXT_RETRY] = 0 if enabled else np.iinfo(np.int64).max
+    sflt = np.zeros(len(SEARCH_FLOATS))
+    sflt[Q_C2] = 1.0
+    sflt[Q_NU2] = 1.0
+    sflt[Q_NOISE2] = max(0.0, float(noise2))
+    sflt[Q_A_CAL] = 1.0 - math.exp(-Ts / cal_tau)
+    sflt[Q_A_SHORT] = 1.0 - math.exp(-Ts / short_tau)
+    sflt[Q_POOR] = poor
+    sflt[Q_THETA] = np.nan
+    sflt[Q_REF] = np.nan
+    return np.full((max(16, int(ring)), len(RING)), np.nan), sint, sflt
+
+
 def new_scratch(p: int) -> np.ndarray:
     """The scratch buffer of :func:`track_block` for a model with ``p`` β entries."""
     return np.zeros(_SCR_FIXED + _scr_p(p))
@@ -339,7 +403,7 @@ def _theta(cfg, st, sp, j, tj, restart, counts):
         a = sp[0, j]
         r = sp[1, j]
     rate = r if (math.isfinite(r) and abs(r) <= cfg.rpm_max) else np.nan
-    P = cfg.theta_period
+    P = 2.0 * math.pi                            # the kernels are 2π/teeth-periodic in θ: one turn keeps θ small
     if math.isfinite(a):
         th = a
     else:
@@ -352,7 +416,7 @@ def _theta(cfg, st, sp, j, tj, restart, counts):
             th = st.theta[0] + (2.0 * math.pi / 60.0) * 0.5 * (r0 + rate) * dt   # trapezoid
         else:
             th = (2.0 * math.pi / 60.0) * rate * tj   # restart: as if at this speed since t = 0
-    th = th - P * math.floor(th / P)              # the kernel is P-periodic in θ: keep it small
+    th = th - P * math.floor(th / P)
     if not (0.0 <= th < P):
         th = 0.0                                  # (rounding at the boundary)
     st.theta[0] = th
@@ -414,6 +478,7 @@ def _tick(cfg, bs, hs, s, tj, ticks, k, scr, p):
     for i in range(len(hl.PARAMS)):
         th5[i] = theta[hl.PHYS_INDEX[i]]
         se5[i] = se[hl.PHYS_INDEX[i]]
+    th5[hl.STEP], se5[hl.STEP] = bt.fast_inertia(bs, theta[0]) if cfg.mode != MODE_OFF else (np.nan, np.nan)
     acc = hs.acc
     wn = acc[hl.A_WN]
     row[K_NU2] = acc[hl.A_WSUM] / wn if wn > 0.0 else np.nan
@@ -434,9 +499,51 @@ def _tick(cfg, bs, hs, s, tj, ticks, k, scr, p):
 
 
 @njit(cache=True, nogil=True)
+def _learned(st, ring, sint, sflt, tr_fst_before, resid_trk, v_next, ref):
+    """After a learned sample: the ring entry, the calibration's EWMAs and the short "predicts poorly"
+    statistics. ``tr_fst_before``: the publishing tracker's armed ``ŷ, σ_f², σ_y², s0², sn2`` before the
+    update. Returns ``(e, R, c2, noise2)``."""
+    ym, sf2, sy2, s02, sn2 = tr_fst_before
+    R = s02 * sy2                                 # predictive variance of the residual (eq. 2.17, 2.20)
+    e_in = resid_trk - ym
+    W = ring.shape[0]
+    h = sint[S_HEAD]
+    ring[h, G_T] = st.last_t[0]
+    ring[h, G_THETA] = sflt[Q_THETA]
+    ring[h, G_EXO] = st.last_e[0]
+    ring[h, G_V] = st.last_v_used[0]
+    ring[h, G_TARGET] = v_next
+    ring[h, G_RESID] = resid_trk
+    ring[h, G_REF] = ref
+    ring[h, G_RPM] = st.theta_rpm[0] if math.isfinite(sflt[Q_THETA]) else np.nan
+    sint[S_HEAD] = (h + 1) % W
+    if sint[S_FILL] < W:
+        sint[S_FILL] += 1
+    sint[S_COUNT] += 1
+    noise2 = sflt[Q_NOISE2] if sflt[Q_NOISE2] > 0.0 else s02 * sn2
+    P = s02 * sf2                                 # predictive variance of f, as the tracker sees it
+    if sflt[Q_CAL_P] == 0.0:                      # first learned sample: start the EWMAs here
+        sflt[Q_CAL_E2] = e_in * e_in
+        sflt[Q_CAL_P] = P
+    a = sflt[Q_A_CAL]
+    sflt[Q_CAL_E2] += a * (e_in * e_in - sflt[Q_CAL_E2])
+    sflt[Q_CAL_P] += a * (P - sflt[Q_CAL_P])
+    e2 = sflt[Q_CAL_E2]
+    # E e² = E (f − f̂)² + σ_ε²: the prediction error of f over what the tracker expected   (C1)
+    if sflt[Q_CAL_P] > 0.0:
+        sflt[Q_C2] = max(e2 - noise2, CAL_FLOOR * e2) / sflt[Q_CAL_P]
+    b = sflt[Q_A_SHORT]
+    if R > 0.0:
+        sflt[Q_NU2] += b * (min(e_in * e_in / R, 100.0) - sflt[Q_NU2])
+    sflt[Q_E2] += b * (e_in * e_in - sflt[Q_E2])
+    return e_in, R, sflt[Q_C2], noise2
+
+
+@njit(cache=True, nogil=True)
 def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floats, st_ints, st_floats, seq0, t, e,
-                v, sp, rows, irows, counts, ticks, scr):
-    """Process one block of samples (method §6); returns the number of leading samples dropped.
+                v, sp, rows, irows, counts, ticks, scr, start, ring, sint, sflt, vref, pfbuf, pibuf):
+    """Process samples ``start …`` of one block (method §6); returns the number of leading samples
+    dropped.
 
     ``fbuf, ibuf``: the tracker's two base buffers (:meth:`kernels.krlst.KRLST.core_buffers`, named
     inside by :func:`kernels._krlst_core.state_of`); ``bfbuf, bibuf`` the online β state's
@@ -450,19 +557,29 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
     return value: dropped samples — duplicates and late re-sends — always form a prefix, since the
     sample after an accepted one is its successor); ``counts`` accumulates :data:`COUNTERS`
     (``health_reports``: the rows written to ``ticks``, :func:`new_ticks`); ``scr`` scratch
-    (:func:`new_scratch`).
+    (:func:`new_scratch`). ``ring, sint, sflt`` (:func:`new_search`): the recent learned samples, the
+    search and calibration state. The loop stops after the sample at which a search of the
+    disturbance model is due (``sint[S_PAUSE]`` says why, ``sint[S_STOP]`` where to resume; it is
+    ``n`` when the block is done): the caller runs the search and calls again from there. ``vref``
+    (n,) the commanded velocity (m/s, NaN = missing) or (0,): what the ring keeps as the motion.
+    ``pfbuf, pibuf``: with ``sint[S_DUAL]``, the buffers of the tracker that publishes the disturbance
+    (then the first tracker serves online β and health only); unused otherwise.
     """
     tr = core.unowned(core.state_of(fbuf, ibuf))  # the tracker (no reference counting in the calls below)
     bs = bt.beta_state_of(bfbuf, bibuf)
     hs = hl.health_state_of(hfbuf, hibuf)
     n = t.shape[0]
     p = beta.shape[0]
+    sint[S_PAUSE] = PAUSE_NONE
+    sint[S_STOP] = n
     if (e.shape[0] != n or v.shape[0] != n or rows.shape[0] != len(ROWS) + len(EXTRA_ROWS) or rows.shape[1] < n
             or irows.shape[0] != len(IROWS) or irows.shape[1] < n or counts.shape[0] != len(COUNTERS)
             or sp.shape[0] != 2 or (sp.shape[1] != 0 and sp.shape[1] != n) or ticks.shape[1] != N_TICK
-            or scr.shape[0] < _SCR_FIXED + _scr_p(p) or bs.beta.shape[0] != p):
+            or scr.shape[0] < _SCR_FIXED + _scr_p(p) or bs.beta.shape[0] != p or ring.shape[1] != len(RING)
+            or sint.shape[0] != len(SEARCH_INTS) or sflt.shape[0] != len(SEARCH_FLOATS) or not 0 <= start <= n
+            or (vref.shape[0] != 0 and vref.shape[0] != n)):
         raise ValueError("track_block: inconsistent array shapes")
-    if n == 0:
+    if n == 0 or start == n:
         return 0
     if seq0 < 0 or seq0 > SEQ_LIMIT - (n - 1):
         counts[C_SEQ_RANGE] += n                  # sequence numbers beyond int64: refused whole
@@ -473,16 +590,24 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
     joint = mode != MODE_OFF
     apply = mode == MODE_APPLY
     bpub = bs.beta if apply else cfg.beta         # the β the published values go with
-    xbuf = view(scr, _SCR_X, (2 if cfg.spindle else 1,))
+    x_t = view(scr, _SCR_X, (1,))                # x = t
+    x_s = view(scr, _SCR_X, (2,))                # x = (t, θ)
+    xbuf = x_s if cfg.spindle else x_t
+    dual = sint[S_DUAL] != 0
+    tp = core.unowned(core.state_of(pfbuf, pibuf)) if dual else tr   # the tracker that publishes
+    xpub = x_s if (sint[S_PUB_SPINDLE] != 0 if dual else cfg.spindle) else x_t
+    pst = tp.fst
     obuf = view(scr, _SCR_OUT, (core.N_OUT,))
     bout = view(scr, _SCR_BOUT, (bt.N_BOUT,))
     z = view(scr, _SCR_FIXED, (p,))
     form_force = bs.lay[bt.L_FORM] == 1
     i_sp, i_sn, i_one = bs.lay[bt.L_ISP], bs.lay[bt.L_ISN], bs.lay[bt.L_IONE]
+    fst = tr.fst
+    st_ref_prev = sflt[Q_REF]
     nticks = 0
     updates0 = bs.cnt[bt.C_UPDATES]
     first = 0
-    for j in range(n):
+    for j in range(start, n):
         s = seq0 + j
         tj, ej, vj = t[j], e[j], v[j]
         report_now = False
@@ -509,7 +634,7 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
             st.ref_t[0] = tj
         elif where == _RESET:
             st.ref_t[0] = np.nan                  # no clock reference in the new session yet
-        _clear(rows, irows, j, tr.ist)
+        _clear(rows, irows, j, tp.ist)
         # ---- 2. classify its values --------------------------------------------------------------
         if not (math.isfinite(tj) and math.isfinite(ej) and math.isfinite(vj)):
             counts[C_NONFINITE] += 1
@@ -535,6 +660,7 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
         if cont and cfg.stale_detection and vj == st.last_v_raw[0]:
             stale = abs(vj) > cfg.omega or ej != st.last_e[0]   # repeated while moving
         v_used = vj
+        pause = PAUSE_NONE
         if cont:
             # ---- 3. residual of the previous step, eq. 2.13 ----------------------------------------
             base = _linear(cfg, bpub, st.last_e[0], st.last_v_used[0])
@@ -550,6 +676,14 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
             else:
                 resid = vj - base
                 rows[R_RESID, j] = resid
+                # the publishing tracker's armed prediction, before the update changes it
+                before = (pst[core.F_YM], pst[core.F_SF2], pst[core.F_SY2], pst[core.F_S02], pst[core.F_SN2])
+                beta_before = (fst[core.F_YM], fst[core.F_SY2], fst[core.F_S02])
+                resid_trk = vj - _linear(cfg, bs.beta_trk, st.last_e[0], st.last_v_used[0]) if joint and not dual \
+                    else resid
+                # the disturbance model had its chance (search): the model-validity test judges the drive only
+                # then (online β learns throughout: its instrument does not see a disturbance's onset)
+                settled = sint[S_COUNT] >= sint[S_FREEZE]
                 # ---- 4. KRLS-T update (steps 3–5) with v(j−1) at the armed x(j−1), β and ν -----------
                 nu = np.nan
                 if joint:
@@ -559,14 +693,24 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
                         nu = bout[bt.B_NU]
                         rows[R_F, j] = bout[bt.B_FILTERED] if apply else obuf[core.O_FILT]
                 else:
-                    ym, sy2, s02 = tr.fst[core.F_YM], tr.fst[core.F_SY2], tr.fst[core.F_S02]
                     learned = core.update(tr, resid, obuf)
                     if learned:
-                        R = s02 * sy2             # the prediction's variance, eq. 2.17/2.20
-                        nu = (resid - ym) / math.sqrt(R) if R > 0.0 else np.nan
+                        R0 = beta_before[2] * beta_before[1]  # the prediction's variance, eq. 2.17/2.20
+                        nu = (resid - beta_before[0]) / math.sqrt(R0) if R0 > 0.0 else np.nan
                         rows[R_F, j] = obuf[core.O_FILT]                      # ŷ + σ_f²(y − ŷ)/σ_y²
+                if dual and learned:                  # the disturbance published by its own tracker, whose
+                    learned = core.update(tp, resid, obuf)   # innovations are what the validity test judges
+                    if learned:
+                        rows[R_F, j] = obuf[core.O_FILT]
+                        Rp = before[3] * before[2]
+                        nu = (resid - before[0]) / math.sqrt(Rp) if Rp > 0.0 else np.nan
                 if learned:
-                    rows[R_FVAR, j] = obuf[core.O_FILTVAR] * obuf[core.O_S02]  # (σ_f² − σ_f⁴/σ_y²)·s0²
+                    _, R, c2, noise2 = _learned(st, ring, sint, sflt, before, resid_trk, vj,
+                                                st_ref_prev if vref.shape[0] else np.nan)
+                    # calibrated variance of the filtered f: the gain g = σ_f²/σ_y² on a prediction that
+                    # errs by c²·P and a noise σ_ε²                                                (C2)
+                    g = before[1] / before[2] if before[2] > 0.0 else 0.0
+                    rows[R_FVAR, j] = (1.0 - g) ** 2 * c2 * before[3] * before[1] + g * g * noise2
                     irows[R_REMOVED, j] = int(obuf[core.O_REMOVED])
                     if obuf[core.O_REDUCED] != 0.0:
                         fl |= REDUCED_BIT
@@ -574,10 +718,16 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
                     counts[C_TRAINED] += 1
                     if st.trained[0] <= cfg.warmup:
                         fl |= WARMUP_BIT
-                    if math.isfinite(nu):
+                    if math.isfinite(nu) and settled:
                         lv0 = hs.level[0]
                         if hl.health_sample(hs, nu) != lv0:   # model validity: EWMA of ν²
                             report_now = True     # a change of the validity level is reported at once
+                    count = sint[S_COUNT]
+                    poor = sflt[Q_NU2] > sflt[Q_POOR] or sflt[Q_E2] > sflt[Q_POOR] * noise2
+                    if poor and count >= sint[S_NEXT_RETRY]:
+                        pause = PAUSE_POOR
+                    elif count >= sint[S_NEXT_TICK]:
+                        pause = PAUSE_ROUTINE
                 else:                              # nothing armed (e.g. right after a restore)
                     counts[C_RESTART] += 1
                     fl |= WARMUP_BIT
@@ -586,21 +736,31 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
             fl |= WARMUP_BIT
         # ---- 5. forget + predict f(j) at x(j) (steps 1–2), armed for the next update ----------------
         was_empty = tr.ist[core.I_N] == 0
-        xbuf[0] = tj
-        if cfg.spindle:
-            xbuf[1] = _theta(cfg, st, sp, j, tj, where == _RESET or backwards, counts)
+        x_s[0] = tj
+        theta_data = np.nan
+        if sp.shape[1] > j and (math.isfinite(sp[0, j]) or math.isfinite(sp[1, j])):
+            theta_data = _theta(cfg, st, sp, j, tj, where == _RESET or backwards, counts)
+        if xbuf.shape[0] == 2 or xpub.shape[0] == 2:
+            x_s[1] = theta_data if math.isfinite(theta_data) else \
+                _theta(cfg, st, sp, j, tj, where == _RESET or backwards, counts)
+        sflt[Q_THETA] = theta_data
         if joint:
             bt.joint_arm(tr, bs, xbuf, obuf)
-            f_next = obuf[core.A_MEAN] if apply else tr.fst[core.F_YM]
+            f_next = obuf[core.A_MEAN] if apply else fst[core.F_YM]
         else:
             core.arm(tr, xbuf, obuf)
             f_next = obuf[core.A_MEAN]
-        f_next_var = np.nan if was_empty else obuf[core.A_SF2] * tr.fst[core.F_S02]
+        if dual:
+            was_empty = tp.ist[core.I_N] == 0
+            core.arm(tp, xpub, obuf)
+            f_next = obuf[core.A_MEAN]
+        # the calibrated variance of the prediction: c² × what the tracker expects (C1)
+        f_next_var = np.nan if was_empty else sflt[Q_C2] * pst[core.F_SF2] * pst[core.F_S02]
         rows[R_FNEXT, j] = f_next
         rows[R_FNEXTVAR, j] = f_next_var
         rows[R_BETA1, j] = bpub[0]
         irows[R_FLAGS, j] = fl
-        irows[R_SIZE, j] = tr.ist[core.I_N]
+        irows[R_SIZE, j] = tp.ist[core.I_N]
         st.chain[0] = 1
         st.last_t[0] = tj
         st.last_e[0] = ej
@@ -608,6 +768,8 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
         st.last_v_used[0] = v_used
         st.f_next[0] = f_next
         st.f_next_var[0] = f_next_var
+        st_ref_prev = vref[j] if vref.shape[0] else np.nan
+        sflt[Q_REF] = st_ref_prev
         # ---- 6. health report about once per tick_period of data time -------------------------------
         if not (st.tick_t[0] <= tj) and st.tick_t[0] != -np.inf:   # first sample, or time went back
             st.tick_t[0] = tj
@@ -621,6 +783,10 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
                 st.tick_n[0] = 0
             else:                                 # (cannot happen with new_ticks' bound) report at the next sample
                 st.tick_t[0] = -np.inf
+        if pause != PAUSE_NONE:                   # a search of the disturbance model is due: hand over
+            sint[S_PAUSE] = pause
+            sint[S_STOP] = j + 1
+            break
     counts[C_TICKS] += nticks
     counts[C_BETA_UPDATES] += bs.cnt[bt.C_UPDATES] - updates0
     return first

@@ -71,20 +71,24 @@ import numpy as np
 from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
 from feedio.schema import REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
+from kernels import disturbance_search as ds
 from kernels import health as hl
 from kernels.beta_tracker import PHYSICAL as PHYSICAL_PARAMS  # the order of the report rows' θ and s.e.
 from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
 from .model_file import AxisModel
-from .online_settings import OnlineSettings, spindle_of
+from .online_settings import OnlineSettings, choice_of, spindle_of
 from .state_check import StateError, check_snapshot
 
 __all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
 
 
-#: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``)
+#: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``): the samples learned,
+#: and the disturbance model the search had chosen (:func:`_choice_array`)
 _TRAINED = "estimator.trained"
+_CHOICE = "estimator.choice"
+_KINDS = ("time", "periodic", "spindle")
 _C_SEQ_RANGE = online.COUNTERS.index("rejected_seq_range")
 
 
@@ -203,6 +207,25 @@ class AxisEstimator:
                              f"{', −σ_p, −σ_n' if model.coulomb else ''}{', one' if intercept else ''}")
         self.settings = getattr(model, "online", None) or OnlineSettings()
         self.spindle = spindle_of(model.tracker.kernel)
+        #: the disturbance model is chosen online (kernels.disturbance_search) unless the model file says not to
+        self.searching = bool(getattr(model.tracker, "search", True))
+        #: the disturbance model that publishes (``choice``) and the one online β learns with (``beta_choice``,
+        #: :func:`kernels.disturbance_search.for_beta`: the structure the process demands at the model file's
+        #: hyperparameters); when they differ, ``pub`` is the publishing tracker
+        self.choice = self.beta_choice = choice_of(model.tracker) if self.searching else None
+        self._file_choice = self.choice
+        self.pub: KRLST | None = None
+        self._no_pub = (np.zeros(0), np.zeros(0, dtype=np.int64))
+        noise = getattr(model, "noise", None)
+        self.noise2 = float(noise) ** 2 if noise else 0.0
+        self.search = ds.DisturbanceSearch(self.choice, Ts=float(model.Ts), budget=model.tracker.budget,
+                                           jitter=model.tracker.jitter, noise2=self.noise2,
+                                           teeth=self.spindle.teeth if self.spindle else None) if self.searching else None
+        self._search_bufs = online.new_search(float(model.Ts), noise2=self.noise2, enabled=self.searching)
+        self._sync_search()
+        self.search_error: str | None = None
+        #: one-off reasons for the next health report (e.g. a restart of online β)
+        self._pending_reasons: list[str] = []
         #: why values of the health reports are not given (static per axis)
         self.notes: list[str] = []
         self.mode = self.settings.adaptation.mode
@@ -217,6 +240,9 @@ class AxisEstimator:
             mode=self.mode, spindle=sp is not None, theta_period=sp.period if sp else 2.0 * math.pi,
             rpm_nominal=sp.spindle_rpm if sp else 0.0, rpm_max=PHYSICAL.spindle_rpm_max,
             tick_period=self.settings.health.period)
+        self._spindle_seen = False
+        if self.searching:
+            online.set_tracker_input(self._cfg, self.choice.spindle, 2.0 * math.pi / self.choice.teeth)
         self.counters: Counter[str] = Counter()
         b = self.force_gain
         #: force, force_var, force_next = the rows f, f_var, f_next divided by sign·b^power (F = −f/b,
@@ -228,23 +254,26 @@ class AxisEstimator:
         self._beta1_to_b = 1.0 if model.form == "force-input" else 1.0 / (model.loop_gain or math.nan)
         #: :data:`kernels.online.COUNTERS` of the last block (what :meth:`process_rows` counted)
         self.block_counts = np.zeros(len(online.COUNTERS), dtype=np.int64)
-        self._xdim = 2 if sp is not None else 1
+        self._xdim = 2 if (self.choice.spindle if self.searching else sp is not None) else 1
         self._xbuf = np.zeros(self._xdim)  # an example input (its size) for the tracker's buffers
         self._scratch = online.new_scratch(len(names))
         self._no_spindle = np.zeros((2, 0))
+        self._no_ref = np.zeros(0)
         self._health_out: list[Health] = []
         hp = self.health.state.par  # fewest samples between two changes of the validity level
         self._change_min = int(max(1.0, min(hp[hl.Q_NPERS], hp[hl.Q_NHOLD])))
         self._tick_min = int(online.config_of(*self._cfg).tick_min)  # fewest samples between two periodic reports
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
-    def _new_tracker(self) -> KRLST:
+    def _new_tracker(self, choice: ds.TrackerChoice | None = None) -> KRLST:
+        """A fresh tracker of ``choice`` (default: online β's; without the search, the model file's)."""
         cfg = self.model.tracker
-        kernel = cfg.build_kernel()
+        choice = choice or self.beta_choice
+        kernel = cfg.build_kernel() if choice is None else choice.kernel()
         return KRLST(
             kernel,
-            gamma=cfg.gamma,
-            forgetting=cfg.forgetting,
+            gamma=cfg.gamma if choice is None else choice.gamma,
+            forgetting=cfg.forgetting if choice is None else choice.forgetting,
             budget=cfg.budget,
             jitter=cfg.jitter,
             grid_step=self.model.Ts if kernel.is_stationary_1d else None,
@@ -345,18 +374,35 @@ class AxisEstimator:
         e = _as_column(exo)
         v = _as_column(block.v_meas)
         sp = self._no_spindle
-        if self.spindle is not None and (block.spindle_angle is not None or block.spindle_rpm is not None):
+        has_spindle = block.spindle_angle is not None or block.spindle_rpm is not None
+        if has_spindle and (self.spindle is not None or self.searching):
             sp = np.full((2, n), np.nan)
             if block.spindle_angle is not None:
                 sp[0] = _as_column(block.spindle_angle)
             if block.spindle_rpm is not None:
                 sp[1] = _as_column(block.spindle_rpm)
+            if self.searching and not self._spindle_seen:
+                self._spindle_seen = True
+                self._spindle_appeared(sp[1])
         rows, irows, counts = online.new_rows(n)
         ticks = online.new_ticks(n, self._tick_min, self._change_min)
+        vref = e if self.model.form == "velocity-loop" else (
+            _as_column(block.v_ref) if block.v_ref is not None else self._no_ref)
+        start = first = 0
+        sint = self._search_bufs[1]
         try:
-            first = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
-                                       *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows,
-                                       irows, counts, ticks, self._scratch)
+            while True:
+                done = int(counts[online.C_TICKS])
+                got = online.track_block(*self.tracker.core_buffers(self._xbuf), *self.online.buffers,
+                                         *self.health.buffers, *self._cfg, *self._state, seq0, t, e, v, sp, rows,
+                                         irows, counts, ticks[done:], self._scratch, start, *self._search_bufs,
+                                         vref, *self._pub_buffers())
+                if start == 0:
+                    first = got
+                if sint[online.S_PAUSE] == online.PAUSE_NONE:
+                    break
+                start = int(sint[online.S_STOP])
+                self._search_now(poor=sint[online.S_PAUSE] == online.PAUSE_POOR)
         except Exception:  # a state half-way through a step is not trusted: start over, then say why
             self._start_over()
             raise
@@ -366,6 +412,10 @@ class AxisEstimator:
             raise TrackerBreakdown(
                 f"axis {block.machine}/{block.axis}: the tracker's numerics broke down ({why}); {n} samples "
                 f"dropped, tracker restarted{_JITTER_HINT if self.model.tracker.jitter < 1e-7 else ''}")
+        if self.mode != "off":
+            why_beta = self.online.breakdown()
+            if why_beta is not None:
+                self._restart_beta(why_beta)
         self.block_counts = counts
         for name, k in zip(online.COUNTERS, counts.tolist()):
             if k:
@@ -393,9 +443,140 @@ class AxisEstimator:
         (:meth:`kernels.krlst.KRLST.breakdown`), which would otherwise never recover (counted
         ``tracker_restarts``)."""
         notes, mode = self.notes, self.mode
+        if self.searching:
+            self.choice = self.search.choice = self.beta_choice
+            self._set_dual(None)
         self._start_fresh()
         self.notes, self.mode = notes, mode  # as decided at the start (the model is the same)
+        sint = self._search_bufs[1]
+        sint[online.S_FILL] = sint[online.S_HEAD] = 0  # the ring's scores were the old tracker's
         self.counters["tracker_restarts"] += 1
+
+    def _pub_buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The buffers of the publishing tracker when it is not online β's (else empty)."""
+        if self.pub is None:
+            return self._no_pub
+        return self.pub.core_buffers(np.zeros(2 if self.choice.spindle else 1))
+
+    def _set_dual(self, pub: KRLST | None) -> None:
+        sint = self._search_bufs[1]
+        self.pub = pub
+        sint[online.S_DUAL] = int(pub is not None)
+        sint[online.S_PUB_SPINDLE] = int(pub is not None and self.choice.spindle)
+
+    def _restart_beta(self, why: str) -> None:
+        """Online β from the model file's prior again after a numerical breakdown of its recursion; the
+        tracker is rebuilt from the ring (with fresh shadow means) and the estimates go on. Counted
+        ``beta_restarts``; the next health report says why."""
+        fresh = self._new_online(self._new_tracker(self.beta_choice))
+        R = self._ring()
+        self.tracker = self._new_tracker(self.beta_choice)
+        self.online = fresh.reseated(self.tracker, np.nan_to_num(R[:, [online.G_T, online.G_THETA]] if self._xdim == 2
+                                                                 else R[:, [online.G_T]]),
+                                     R[:, online.G_EXO], R[:, online.G_V], R[:, online.G_TARGET],
+                                     self._x_now(self._xdim == 2))
+        self.counters["beta_restarts"] += 1
+        self._pending_reasons.append(f"online β restarted from the model file: its recursion broke down numerically "
+                                     f"({why}); the disturbance estimates went on")
+
+    # ------------------------------------------------------------------ the disturbance model
+    def _sync_search(self) -> None:
+        """Hand the search's schedule to the compiled loop (when to pause, until when to freeze)."""
+        if self.search is None:
+            return
+        sint = self._search_bufs[1]
+        sint[online.S_NEXT_TICK] = self.search.next_tick
+        sint[online.S_NEXT_RETRY] = self.search.next_retry
+        sint[online.S_FREEZE] = self.search.freeze_until
+
+    def _ring(self) -> np.ndarray:
+        """The ring's entries, oldest first (a copy; :data:`kernels.online.RING` columns)."""
+        ring, sint, _ = self._search_bufs
+        fill, head = int(sint[online.S_FILL]), int(sint[online.S_HEAD])
+        return ring[(head - fill + np.arange(fill)) % ring.shape[0]]
+
+    def _search_now(self, poor: bool) -> None:
+        """One search of the disturbance model (:meth:`kernels.disturbance_search.DisturbanceSearch.tick`);
+        a better model publishes the disturbance (:meth:`_adopt`). A search that fails is counted and the
+        trackers kept."""
+        R = self._ring()
+        theta = R[:, online.G_THETA]
+        ring = ds.Ring(t=R[:, online.G_T], theta=np.nan_to_num(theta), y=R[:, online.G_RESID],
+                       ref=R[:, online.G_REF], count=int(self._search_bufs[1][online.S_COUNT]), rpm=R[:, online.G_RPM],
+                       spindle=bool(R.shape[0]) and bool(np.isfinite(theta).all()))
+        self.counters["tracker_searches"] += 1
+        if not self.noise2:  # without the model file's noise level, the tracker's own: s0²/γ
+            self.search.noise2 = self.tracker.s02 * self.tracker.sn2
+        try:
+            verdict = self.search.tick(ring, poor)
+            if verdict.adopt is not None:
+                self._adopt(verdict.adopt, verdict.tracker, R[-verdict.window:])
+                self.counters["tracker_adoptions"] += 1
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            self.counters["tracker_search_errors"] += 1
+            self.search_error = str(exc)
+        self._sync_search()
+
+    def _x_now(self, spindle: bool) -> np.ndarray | None:
+        """The input x of the last accepted sample (the one the tracker is armed at), None before any."""
+        t = float(online.state_of(*self._state).last_t[0])
+        if not math.isfinite(t):
+            return None
+        if not spindle:
+            return np.array([t])
+        theta = float(self._search_bufs[2][online.Q_THETA])
+        return np.array([t, theta if math.isfinite(theta) else float(self._scratch[1] if self._xdim == 2 else 0.0)])
+
+    def _adopt(self, choice: ds.TrackerChoice, tracker: KRLST | None, R: np.ndarray) -> None:
+        """Publish the disturbance with ``choice``; online β learns with
+        :func:`kernels.disturbance_search.for_beta` of it (the same tracker when they agree). ``tracker``:
+        ``choice``'s tracker replayed over ``R`` (armed at its newest entry), or None (a fresh one)."""
+        beta_choice = ds.for_beta(choice, self._file_choice) if self.mode != "off" else choice
+        if beta_choice != self.beta_choice:
+            self._reseat_beta(beta_choice, R)
+        self.choice = choice
+        if choice == self.beta_choice:
+            self._set_dual(None)
+            return
+        x = self._x_now(choice.spindle)
+        if tracker is None:
+            tracker = self._new_tracker(choice)
+        elif R.shape[0]:
+            tracker.update(float(R[-1, online.G_RESID]))   # the newest entry: it was armed there
+        if x is not None:
+            tracker.predict_next(x)
+        self._set_dual(tracker)
+
+    def _reseat_beta(self, choice: ds.TrackerChoice, R: np.ndarray) -> None:
+        """Online β's tracker becomes ``choice``: a fresh one rebuilt from the ring entries ``R`` (with its
+        shadow means; β keeps what it learned) and armed at the current sample."""
+        tracker = self._new_tracker(choice)
+        X = R[:, [online.G_T, online.G_THETA]] if choice.spindle else R[:, [online.G_T]]
+        self.online = self.online.reseated(tracker, np.nan_to_num(X), R[:, online.G_EXO], R[:, online.G_V],
+                                           R[:, online.G_TARGET], self._x_now(choice.spindle))
+        self.tracker = tracker
+        self.beta_choice = choice
+        online.set_tracker_input(self._cfg, choice.spindle, 2.0 * math.pi / choice.teeth)
+        self._xdim = 2 if choice.spindle else 1
+        self._xbuf = np.zeros(self._xdim)
+
+    def _spindle_appeared(self, rpm: np.ndarray) -> None:
+        """The first samples with spindle data: the spindle-phase kernel from now on (whatever the
+        model file's tracker was), with the speed seen as the nominal one where the model has none."""
+        finite = rpm[np.isfinite(rpm) & (np.abs(rpm) > 0) & (np.abs(rpm) <= PHYSICAL.spindle_rpm_max)]
+        if finite.size and not online.config_of(*self._cfg).rpm_nominal > 0.0:
+            online.set_tracker_input(self._cfg, online.config_of(*self._cfg).spindle,
+                                     online.config_of(*self._cfg).theta_period, rpm_nominal=float(np.median(np.abs(finite))))
+        c = self.choice
+        if c.spindle:
+            return
+        periodic = c.kind == "periodic"
+        choice = ds.TrackerChoice("spindle", sigma1=c.sigma1 if periodic else ds.SPINDLE_START["sigma1"],
+                                  sigma2=c.sigma2 if periodic else ds.SPINDLE_START["sigma2"], gamma=c.gamma,
+                                  forgetting=c.forgetting, teeth=1)
+        self._adopt(choice, None, self._ring()[:0])
+        self.search.choice = choice
+        self.counters["tracker_adoptions"] += 1
 
     def _force(self, rows: np.ndarray) -> np.ndarray | None:
         """``force``, ``force_var``, ``force_next`` (N) of the rows: F = −f/b, var F = var f / b²,
@@ -421,10 +602,13 @@ class AxisEstimator:
                            float(row[k.K_EWMAX]))
         if self.mode != "off":  # estimated, but the data do not determine it: flagged, not tested for drift
             weak = [f"{name} (s.e. {row[k.K_SE + i]:.3g})" for d, (i, name) in enumerate(zip(hl.PHYS_INDEX, hl.PARAMS))
-                    if math.isfinite(row[k.K_THETA + i]) and row[k.K_DET + d] == 0.0]
+                    if d != hl.STEP and math.isfinite(row[k.K_THETA + i]) and row[k.K_DET + d] == 0.0]
             if weak:
                 reasons.append("not determined by the data, not tested for drift: " + ", ".join(weak))
         reasons += self.notes
+        if self._pending_reasons:
+            reasons = self._pending_reasons + reasons
+            self._pending_reasons = []
         vals: dict[str, float | None] = {}
         absolute = self.mode != "off" and (self.model.form == "force-input" or self.model.loop_gain is not None)
         for i, name in enumerate(PHYSICAL_PARAMS):
@@ -440,41 +624,53 @@ class AxisEstimator:
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:
-        """Tracker state, online β (β̂, its covariance, the shadow means), the health state and the
-        counters needed to resume (plain arrays, no pickle)."""
+        """Tracker state, online β (β̂, its covariance, the shadow means), the health state, the
+        disturbance model the search chose and the counters needed to resume (plain arrays, no pickle)."""
         snap = {f"tracker.{k}": v for k, v in self.tracker.snapshot().items()}
         snap.update(self.online.snapshot())
         snap.update(self.health.snapshot())
         snap[_TRAINED] = np.array(self.trained, dtype=np.int64)
+        if self.searching:
+            snap[_CHOICE] = _choice_array(self.beta_choice)
         return snap
 
-    def snapshot_templates(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """What a valid snapshot of this model looks like: the snapshots of a fresh tracker with the
-        model's hyperparameters before any sample and after one step, the latter with the online β
-        and health entries (keys, shapes, dtypes and the hyperparameter values; they follow the
-        core's layout, whatever it is). Made once per estimator; treat them as read only."""
-        if self._templates is None:
-            tracker = self._new_tracker()
+    def snapshot_templates(self, choice: ds.TrackerChoice | None = None) -> tuple[dict, dict]:
+        """What a valid snapshot of this model looks like with the disturbance model ``choice`` (default:
+        the current one): the snapshots of a fresh tracker before any sample and after one step, the
+        latter with the online β and health entries (keys, shapes, dtypes and the hyperparameter values;
+        they follow the core's layout, whatever it is). Made once per choice; treat them as read only."""
+        choice = choice or self.beta_choice
+        if self._templates is None or self._templates[0] != choice:
+            tracker = self._new_tracker(choice)
+            xdim = 2 if (choice.spindle if choice else self.spindle is not None) else 1
             before = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
-            fresh = self._new_online(self._new_tracker())
-            tracker.learn_one(np.zeros(self._xdim), 0.0)
+            fresh = self._new_online(self._new_tracker(choice))
+            tracker.learn_one(np.zeros(xdim), 0.0)
             after = {f"tracker.{k}": v for k, v in tracker.snapshot().items()}
             after.update(fresh.snapshot())
             after.update(self._new_health().snapshot())
             before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
-            self._templates = (before, after)
-        return self._templates
+            if self.searching:
+                before[_CHOICE] = after[_CHOICE] = _choice_array(choice)
+            self._templates = (choice, (before, after))
+        return self._templates[1]
 
     def restore(self, snap: dict[str, np.ndarray]) -> None:
         """Continue from :meth:`snapshot` (the regressor chain restarts at the next sample).
 
         The snapshot is checked first (:func:`monitor.state_check.check_snapshot`: keys, shapes,
-        dtypes, finiteness, the model's hyperparameters, the tracker's invariants; then the online β
-        and health parts, :func:`kernels.beta_tracker.validate_beta_state`,
+        dtypes, finiteness, the hyperparameters — the model file's, or the disturbance model the
+        search had chosen, within the ranges a model file allows —, the tracker's invariants; then the
+        online β and health parts, :func:`kernels.beta_tracker.validate_beta_state`,
         :func:`kernels.health.validate_health_state`); a snapshot that fails raises
         :class:`StateError` naming the reason and leaves this estimator as it was.
         """
-        before, after = self.snapshot_templates()
+        choice = self.beta_choice
+        if self.searching:
+            if _CHOICE not in snap:
+                raise StateError(f"its entries do not match this model's tracker; missing {_CHOICE}")
+            choice = _choice_of_array(snap[_CHOICE])
+        before, after = self.snapshot_templates(choice)
         check_snapshot(snap, before, after, counters=(_TRAINED,))
         tracker_part = {k[len("tracker."):]: v for k, v in snap.items() if k.startswith("tracker.")}
         try:
@@ -483,7 +679,7 @@ class AxisEstimator:
             raise StateError(str(exc)) from None
         online_part = {k: v for k, v in snap.items() if k.startswith("beta.")}
         health_part = {k: v for k, v in snap.items() if k.startswith("health.")}
-        ob, hm = self._new_online(self._new_tracker()), self._new_health()
+        ob, hm = self._new_online(self._new_tracker(choice)), self._new_health()
         if online_part or health_part:  # a snapshot made after a step holds both
             try:
                 ob.restore(online_part, restored)
@@ -496,6 +692,37 @@ class AxisEstimator:
         self.online = ob
         self.health = hm
         self._state = online.new_state(trained=int(snap[_TRAINED]))
+        if self.searching:
+            self.choice = self.beta_choice = self.search.choice = choice
+            self._set_dual(None)
+            online.set_tracker_input(self._cfg, choice.spindle, 2.0 * math.pi / choice.teeth)
+            self._xdim = 2 if choice.spindle else 1
+            self._xbuf = np.zeros(self._xdim)
+
+
+def _choice_array(c: ds.TrackerChoice) -> np.ndarray:
+    """A disturbance model as the plain array a state file holds."""
+    return np.array([_KINDS.index(c.kind), c.sigma1, c.sigma2, c.period, c.teeth, c.gamma, c.forgetting,
+                     float(c.zero_mean)])
+
+
+def _choice_of_array(a) -> ds.TrackerChoice:
+    """Inverse of :func:`_choice_array`, every value checked against the ranges a model file allows for it
+    (:class:`StateError` naming the value)."""
+    a = np.asarray(a)
+    if a.shape != (8,) or a.dtype.kind != "f" or not np.isfinite(a).all():
+        raise StateError(f"{_CHOICE!r} must be 8 finite numbers, got {a.dtype} {a.shape}")
+    kind, s1, s2, period, teeth, gamma, lam, zero_mean = (float(x) for x in a)
+    checks = (("kind", kind in (0.0, 1.0, 2.0)), ("sigma1", 1e-6 <= s1 <= 1e6), ("sigma2", 1e-3 <= s2 <= 1e3),
+              ("period", kind != 1.0 or 1e-6 <= period <= 1e6), ("teeth", teeth == int(teeth) and 1 <= teeth <= 1000),
+              ("gamma", 1e-4 <= gamma <= 1e8), ("forgetting", 0.5 <= lam <= 1.0), ("zero_mean", zero_mean in (0.0, 1.0)))
+    for name, ok in checks:
+        if not ok:
+            names = ("kind", "sigma1", "sigma2", "period", "teeth", "gamma", "forgetting", "zero_mean")
+            raise StateError(f"{_CHOICE!r}: {name} {dict(zip(names, a.tolist()))[name]!r} is outside what a model "
+                             "file allows")
+    return ds.TrackerChoice(_KINDS[int(kind)], sigma1=s1, sigma2=s2, period=period, teeth=int(teeth), gamma=gamma,
+                            forgetting=lam, zero_mean=bool(zero_mean))
 
 
 def _beta_cov(model: AxisModel) -> np.ndarray | None:

@@ -166,6 +166,7 @@ class _TrackerT(msgspec.Struct, **_Opts):
     forgetting: _num(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
     budget: _int(*OS.BUDGET_RANGE, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
     jitter: _num(*OS.JITTER_RANGE) = OS.TRACKER_DEFAULTS["jitter"]
+    search: bool = True
 
 
 class _CandidateT(msgspec.Struct, **_Opts):
@@ -295,6 +296,9 @@ class TrackerConfig:
     forgetting: float = OS.TRACKER_DEFAULTS["forgetting"]
     budget: int = OS.TRACKER_DEFAULTS["budget"]
     jitter: float = OS.TRACKER_DEFAULTS["jitter"]
+    #: the monitor chooses the disturbance model online from the samples it sees (kernel family,
+    #: period, σ1, σ2, γ, λ; :mod:`kernels.disturbance_search`), starting from the one above
+    search: bool = True
 
     def build_kernel(self) -> Kernel:
         return OS.build_tracker_kernel(self.kernel)
@@ -487,7 +491,7 @@ def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
             machine=f.axis.machine, axis=f.axis.axis, form=m.form, Ts=m.Ts, beta=list(m.beta), omega=m.omega,
             coulomb=m.coulomb, loop_gain=m.loop_gain, method=m.method,
             tracker=TrackerConfig(kernel=kernel, gamma=t.gamma, forgetting=t.forgetting, budget=t.budget,
-                                  jitter=t.jitter),
+                                  jitter=t.jitter, search=t.search),
             physical=physical, identification=ident,
             provenance={k: v for k, v in msgspec.structs.asdict(f.provenance).items() if v},
             beta_names=None if m.beta_names is None else tuple(m.beta_names), beta_se=m.beta_se,
@@ -566,6 +570,7 @@ _UNITS = {
     "budget": "KRLS-T dictionary size M",
     "spindle_rpm": "rpm, nominal: used without spindle data",
     "per": "revolution (2π: runout) | tooth (2π/teeth)",
+    "search": "the monitor chooses the disturbance model online from the samples it sees, starting from this one",
 }
 
 _IDENT_KEYS = [k for k in _IdentificationT.__struct_fields__ if k != "candidates"]
@@ -580,7 +585,7 @@ def save_model(model: AxisModel, path) -> Path:
     tracker = {"kernel": model.tracker.kernel["type"]}
     tracker.update({k: v for k, v in model.tracker.kernel.items() if k not in ("type", "dims")})
     tracker.update(gamma=model.tracker.gamma, forgetting=model.tracker.forgetting, budget=model.tracker.budget,
-                   jitter=model.tracker.jitter)
+                   jitter=model.tracker.jitter, search=model.tracker.search)
     ident = {k: model.identification.get(k) for k in _IDENT_KEYS}
     lines = [
         "# feedmon axis model (written by 'feedmon identify'; units SI)",

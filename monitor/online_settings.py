@@ -34,13 +34,14 @@ import msgspec
 
 from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel
+from kernels.disturbance_search import SIGMA1_RANGE, TrackerChoice
 from kernels.errors import ParameterError
 from kernels.health import HealthConfig
 from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
            "TrackerOverride", "AdaptationOverride", "HealthOverride", "build_tracker_kernel", "check_kernel_desc",
-           "tracker_table", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
+           "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
@@ -110,6 +111,26 @@ def spindle_of(desc: dict) -> SpindleKernel | None:
     if desc.get("type") != SPINDLE:
         return None
     return msgspec.convert({k: v for k, v in desc.items() if k != "type"}, SpindleKernel)
+
+
+def choice_of(tracker) -> TrackerChoice:
+    """The :class:`~kernels.disturbance_search.TrackerChoice` a model file's ``[tracker]`` starts the
+    online search from (a :class:`monitor.model_file.TrackerConfig`). A pure periodic kernel is the
+    locally periodic one with the longest σ1 the search allows."""
+    d = tracker.kernel
+    kind = d.get("type")
+    common = dict(gamma=float(tracker.gamma), forgetting=float(tracker.forgetting))
+    if kind == SPINDLE:
+        sk = spindle_of(d)
+        return TrackerChoice("spindle", sigma1=sk.sigma1, sigma2=sk.sigma2,
+                             teeth=sk.teeth if sk.per == "tooth" else 1, **common)
+    if kind in ("locally_periodic", "locally_periodic_zero_mean"):
+        return TrackerChoice("periodic", sigma1=float(d["sigma1"]), sigma2=float(d["sigma2"]),
+                             period=float(d["period"]), zero_mean=kind == "locally_periodic_zero_mean", **common)
+    if kind == "periodic":
+        return TrackerChoice("periodic", sigma1=SIGMA1_RANGE[1], sigma2=float(d["sigma2"]),
+                             period=float(d["period"]), **common)
+    return TrackerChoice("time", sigma1=float(d["lengthscale"]), **common)
 
 
 def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) -> dict:
@@ -229,6 +250,7 @@ class TrackerOverride(msgspec.Struct, **_OPTS):
     sigma1: _num(0.0, 1e4, "s", open_lo=True) | None = None
     sigma2: _num(0.0, 1e3, "", open_lo=True) | None = None
     gamma: _num(0.0, 1e12, "γ", open_lo=True) | None = None
+    search: bool | None = None
 
 
 #: ``[run.adaptation]``: the fields of :class:`Adaptation`, each optional (None: the model file's)
@@ -341,7 +363,7 @@ def apply_overrides(model, tracker: TrackerOverride | None = None, adaptation=No
     m = copy.deepcopy(model)
     if tracker is not None:
         t = m.tracker
-        for k in ("forgetting", "budget", "jitter", "gamma"):
+        for k in ("forgetting", "budget", "jitter", "gamma", "search"):
             v = getattr(tracker, k)
             if v is not None:
                 setattr(t, k, v)

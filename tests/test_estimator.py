@@ -247,7 +247,8 @@ def test_compiled_loop_refuses_any_int64_that_does_not_fit(seq0):
     rows, irows, counts = online.new_rows(10)
     first = online.track_block(*est.tracker.core_buffers(np.zeros(1)), *est.online.buffers, *est.health.buffers,
                                *est.config, *online.new_state(), np.int64(seq0), t, v_ref, v, np.zeros((2, 0)), rows,
-                               irows, counts, online.new_ticks(10, 1), online.new_scratch(len(est.beta)))
+                               irows, counts, online.new_ticks(10, 1), online.new_scratch(len(est.beta)), 0,
+                               *online.new_search(1 / 333), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     assert first == 10 and counts[online.COUNTERS.index("rejected_seq_range")] == 10
 
 

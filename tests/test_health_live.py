@@ -205,7 +205,8 @@ def _spindle_stream(n, rpm_of_t, seed=0):
 
 def _spindle_model(kernel):
     return AxisModel(machine="m", axis="s", form="velocity-loop", Ts=TS, beta=[0.37, 0.63], omega=1e-5, coulomb=False,
-                     loop_gain=184900.0, tracker=TrackerConfig(kernel=kernel, gamma=300.0, forgetting=0.998, budget=60))
+                     loop_gain=184900.0, tracker=TrackerConfig(kernel=kernel, gamma=300.0, forgetting=0.998, budget=60,
+                                                                      search=False))
 
 
 def _run_blocks(est, t, v_ref, v, size=37, **cols):
