@@ -127,16 +127,15 @@ class TrackerChoice:
 
 
 def for_beta(choice: TrackerChoice, base: TrackerChoice) -> TrackerChoice:
-    """The tracker online β learns with while ``choice`` publishes the disturbance: the structure the
-    process demands (the spindle-phase kernel, a period found online) with the hyperparameters of ``base``,
-    the model file's tracker — how fast its GP takes up what it sees (γ, σ1, λ) is what identification
-    weighed against the drive's regressors, and a flexible kernel tuned for prediction would take up the
-    friction and damping that β should see. A kernel in time alone adds no structure: ``base`` itself."""
-    if choice.kind == "time" or choice.same_structure(base):
+    """The tracker online β learns with while ``choice`` publishes the disturbance: ``base``, the model
+    file's tracker, whose hyperparameters identification weighed against the drive's regressors (a
+    flexible kernel tuned for prediction takes up the friction and damping β should see: on the EMPS drive
+    the online Coulomb friction fell by half) — except that a process the samples announce, the spindle,
+    brings its phase kernel, at ``base``'s σ1, γ and λ (σ2 too when ``base`` has one)."""
+    if choice.kind != "spindle" or base.kind == "spindle" and choice.same_structure(base):
         return base
     sigma2 = base.sigma2 if base.kind != "time" else choice.sigma2
-    return replace(choice, sigma1=base.sigma1, sigma2=sigma2, gamma=base.gamma, forgetting=base.forgetting,
-                   zero_mean=base.zero_mean and choice.kind == "periodic")
+    return replace(choice, sigma1=base.sigma1, sigma2=sigma2, gamma=base.gamma, forgetting=base.forgetting)
 
 
 def _clip(x: float, lo_hi: tuple[float, float]) -> float:
@@ -257,8 +256,7 @@ def prequential(choice: TrackerChoice, X: np.ndarray, y: np.ndarray, *, budget: 
     mask = np.ones(n, dtype=bool)
     mask[0] = False
     res = trk.track_many(xs, np.concatenate(([np.nan], y[:-1])), mask)
-    s02 = np.concatenate(([np.nan], res["s02"][:-1]))   # the signal power when x[k] was armed
-    R = res["next_sigma_y2"] * s02
+    R = res["next_sigma_y2"] * res["s02"]               # s0² when x[k] was armed (after learning y[k − 1])
     with np.errstate(divide="ignore", invalid="ignore"):
         ll = -0.5 * (LOG_2PI + np.log(R) + (y - res["next_mean"]) ** 2 / R)
     ll[~np.isfinite(ll)] = np.nan

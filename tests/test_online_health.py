@@ -165,7 +165,7 @@ def test_inertia_step_raises_warn_and_is_followed(mill, simulated, tmp_path):
     step = 24.0
     assert all(h.state == "ok" for h in reports if h.t < step)
     first = next(h for h in reports if h.t >= step and h.state != "ok")
-    assert first.t - step <= 5.0 and any(r.startswith("inertia drift +") for r in first.reasons)
+    assert first.t - step <= 5.0 and any(r.startswith(("inertia drift +", "inertia step +")) for r in first.reasons)
     J_new = _truth_at(trial, np.array([reports[-1].seq]), "inertia")[0]
     err = np.array([abs(h.inertia / J_new - 1) for h in reports if h.t >= step])
     t_after = np.array([h.t for h in reports if h.t >= step])
@@ -239,7 +239,8 @@ def test_the_coulomb_split_is_not_learned_in_motion(simulated, tmp_path):
     late = reports[-1]
     assert any(r.startswith("not determined") and "coulomb_pos" in r and "offset" in r for r in late.reasons)
     truth = 0.5 * (_truth_at(trial, [late.seq], "coulomb_pos")[0] + _truth_at(trial, [late.seq], "coulomb_neg")[0])
-    assert late.coulomb == pytest.approx(truth, rel=0.05) and late.coulomb_se < 0.05 * truth
+    # (its standard error is the Huber–White sandwich's: it counts the innovations the model did not expect)
+    assert late.coulomb == pytest.approx(truth, rel=0.05) and late.coulomb_se < 0.1 * truth
 
 
 # ---- the real EMPS drive ----------------------------------------------------------------------------------
