@@ -88,7 +88,9 @@ __all__ = [
     "MAX_LOG_TIME_NS",
     "MAX_MESSAGE_BYTES",
     "MAX_PENDING_BYTES",
-    "MAX_READ_AHEAD_BLOCKS",
+    "MAX_READ_AHEAD_BYTES",
+    "AxisStreams",
+    "held_bytes",
     "ZSTD_LEVEL",
     "Limits",
 ]
@@ -113,9 +115,10 @@ MAX_PENDING_BYTES = 64 * 2**20
 #: 3.2). ``feedmon recover`` writes with the same writer and level: a healthy file written by feedmon comes
 #: out byte for byte, one compressed at another level (an older feedmon, other tools) with the same records
 ZSTD_LEVEL = 1
-#: blocks of other axes buffered while reading several axes in one pass, merged by time
-#: (replay, run --from); files whose axes are not interleaved in time beyond this are refused
-MAX_READ_AHEAD_BLOCKS = 200_000
+#: bytes of decoded blocks of other axes held while reading several axes in one pass, merged by time
+#: (replay, run --from; :func:`held_bytes`); beyond, the axes not being consumed re-read the file on
+#: their own (a file whose axes are not interleaved in time costs one more read, never more memory)
+MAX_READ_AHEAD_BYTES = 64 * 2**20
 
 
 def topic(machine: str, axis: str, kind: str) -> str:
@@ -981,24 +984,62 @@ def iter_file(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",)) ->
         f.close()
 
 
+class AxisStreams(dict):
+    """What :func:`iter_axes` returns: axis name → iterator, plus how the read-ahead went."""
+
+    own_passes = 0  #: axes that left the shared pass and re-read the file on their own
+    peak_bytes = 0  #: most bytes of blocks (:func:`held_bytes`) that waited at once
+
+
+def held_bytes(block) -> int:
+    """About the memory (bytes) a decoded block holds: 32 per list element (a float object and its
+    pointer), 64 per field and 256 for the object. What the byte bounds of read-ahead buffers count."""
+    n = 256
+    for name in block.__struct_fields__:
+        v = getattr(block, name)
+        n += 64 + (32 * len(v) if isinstance(v, list) else 0)
+    return n
+
+
 def iter_axes(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",), *,
-              read_ahead: int = MAX_READ_AHEAD_BLOCKS) -> dict[str, Iterator[tuple[str, int, object]]]:
-    """One iterator of ``(kind, log_time, block)`` per axis (``machine/axis``), all fed by **one**
-    pass over the file (:func:`iter_file`), so reading N axes costs one read, not N. Blocks of
-    the axes not being consumed are buffered; more than ``read_ahead`` of them raises
-    :class:`TrialFileError` (the file's axes are not interleaved in time; read one axis at a
-    time). Meant for consuming the axes together, e.g. merged with ``heapq.merge``."""
+              read_ahead_bytes: int = MAX_READ_AHEAD_BYTES) -> AxisStreams:
+    """One iterator of ``(kind, log_time, block)`` per axis (``machine/axis``), fed by **one**
+    pass over the file (:func:`iter_file`) as long as the axes are interleaved in time, so reading
+    N axes costs one read, not N. Blocks of the axes not being consumed wait in memory, at most
+    ``read_ahead_bytes`` of them (:func:`held_bytes`); beyond, those axes are dropped from the
+    shared pass and each re-reads the file on its own from the block it had reached (its waiting
+    blocks are read again), so memory stays bounded whatever the order of the file, at the cost
+    of one more read per such axis (counted in the result's :attr:`AxisStreams.own_passes`).
+    Meant for consuming the axes together, e.g. merged with ``heapq.merge``."""
     source = iter_file(path, axes, kinds)
     queues: dict[str, deque] = {name: deque() for name in axes}
-    state = {"buffered": 0, "done": False, "open": len(axes)}
+    given = dict.fromkeys(axes, 0)  # items handed out per axis
+    own: set[str] = set()  # axes that left the shared pass
+    state = {"held": 0, "done": False, "open": len(axes)}
+    info = AxisStreams()
+
+    def spill(consumer: str) -> None:
+        for name, q in queues.items():
+            if name != consumer and q:
+                state["held"] -= sum(size for *_, size in q)
+                q.clear()
+                own.add(name)
+                info.own_passes += 1
+
+    def own_pass(axis_name: str) -> Iterator[tuple[str, int, object]]:
+        for j, (_, kind, lt, block) in enumerate(iter_file(path, [axis_name], kinds)):
+            if j >= given[axis_name]:
+                yield kind, lt, block
 
     def stream(axis_name: str) -> Iterator[tuple[str, int, object]]:
         q = queues[axis_name]
         try:
-            while True:
+            while axis_name not in own:
                 if q:
-                    state["buffered"] -= 1
-                    yield q.popleft()
+                    *item, size = q.popleft()
+                    state["held"] -= size
+                    given[axis_name] += 1
+                    yield tuple(item)
                     continue
                 if state["done"]:
                     return
@@ -1008,22 +1049,23 @@ def iter_axes(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",), *,
                     state["done"] = True
                     continue
                 if target == axis_name:
+                    given[axis_name] += 1
                     yield kind, lt, block
-                    continue
-                queues[target].append((kind, lt, block))
-                state["buffered"] += 1
-                if state["buffered"] > read_ahead:
-                    state["done"] = True
-                    source.close()
-                    raise TrialFileError(
-                        f"{path}: more than {read_ahead} blocks of other axes precede the next block of "
-                        f"{axis_name} (the axes are not interleaved in time); read the axes one at a time")
+                elif target not in own:
+                    size = held_bytes(block)
+                    queues[target].append((kind, lt, block, size))
+                    state["held"] += size
+                    info.peak_bytes = max(info.peak_bytes, state["held"])
+                    if state["held"] > read_ahead_bytes:
+                        spill(axis_name)
+            yield from own_pass(axis_name)
         finally:
             state["open"] -= 1
             if state["open"] == 0:
                 source.close()
 
-    return {name: stream(name) for name in axes}
+    info.update((name, stream(name)) for name in axes)
+    return info
 
 
 def _column(blocks, name: str, n_total: int) -> np.ndarray | None:

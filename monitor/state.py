@@ -36,7 +36,7 @@ import numpy as np
 from .axes import AxisRuntime
 from .state_check import StateError
 
-__all__ = ["StateStore", "StateLoad", "STATE_FORMAT", "read_state_file"]
+__all__ = ["StateStore", "StateLoad", "STATE_FORMAT", "read_state_file", "learned_snapshot"]
 
 log = logging.getLogger("monitor.state")
 
@@ -176,6 +176,16 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, dtype: np.dtype, sh
         raise StateError(f"{key!r} has {len(data)} bytes of data, expected {nbytes}")
     arr = np.frombuffer(data, dtype=got_dtype).reshape(shape, order="F" if fortran else "C")
     return np.array(arr, order="C")  # own, writable, C-contiguous copy
+
+
+def learned_snapshot(estimator) -> dict[str, np.ndarray] | None:
+    """The estimator's snapshot when it holds something learned and can be restored as it is; None for
+    an estimator that never stepped its tracker (a snapshot with the online β and health parts but no
+    tracker state matches neither template of :func:`monitor.state_check.check_snapshot`, and there is
+    nothing in it worth keeping)."""
+    snap = estimator.snapshot()
+    _, after = estimator.snapshot_templates()
+    return snap if set(snap) == set(after) else None
 
 
 class StateStore:
