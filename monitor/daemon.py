@@ -487,7 +487,11 @@ class Monitor:
             if self.state_store is not None and self._thread is not None and stopped:
                 for ax in self.axes.values():
                     try:
-                        self.saved_states.append(str(self.state_store.save(ax)))
+                        path = self.state_store.save(ax)
+                        if path is None:
+                            log.info("tracker state of %s not saved: it learned nothing", ax.status.name)
+                        else:
+                            self.saved_states.append(str(path))
                     except Exception as exc:  # noqa: BLE001 - OSError, a bad name, anything: say it, go on
                         self._problem("cannot save the tracker state of %s: %s: %s", ax.status.name,
                                       type(exc).__name__, exc)

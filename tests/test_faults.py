@@ -62,7 +62,7 @@ def test_sigterm_then_sigint_finish_mcap_save_and_restore_state(work, trial):
         tr = read_trial(out)  # finished and readable (summary + footer)
         assert len(tr) == n
         assert rows(b for _, b in iter_blocks(out, AXIS, kinds=("disturbance",)))["seq"].tolist() == list(range(n))
-        sf = state / "linear-drive_Z.state.npz"
+        sf = state / "linear-drive+Z.state.npz"
         assert sf.exists()
         with np.load(sf, allow_pickle=False) as z:
             assert int(z["estimator.trained"]) == (n - 1) * (i + 1)  # the second run continued the first
@@ -249,7 +249,7 @@ def test_full_disk_mcap_sink_fails_visibly_estimator_runs(work, trial, tiny_fs):
     assert mon.count("sink mcap failed") >= 1
     if tiny_fs is not None:
         assert rc == 0, mon.stderr
-        assert (work / "st-full" / "linear-drive_Z.state.npz").exists()  # the state went elsewhere: saved
+        assert (work / "st-full" / "linear-drive+Z.state.npz").exists()  # the state went elsewhere: saved
     else:  # RLIMIT_FSIZE is per process: it hits the state file too, which must be said, not crash
         assert rc == 1 and "cannot save the tracker state" in mon.stderr, mon.stderr
     rep = recover(out, work / "full-fixed.mcap")  # what reached the disk (header, metadata, …) is intact
@@ -346,7 +346,7 @@ def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial)
     """A tracker state of another model, or a corrupt one, is not used: warning naming it, fresh start."""
     state = work / "st-bad"
     state.mkdir()
-    sf = state / "linear-drive_Z.state.npz"
+    sf = state / "linear-drive+Z.state.npz"
     sf.write_bytes(b"PK\x03\x04 definitely not a zip")
     mon = MonitorProc(prefix=PREFIX, args=["--model", "z.model.toml", "--state-dir", str(state)], cwd=work)
     try:
