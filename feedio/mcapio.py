@@ -202,8 +202,9 @@ class _StagedFile:
     disk, and the mcap ``Writer``'s offsets and state never disagree with the file.
     ``damaged`` when even the truncation failed."""
 
-    def __init__(self, path: str):
-        self.file = open(path, "wb", buffering=0)  # OSError propagates with the path
+    def __init__(self, path: str, exclusive: bool = False):
+        # OSError propagates with the path; exclusive: FileExistsError rather than overwrite a file
+        self.file = open(path, "xb" if exclusive else "wb", buffering=0)
         self.committed = 0
         self.staged: deque[tuple[bytes, int]] = deque()  # (piece, messages written before it ends)
         self.staged_bytes = 0
@@ -280,7 +281,8 @@ class TrialWriter:
     failure inside the mcap writer, or when more than ``max_pending_bytes`` wait for the disk,
     the writer is :attr:`failed`: the file ends on its last complete record (readable after
     ``feedmon recover``), :attr:`messages_lost` counts what never reached it, and every later
-    write raises :class:`TrialFileError`.
+    write raises :class:`TrialFileError`. ``exclusive``: create the file, never overwrite one
+    (``FileExistsError``), so two writers can never share a file.
     """
 
     def __init__(
@@ -294,6 +296,7 @@ class TrialWriter:
         start=None,
         max_pending_bytes: int = MAX_PENDING_BYTES,
         compression_level: int = ZSTD_LEVEL,
+        exclusive: bool = False,
     ):
         metas = [meta] if isinstance(meta, S.TrialMeta) else list(meta)
         if not metas:
@@ -326,7 +329,7 @@ class TrialWriter:
         self.messages_lost = 0  # accepted but never written to the file (the writer failed)
         self.finished = False  # summary written and committed: a complete file
         self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
-        self._stream = _StagedFile(self.path)
+        self._stream = _StagedFile(self.path, exclusive)
         try:
             self._start(chunk_size, comp, int(compression_level))
         except BaseException:
@@ -370,6 +373,29 @@ class TrialWriter:
     @property
     def bytes_on_disk(self) -> int:
         return self._stream.committed
+
+    @property
+    def messages_on_disk(self) -> int:
+        """Messages in the chunks committed to the file so far (the first ones written)."""
+        return self._stream.messages_on_disk
+
+    def is_gone(self) -> bool:
+        """True when the path no longer names the file being written (removed, renamed away or replaced:
+        what is written goes nowhere anyone will find it)."""
+        try:
+            mine = os.fstat(self._stream.file.fileno())
+            there = os.stat(self.path)
+        except FileNotFoundError:
+            return True
+        except (OSError, ValueError):  # a closed file, a directory we may not search: not known to be gone
+            return False
+        return mine.st_nlink == 0 or (mine.st_dev, mine.st_ino) != (there.st_dev, there.st_ino)
+
+    def give_up(self, why: str) -> None:
+        """Stop writing this file (it keeps what was committed: complete records) and close it; what
+        never reached it is counted in :attr:`messages_lost`."""
+        self._fail(why)
+        self.close()
 
     # -- failure ------------------------------------------------------------------------------
     def _fail(self, why: str) -> TrialFileError:

@@ -343,7 +343,8 @@ def _set_beta(src: str, value: str) -> str:
 
 
 def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial):
-    """A tracker state of another model, or a corrupt one, is not used: warning naming it, fresh start."""
+    """A tracker state of another model, or a corrupt one, is not used: warning naming it, fresh start; what
+    the axis then learns replaces it at exit."""
     state = work / "st-bad"
     state.mkdir()
     sf = state / "linear-drive+Z.state.npz"
@@ -352,7 +353,10 @@ def test_mismatched_or_corrupt_state_file_starts_fresh_with_warning(work, trial)
     try:
         assert "unreadable" in mon.stderr and str(sf) in mon.stderr
         with T.open_session(connect=mon.endpoint) as s:
-            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["monitor"]["state"] == "running")
+            pub = _publisher(s, trial)
+            for b in blocks_of(trial, 0, 300):
+                pub.put(S.encode(b))
+            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: x["axes"][AXIS]["last_seq"] == 299)
         assert st["axes"][AXIS]["state"]["origin"] == "unreadable"
     finally:
         assert mon.stop() == 0, mon.stderr
