@@ -56,6 +56,12 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     state_dir: str | None = None
     fresh: bool = False
     drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0
+    # the sink processes (monitor.sinks.child): start, stall detection, finishing at stop
+    sink_start_seconds: Annotated[float, msgspec.Meta(ge=5.0, le=3600.0)] = 60.0
+    sink_stall_seconds: Annotated[float, msgspec.Meta(ge=2.0, le=3600.0)] = 10.0
+    sink_close_seconds: Annotated[float, msgspec.Meta(ge=1.0, le=3600.0)] = 30.0
+    # MiB an output directory (--mcap, --rrd) must have free at start; below it when a new file opens: degraded
+    min_free_mb: Annotated[float, msgspec.Meta(ge=0.0, le=1e7)] = 64.0
     jobs: Annotated[int, msgspec.Meta(ge=1, le=1024)] | None = None  # offline: processes (None: one per core)
     listen: list[str] | None = None
     connect: list[str] | None = None

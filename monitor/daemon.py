@@ -76,7 +76,7 @@ from .pipeline import Pipeline
 from .state import StateStore
 from .status import StageRing
 
-__all__ = ["Monitor", "INLINE_BYTES"]
+__all__ = ["Monitor", "INLINE_BYTES", "sink_losses"]
 
 log = logging.getLogger("monitor.daemon")
 
@@ -86,6 +86,27 @@ _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
 #: messages up to this size (bytes) are estimated in the Zenoh callback when nothing else is (a few
 #: tens of samples: well under a millisecond of tracker work); larger ones go through the input queue
 INLINE_BYTES = 2048
+
+
+def sink_losses(st: dict[str, Any]) -> str | None:
+    """What a closed sink did not write, in one sentence (None: it wrote everything offered): messages
+    refused by its full queue (``dropped``), accepted but never written (``lost``), written to files
+    someone removed (``removed``), files given up (to finish with ``feedmon recover``)."""
+    dropped, lost, removed = int(st.get("dropped") or 0), int(st.get("lost") or 0), int(st.get("removed") or 0)
+    if not (dropped or lost or removed):
+        return None
+    offered = st.get("offered", int(st.get("accepted") or 0) + dropped)
+    parts = [f"{dropped + lost} of {offered} messages not written ({dropped} dropped: queue full, {lost} lost)"] \
+        if dropped or lost else []
+    if removed:
+        parts.append(f"{removed} written to files removed while open ({', '.join(st.get('removed_files') or [])})")
+    incomplete = st.get("incomplete_files") or []
+    if incomplete:
+        note = st.get("incomplete_note") or "they end where writing stopped"
+        parts.append(f"incomplete files ({note}): {', '.join(map(str, incomplete))}")
+    if st.get("restarts"):
+        parts.append(f"its process was restarted {st['restarts']} time(s)")
+    return f"sink {st.get('name')}: " + "; ".join(parts)
 
 
 class Monitor:
@@ -477,12 +498,7 @@ class Monitor:
             if not stopped:
                 self._problem("the estimator thread did not stop (a block still in progress); tracker states are "
                               "NOT saved, the saved ones are left as they were")
-            for sink in self.sinks:
-                try:
-                    if not sink.close(timeout):
-                        self._problem("sink %s did not finish within %.0f s", sink.name, timeout)
-                except Exception as exc:  # noqa: BLE001
-                    self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+            self._close_sinks(timeout)
             # never overwrite a state when start failed (no thread) or the estimator may still change it
             if self.state_store is not None and self._thread is not None and stopped:
                 for ax in self.axes.values():
@@ -510,6 +526,26 @@ class Monitor:
         finally:
             self.state = "stopped"
         return self.problems
+
+    def _close_sinks(self, timeout: float) -> None:
+        """Close every sink side by side, all done by ``timeout`` s from now (a sink gives up on what it
+        cannot finish by then, counted); then say what each did not write."""
+        deadline = time.monotonic() + timeout
+        for sink in self.sinks:
+            try:
+                sink.begin_close(timeout)
+            except Exception as exc:  # noqa: BLE001
+                self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+        for sink in self.sinks:
+            try:
+                if not sink.close(max(0.0, deadline - time.monotonic())):
+                    self._problem("sink %s did not finish within %.0f s", sink.name, timeout)
+            except Exception as exc:  # noqa: BLE001
+                self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+                continue
+            loss = sink_losses(sink.status())
+            if loss:
+                self._problem("%s", loss)
 
     # ---- status ------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:

@@ -434,13 +434,20 @@ def format_status(status: dict[str, Any], console=None) -> None:
     sinks = status.get("sinks") if isinstance(status.get("sinks"), list) else []
     if sinks:
         st = Table(title="sinks")
-        cols = ("name", "state", "accepted", "written", "dropped", "failures", "pending")
+        cols = ("name", "state", "accepted", "written", "dropped", "lost", "failures", "restarts", "pending")
         for col in cols:
             st.add_column("sink" if col == "name" else col)
         for s in map(_dict, sinks):
-            st.add_row(*(_cell(s.get(c)) for c in cols))
+            st.add_row(*(_cell(s.get(c, 0 if c in ("lost", "restarts") else None)) for c in cols))
         console.print(st)
         for s in map(_dict, sinks):
             where = [x for x in (s.get("current_file"), s.get("rrd_path"), s.get("server_uri")) if x]
             if where:
                 console.print(_cell(f"  {s.get('name')}: {', '.join(map(str, where))}", 1000))
+            if s.get("state") not in ("ok", "closed", None) or s.get("lost") or s.get("restarts"):
+                why = s.get("degraded") if s.get("state") == "degraded" else s.get("last_error")
+                console.print(_cell(f"  {s.get('name')} {str(s.get('state')).upper()}: {why}", 2000))
+            for key, what in (("incomplete_files", f"incomplete ({s.get('incomplete_note') or 'cut short'})"),
+                              ("removed_files", "removed while being written")):
+                if s.get(key):
+                    console.print(_cell(f"  {s.get('name')}: {what}: {', '.join(map(str, s[key]))}", 2000))

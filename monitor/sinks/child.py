@@ -51,6 +51,8 @@ PRIORITIES: tuple[str, ...] = get_args(Priority)
 STALL_SECONDS = 10.0
 #: the child reports at least this often (s), changed or not: its heartbeat
 HEARTBEAT_SECONDS = 0.5
+#: seconds of silence, of a full pipe or of a writer busy in one call after which a child is ``degraded``
+LATE_SECONDS = 2.0
 #: longest wait before restarting a child that keeps failing (s)
 MAX_BACKOFF = 60.0
 #: counters a child reports that add up over its generations
@@ -122,9 +124,11 @@ class _PipeWriter:
     def __init__(self, conn) -> None:
         self._sock = socket.socket(fileno=os.dup(conn.fileno()))
 
-    def send(self, data: bytes, deadline: float) -> None:
+    def send(self, data: bytes, deadline: float, on_wait: Callable[[float], None] | None = None) -> None:
         """Send one message by ``deadline`` (``time.monotonic()``); :class:`ChildGone` when the child
-        is gone or did not take it in time (a message cut short: the stream is then unusable)."""
+        is gone or did not take it in time (a message cut short: the stream is then unusable).
+        ``on_wait(seconds waited)`` is called about every 0.25 s while the pipe is full."""
+        t0 = time.monotonic()
         if len(data) > 0x7FFFFFFF:
             raise ValueError(f"a message to a child process has at most 2**31 − 1 bytes, got {len(data)}")
         for part in (struct.pack("!i", len(data)), data):
@@ -137,10 +141,11 @@ class _PipeWriter:
                     pass
                 except OSError as exc:
                     raise ChildGone(f"the pipe to it broke ({type(exc).__name__}: {exc})") from None
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise ChildGone("it took no data for the whole time allowed (its pipe stayed full)")
-                select.select([], [self._sock], [], min(left, 0.25))
+                now = time.monotonic()
+                if now >= deadline:
+                    raise ChildGone(f"it took no data for {now - t0:.0f} s: its pipe stayed full")
+                if select.select([], [self._sock], [], min(deadline - now, 0.25))[1] == [] and on_wait is not None:
+                    on_wait(time.monotonic() - t0)
 
     def close(self) -> None:
         self._sock.close()
@@ -172,6 +177,8 @@ class ChildProcessSink(QueuedSink):
     summed_fields: tuple[str, ...] = ()
     #: lists of the child's reports (files …) that add up over its generations
     list_fields: tuple[str, ...] = ()
+    #: what a file a killed child was writing is like, and how to finish it (for the log and the status)
+    incomplete_note = "it ends where the process was killed"
 
     # ---- start -----------------------------------------------------------------------------------
     def _child_spec(self, restart: bool) -> tuple[Callable, str, tuple, str]:
@@ -195,10 +202,12 @@ class ChildProcessSink(QueuedSink):
         self._backoff = 0.0
         self._restart_at = 0.0
         self._await_write: int | None = None  # after a failure: the child's written count a write must pass
-        self._gen = self._launch(restart=False, abort=None)
+        self._closing_restart = False  # a restart was tried while closing (one at most)
+        self._gen = self._launch(restart=False, deadline=time.monotonic() + self.start_timeout)
         return self._gen.hello
 
-    def _launch(self, restart: bool, abort: threading.Event | None) -> _Gen:
+    def _launch(self, restart: bool, deadline: float) -> _Gen:
+        """Start a child; wait for its first message until ``deadline``; ``OSError`` when it does not come."""
         target, name, args, what = self._child_spec(restart)
         self._what = what
         ctx = multiprocessing.get_context("spawn")
@@ -207,24 +216,23 @@ class ChildProcessSink(QueuedSink):
         proc.start()
         child.close()
         hello = None
-        deadline = time.monotonic() + self.start_timeout
-        while hello is None and time.monotonic() < deadline and proc.is_alive() \
-                and not (abort is not None and abort.is_set()):
+        while hello is None and time.monotonic() < deadline and proc.is_alive():
             hello = _receive(conn, 0.1)
         if hello is None:
             hello = _receive(conn, 0.0)
         if hello is None or "error" in hello:
+            ended = None if proc.is_alive() else proc.exitcode
             _kill(proc)
             conn.close()
             if hello is not None:
                 why = hello["error"]
-            elif abort is not None and abort.is_set():
-                why = "was not started: the sink is closing"
-            elif not proc.is_alive():
-                why = f"ended at start (exit code {proc.exitcode})"
+            elif ended is not None:
+                why = f"ended at start (exit code {ended})"
+            elif getattr(self, "_closing", None) is not None and self._closing.is_set():
+                why = "did not start before the deadline of the stop"
             else:
-                why = (f"did not start in {self.start_timeout:g} s (a machine this busy, or a slow first import: "
-                       "try again, or allow more time with [run] sink_start_seconds)")
+                why = (f"did not start in {self.start_timeout:g} s (start_timeout; a machine this busy, or a slow "
+                       "first import)")
             raise OSError(f"{what} {why}")
         gen = _Gen(proc, conn, hello)
         self.child_status: dict[str, Any] = {}
@@ -268,6 +276,7 @@ class ChildProcessSink(QueuedSink):
             st["state"] = "degraded"
             st["degraded"] = c.get("degraded")
         st["restarts"] = self.restarts
+        st["incomplete_note"] = self.incomplete_note
         st["process_alive"] = gen is not None and gen.proc.is_alive()
         st["pid"] = None if gen is None else gen.proc.pid
         return st
@@ -278,7 +287,10 @@ class ChildProcessSink(QueuedSink):
         gen = self._gen
         if gen is None:
             if self._closing.is_set():
-                raise ChildGone(f"{self._what} is not running (not started again while the sink closes)")
+                if self._closing_restart:
+                    raise ChildGone(f"{self._what} is not running (it could not be started again before the stop)")
+                self._closing_restart = True  # once, at once: what is still queued may yet be written
+                return self._restart()
             if time.monotonic() < self._restart_at:
                 raise ChildGone(f"{self._what} is not running (restarting in "
                                 f"{self._restart_at - time.monotonic():.0f} s)")
@@ -290,13 +302,15 @@ class ChildProcessSink(QueuedSink):
         items counted lost, the failure recorded, the child replaced)."""
         try:
             gen = self._live()
-            gen.writer.send(data, min(self._deadline, time.monotonic() + self.stall_seconds))
+            # a stall: ChildGone after stall_seconds; at close: after the deadline of the stop
+            gen.writer.send(data, min(self._deadline, time.monotonic() + self.stall_seconds),
+                            lambda waited: self._waiting(gen, waited))
         except ChildGone as exc:
             self.count_lost(items)
             if self._gen is not None:
-                self._replace(f"{self._what}: {exc}")
+                self._replace(f"{self._what} stalled or died: {exc}")
             else:
-                self._record_failure(exc, f"ChildGone: {exc}")
+                self._record_failure(exc, str(exc))
             return False
         gen.sent += items
         return True
@@ -314,6 +328,24 @@ class ChildProcessSink(QueuedSink):
                 gen.final = True
                 return True
 
+    def _late(self, gen: _Gen, why: str) -> None:
+        """The child is late (``why``): ``degraded``, and out of ``SCHED_IDLE`` (starved of CPU? it gets its
+        share before it is taken for stalled)."""
+        if self.degraded is None:
+            leave_idle(gen.proc.pid)
+        self.set_degraded(f"{self._what} is late: {why}")
+
+    def _waiting(self, gen: _Gen, waited: float) -> None:
+        """While a send waits on a full pipe: keep reading the child's reports; late after a while."""
+        self._take_reports(gen)
+        if waited > self._late_after:
+            self._late(gen, f"its pipe has been full for {waited:.1f} s")
+
+    @property
+    def _late_after(self) -> float:
+        """Seconds of silence (or of a full pipe) after which the child is ``degraded``."""
+        return min(LATE_SECONDS, self.stall_seconds / 2)
+
     def tick(self, now: float) -> None:
         gen = self._gen
         if gen is None:
@@ -329,10 +361,8 @@ class ChildProcessSink(QueuedSink):
             self._replace(f"{self._what} stalled: no word from it for {quiet:.0f} s")
         elif stuck > self.stall_seconds:
             self._replace(f"{self._what} stalled: its writer has been busy in one call for {stuck:.0f} s")
-        elif quiet > self.stall_seconds / 2 or stuck > self.stall_seconds / 2:
-            if self.degraded is None:
-                leave_idle(gen.proc.pid)  # starved of CPU? it gets its share before it is taken for stalled
-            self.set_degraded(f"{self._what} is late: no word for {quiet:.1f} s, writer busy for {stuck:.1f} s")
+        elif quiet > self._late_after or stuck > self._late_after:
+            self._late(gen, f"no word from it for {quiet:.1f} s, its writer busy in one call for {stuck:.1f} s")
         else:
             self.set_degraded(None)
             if now - gen.started > MAX_BACKOFF:
@@ -386,14 +416,14 @@ class ChildProcessSink(QueuedSink):
         lost = self._retire(gen, kill=True) if gen is not None else 0
         self._restart_at = time.monotonic() + self._backoff
         self._backoff = min(MAX_BACKOFF, max(1.0, 2 * self._backoff))
-        where = f"; {', '.join(files)} ends on its last complete record (feedmon recover finishes it)" if files else ""
-        self._record_failure(ChildGone(why), f"ChildGone: {why}; killed it: {lost} more item(s) sent to it and not "
-                                               f"written counted lost{where}; a new one is started")
+        where = f" ({', '.join(files)}: {self.incomplete_note})" if files else ""
+        self._record_failure(ChildGone(why), f"{why}: killed it, counted the {lost} item(s) sent to it and not written "
+                                               f"as lost{where}, starting a new one")
 
     def _restart(self) -> _Gen | None:
         """Start a new child (counted in ``restarts``); on failure back off and raise :class:`ChildGone`."""
         try:
-            gen = self._launch(restart=True, abort=self._closing)
+            gen = self._launch(restart=True, deadline=min(self._deadline, time.monotonic() + self.start_timeout))
         except OSError as exc:
             self._restart_at = time.monotonic() + self._backoff
             self._backoff = min(MAX_BACKOFF, max(1.0, 2 * self._backoff))
@@ -429,7 +459,7 @@ class ChildProcessSink(QueuedSink):
             return
         quiet = time.monotonic() - gen.last_msg
         lost = self._retire(gen, kill=True)
-        self._record_failure(ChildGone("no final report"), f"ChildGone: {self._what} did not finish by the deadline "
+        self._record_failure(ChildGone("no final report"), f"{self._what} did not finish by the deadline "
                                                             f"of the stop (no word for {quiet:.0f} s): killed, {lost} "
                                                             "item(s) it had not written counted lost")
 

@@ -508,6 +508,7 @@ class McapProcessSink(ChildProcessSink):
     """
 
     summed_fields = ("removed", "messages_lost", "flush_failures", "scalars_written")
+    incomplete_note = "it ends on its last complete record; feedmon recover finishes it"
     list_fields = ("files", "incomplete_files", "removed_files")
     finish_timeout = 120.0
 

@@ -73,6 +73,8 @@ class RerunProcessSink(ChildProcessSink):
         the queue's bounds (items; bytes of the messages).
     """
 
+    incomplete_note = "it has no footer: the viewer opens it as it is, 'rerun rrd optimize' writes it with one"
+
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
                  maxsize: int = 4096, max_bytes: int = 64 * 2**20, name: str = "rerun", start_timeout: float = 60.0,
                  report_interval: float = 0.5, priority: str = "idle", stall_seconds: float = STALL_SECONDS,
