@@ -121,10 +121,10 @@ def _mcap_path(spec: str, cfg: RunConfig) -> tuple[Path, int | None, float | Non
             rs if rs is not None else 3600.0)
 
 
-def _check_output_dir(d: Path, option: str, cfg: RunConfig) -> None:
+def _check_output_dir(d: Path, option: str, cfg: RunConfig, need_space: bool = True) -> None:
     """Refuse to start with an output directory that does not take a new file (read-only, immutable, not
     ours: tried with a real file, since root ignores permission bits) or has less than ``min_free_mb``
-    free — rather than a monitor that says "ok" and writes nothing."""
+    free (``need_space``) — rather than a monitor that says "ok" and writes nothing."""
     probe = d / f".feedmon-write-test-{os.getpid()}"
     try:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -138,7 +138,7 @@ def _check_output_dir(d: Path, option: str, cfg: RunConfig) -> None:
         raise OSError(f"{option}: cannot write a file in {d}: {exc.strerror or exc}; make the directory writable "
                       "or choose another one") from None
     free = shutil.disk_usage(d).free
-    if free < cfg.min_free_mb * 2**20:
+    if need_space and free < cfg.min_free_mb * 2**20:
         raise OSError(f"{option}: only {free / 2**20:.1f} MiB free in {d}, less than min_free_mb = {cfg.min_free_mb:g} "
                       "MiB ([run] min_free_mb of --config); free some space or choose another directory")
 
@@ -221,8 +221,14 @@ def _run_live(cfg: RunConfig) -> int:
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
     sys.setswitchinterval(0.0005)
     axes = load_axes(cfg.model, cfg)
-    warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
+    # the outputs before anything slow: a directory that cannot take the files is refused at once
+    mcap = _mcap_path(cfg.mcap, cfg) if cfg.mcap is not None else None
+    if cfg.rrd is not None:
+        _check_output_dir(Path(cfg.rrd).resolve().parent, "--rrd", cfg)
     store = StateStore(cfg.state_dir)
+    if cfg.state_dir is not None:
+        _check_output_dir(Path(cfg.state_dir), "--state-dir", cfg, need_space=False)
+    warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     for ax in axes.values():
         how = store.load(ax, fresh=cfg.fresh).detail  # restored (when saved, samples learned) / why not
         _say(f"axis {ax.status.name}: model {ax.status.model_path} (sha256 {ax.status.model_sha256[:12]}…), "
@@ -234,7 +240,7 @@ def _run_live(cfg: RunConfig) -> int:
     started = False
     problems: list[str] = []
     try:
-        _start_sinks(cfg, axes, sinks)
+        _start_sinks(cfg, axes, sinks, mcap)
         # Zenoh itself drops what is far too large, before reassembling it (the callback counts the rest)
         zconfig = limit_message_size(config_from_args(_zenoh_args(cfg)), cfg.limits.transport_max_message_bytes)
         _estimate_queue(zconfig)
@@ -297,7 +303,7 @@ def _run_live(cfg: RunConfig) -> int:
     return 0
 
 
-def _start_sinks(cfg: RunConfig, axes, sinks: list) -> None:
+def _start_sinks(cfg: RunConfig, axes, sinks: list, mcap: tuple | None) -> None:
     """Start the Rerun sink (the slow one to start), then the MCAP sink, each in its own process
     (decoding, pairing, compression and disk never hold the estimator's GIL), appending each to
     ``sinks`` as soon as it runs (so that a failure later closes it); say where each writes."""
@@ -309,8 +315,6 @@ def _start_sinks(cfg: RunConfig, axes, sinks: list) -> None:
         from monitor.sinks.forward import RerunForwardSink
         from monitor.sinks.rerun_layout import describe_model
 
-        if cfg.rrd is not None:
-            _check_output_dir(Path(cfg.rrd).resolve().parent, "--rrd", cfg)
         info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
         try:  # fed the bytes received and published (no second encoding)
             rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info, **common)
@@ -322,10 +326,10 @@ def _start_sinks(cfg: RunConfig, axes, sinks: list) -> None:
             _say(f"Rerun recording: {cfg.rrd}")
         if rs_.server_uri:
             _say(f"Rerun live: rerun --connect {rs_.server_uri}")
-    if cfg.mcap is not None:
+    if mcap is not None:
         from monitor.sinks.mcap_sink import McapProcessSink
 
-        path, rb, rs = _mcap_path(cfg.mcap, cfg)
+        path, rb, rs = mcap
         try:
             sink = McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()],
                                    min_free_bytes=int(cfg.min_free_mb * 2**20), **common)

@@ -193,6 +193,28 @@ def test_mcap_sink_writes_samples_and_estimates_of_every_axis(tmp_path):
     assert len(trial) == 10 * n and trial.meta.Ts == pytest.approx(TS)
 
 
+def test_mcap_sinks_given_one_file_never_share_nor_overwrite_it(tmp_path):
+    """Two MCAP logs given the same file at the same time, a third given a rotated name that exists: every
+    file is created exclusively, so each sink writes its own (the next free name), complete, and an existing
+    file is never overwritten."""
+    from monitor.sinks.mcap_sink import McapSink
+
+    path = tmp_path / "run.mcap"
+    a, b = McapSink(path, metas=[meta("X")]), McapSink(path, metas=[meta("X")])
+    (tmp_path / "rot-000.mcap").write_bytes(b"not ours")
+    c = McapSink(tmp_path / "rot.mcap", rotate_seconds=3600, metas=[meta("X")])
+    for sink, n in ((a, 3), (b, 5), (c, 7)):
+        for k in range(n):
+            assert sink.offer(samples("X", 10 * k))
+    for sink in (a, b, c):
+        assert sink.close(timeout=10)
+    files = [sink.status()["files"] for sink in (a, b, c)]
+    assert files == [[str(path)], [str(tmp_path / "run-001.mcap")], [str(tmp_path / "rot-001.mcap")]]
+    assert [len(read_trial(f[0])) for f in files] == [30, 50, 70]
+    assert (tmp_path / "rot-000.mcap").read_bytes() == b"not ours"
+    assert [sink.status()["written"] for sink in (a, b, c)] == [3, 5, 7]
+
+
 def test_mcap_sink_without_metas_infers_them_and_does_not_rotate_at_start(tmp_path):
     from monitor.sinks.mcap_sink import McapSink
 

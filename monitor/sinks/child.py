@@ -268,10 +268,10 @@ class ChildProcessSink(QueuedSink):
         gen = self._gen
         if gen is not None:  # sent, and not yet reported written, lost or dropped
             st["in_child"] = max(0, gen.sent - sum(int(c.get(k, 0) or 0) for k in _COUNTED if k != "failures"))
+        if c.get("last_error") and (c.get("state") == "failed" or not st["last_error"]):
+            st["last_error"] = f"{self._what}: {c['last_error']}"  # (the child's own, e.g. a full disk)
         if c.get("state") == "failed" and st["state"] in ("ok", "degraded"):
             st["state"] = "failed"
-            if c.get("last_error"):
-                st["last_error"] = f"{self._what}: {c['last_error']}"
         elif c.get("state") == "degraded" and st["state"] == "ok":
             st["state"] = "degraded"
             st["degraded"] = c.get("degraded")
@@ -443,25 +443,34 @@ class ChildProcessSink(QueuedSink):
 
     # ---- closing --------------------------------------------------------------------------------
     def finish(self) -> None:
+        """Ask the child to finish (``Q``) and wait for its final report — until the deadline of the close,
+        or until it stalls (silent, or its writer stuck, for ``stall_seconds``): then kill it and count what
+        it had not written."""
         gen = self._gen
         if gen is None:
             return
         deadline = min(self._deadline, time.monotonic() + self.finish_timeout)
         leave_idle(gen.proc.pid)  # the queue must drain and the file close, however busy the machine
+        why = None
         try:
-            gen.writer.send(b"Q", deadline)
-            while not self._take_reports(gen, 0.1) and time.monotonic() < deadline and gen.proc.is_alive():
-                pass
-        except ChildGone:
-            pass
+            gen.writer.send(b"Q", min(deadline, time.monotonic() + self.stall_seconds))
+            while not self._take_reports(gen, 0.1) and gen.proc.is_alive():
+                quiet, stuck = time.monotonic() - gen.last_msg, float(gen.report.get("stuck_s") or 0.0)
+                if time.monotonic() >= deadline:
+                    why = f"did not finish by the deadline of the stop (no word for {quiet:.0f} s)"
+                elif quiet > self.stall_seconds or stuck > self.stall_seconds:
+                    why = f"stalled while finishing (no word for {quiet:.0f} s, its writer busy for {stuck:.0f} s)"
+                if why:
+                    break
+        except ChildGone as exc:
+            why = f"stalled or died while finishing: {exc}"
         if gen.final:
             self._retire(gen, kill=False)
             return
-        quiet = time.monotonic() - gen.last_msg
+        why = why or f"ended without its final report (exit code {gen.proc.exitcode})"
         lost = self._retire(gen, kill=True)
-        self._record_failure(ChildGone("no final report"), f"{self._what} did not finish by the deadline "
-                                                            f"of the stop (no word for {quiet:.0f} s): killed, {lost} "
-                                                            "item(s) it had not written counted lost")
+        self._record_failure(ChildGone(why), f"{self._what} {why}: killed it, counted the {lost} item(s) sent to it "
+                                               "and not written as lost")
 
 
 def _receive(conn, timeout: float) -> dict | None:

@@ -195,6 +195,7 @@ class McapSink(QueuedSink):
         self._marks: deque[int] = deque()  # per item in the current file not yet on disk: the writer's count after it
         self._file_written = 0  # items of the current file on disk
         self._opened_at = 0.0
+        self._checked_at = 0.0  # time.monotonic() the file was last checked to be still there
         self._index = 0
         self._in_file = 0  # messages in the current file
         self.discover_seconds = float(discover_seconds)
@@ -442,6 +443,8 @@ class McapSink(QueuedSink):
         gone = self._file_written
         self.removed += gone
         self.removed_files.append(w.path)
+        if w.path in self.incomplete_files:  # nothing to finish: it is gone
+            self.incomplete_files.remove(w.path)
         self._record_failure(FileNotFoundError(why), f"FileNotFoundError: {why}; {gone} item(s) written to it are gone")
         self._open()  # the directory made again; an OSError here is counted by the worker, retried by the next item
 
@@ -453,13 +456,15 @@ class McapSink(QueuedSink):
         w = self._writer
         if w is None:
             return
-        flushed = self._call(w.flush_if_due, now)
+        self._call(w.flush_if_due, now)
         if self._writer is not w:
             return  # given up
         self._settle(w)
-        if flushed and w.is_gone():
-            self._removed(w)
-            return
+        if now - self._checked_at >= self.flush_seconds:  # (one fstat and one stat, twice a second)
+            self._checked_at = now
+            if w.is_gone():
+                self._removed(w)
+                return
         if not self._in_file:
             return  # never rotate away from an empty file
         if self.rotate_seconds is not None and now - self._opened_at >= self.rotate_seconds:
