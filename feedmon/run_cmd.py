@@ -184,7 +184,7 @@ def _run_offline(args, cfg: RunConfig) -> int:
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
     axes = load_axes(cfg.model, cfg)
-    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs, input_health=cfg.input_health)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     lost = 0
@@ -197,8 +197,12 @@ def _run_offline(args, cfg: RunConfig) -> int:
             lost += failed
             refused += (f"; {failed} samples LOST to estimator errors, tracker restarted {c['tracker_restarts']} "
                         "time(s) (see the log above)")
+        h = ax.status.health or {}
+        flagged = [r for r in h.get("reasons") or [] if r.startswith("input:")]
+        health = f"; health at the end {h['state']}" + (f" ({'; '.join(flagged)})" if flagged else "") \
+            if h.get("state") not in (None, "ok") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
-             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
+             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}{health}")
     procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
           f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
@@ -250,7 +254,7 @@ def _run_live(cfg: RunConfig) -> int:
         endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in connect]
         monitor = Monitor(axes, session, prefix=cfg.prefix, sinks=sinks, limits=cfg.limits,
                           record_truth=cfg.record_truth, state=store, endpoints=endpoints,
-                          drain_seconds=cfg.drain_seconds)
+                          drain_seconds=cfg.drain_seconds, input_health=cfg.input_health)
         stop = threading.Event()
         received = []
 
@@ -407,3 +411,5 @@ def _summary(monitor) -> None:
                  f"{', '.join(map(str, s['incomplete_files']))}")
     for p in monitor.saved_states:
         _say(f"tracker state saved: {p}")
+    for name in monitor.unsaved_states:
+        _say(f"tracker state of {name} NOT saved: learned from input the monitor flagged (see the log above)")

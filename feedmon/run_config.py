@@ -32,6 +32,7 @@ import msgspec
 
 from feedio.limits import InputLimits, range_text
 from monitor import online_settings as OS
+from monitor.input_health import InputHealthSettings
 from monitor.sinks.child import Priority
 
 __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
@@ -74,6 +75,8 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     tracker: OS.TrackerOverride = OS.TrackerOverride()
     adaptation: OS.AdaptationOverride = OS.AdaptationOverride()
     health: OS.HealthOverride = OS.HealthOverride()
+    # thresholds of the input-health verdict ([run.input_health]; monitor.input_health)
+    input_health: InputHealthSettings = InputHealthSettings()
 
 
 class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -190,7 +193,7 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         cfg = RunConfig()
     cli: dict[str, Any] = {}
     for name in RunConfig.__struct_fields__:
-        if name in ("limits", "tracker", "adaptation", "health") or not hasattr(args, name):
+        if name in ("limits", "tracker", "adaptation", "health", "input_health") or not hasattr(args, name):
             continue
         value = getattr(args, name)
         if value is None or value is False:  # not given (flags cannot switch off what the file switches on)

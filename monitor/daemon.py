@@ -72,6 +72,7 @@ from feedio import schema as S
 from feedio.limits import DEFAULT, InputLimits
 
 from .axes import AxisRuntime
+from .input_health import InputHealthSettings
 from .pipeline import Pipeline
 from .state import StateStore
 from .status import StageRing
@@ -139,6 +140,8 @@ class Monitor:
     inline_bytes:
         messages up to this size are estimated in the Zenoh callback when nothing else is being
         estimated or waits (0: always through the queue and the estimator thread).
+    input_health:
+        thresholds of the input-health verdict (:mod:`monitor.input_health`; None: the defaults).
     """
 
     def __init__(
@@ -155,10 +158,11 @@ class Monitor:
         drain_seconds: float = 30.0,
         finish_seconds: float = 10.0,
         inline_bytes: int = INLINE_BYTES,
+        input_health: InputHealthSettings | None = None,
     ) -> None:
         if not drain_seconds >= 0 or not finish_seconds >= 0:
             raise ValueError(f"drain_seconds and finish_seconds must be ≥ 0, got {drain_seconds}, {finish_seconds}")
-        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits)
+        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits, input_health=input_health)
         self.axes = axes
         self.session = session
         self.prefix = prefix
@@ -207,6 +211,7 @@ class Monitor:
         self._started_wall = time.time()
         self.state = "new"
         self.saved_states: list[str] = []
+        self.unsaved_states: list[str] = []  # axes whose state was not saved: learned from flagged input
         self.problems: list[str] = []  # what went wrong while stopping (empty: a clean stop)
 
     # ---- Zenoh side ----------------------------------------------------------------------------
@@ -502,6 +507,13 @@ class Monitor:
             # never overwrite a state when start failed (no thread) or the estimator may still change it
             if self.state_store is not None and self._thread is not None and stopped:
                 for ax in self.axes.values():
+                    ih = self.pipeline.input_health[ax.key]
+                    if ih.tainted:  # a state learned from a stream flagged bad is not saved over a good one
+                        log.warning("tracker state of %s NOT saved: it learned %d samples from input the monitor "
+                                    "flagged (%s); %s is left as it was", ax.status.name, ih.tainted,
+                                    "; ".join(ih.reasons) or "see the health reports", self.state_store.path_for(ax))
+                        self.unsaved_states.append(ax.status.name)
+                        continue
                     try:
                         path = self.state_store.save(ax)
                         if path is None:
@@ -533,7 +545,8 @@ class Monitor:
         deadline = time.monotonic() + timeout
         for sink in self.sinks:
             try:
-                sink.begin_close(timeout)
+                if hasattr(sink, "begin_close"):  # (a sink of the plain protocol has close only)
+                    sink.begin_close(timeout)
             except Exception as exc:  # noqa: BLE001
                 self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
         for sink in self.sinks:
@@ -562,8 +575,9 @@ class Monitor:
             totals[reason] += n
             if name:
                 per_axis.setdefault(name, {})[_CALLBACK_REASONS[reason]] = n
-        axes = {ax.status.name: ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
-                                                 per_axis.get(ax.status.name))
+        axes = {ax.status.name: {**ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
+                                                    per_axis.get(ax.status.name)),
+                                 "input": p.input_health[ax.key].status()}
                 for ax in self.axes.values()}
         all_lat = [ax.status.latency.values() for ax in self.axes.values()]
         lat = np.concatenate(all_lat) if all_lat else np.zeros(0)

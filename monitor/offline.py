@@ -57,6 +57,7 @@ from feedio.limits import DEFAULT, InputLimits
 from kernels.errors import ParameterError
 
 from .axes import AxisRuntime
+from .input_health import InputHealthSettings
 from .pipeline import Estimated, Pipeline
 from .state import learned_snapshot
 from .status import install_log_format, log_format
@@ -172,7 +173,7 @@ def _write(w, entries: list[tuple]) -> None:
 # ---- the entry point ------------------------------------------------------------------------------
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT,
-                jobs: int | None = None) -> OfflineResult:
+                jobs: int | None = None, input_health: InputHealthSettings | None = None) -> OfflineResult:
     """Estimate a recorded trial without Zenoh, as fast as the machine goes.
 
     Every samples block of the axes that have a model goes through the same
@@ -187,7 +188,8 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     gives the same bytes — whatever ``jobs`` is.
 
     ``jobs``: processes for a trial with several modelled axes (None: one per core, at most one
-    per axis; 1: this process only). See the module docstring.
+    per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
+    input-health verdict merged into the health reports (:mod:`monitor.input_health`).
     """
     from feedio.mcapio import TrialWriter, _Open
 
@@ -230,17 +232,17 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     with TrialWriter(output, out_metas, start=start) as w:
         if jobs > 1:
             counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
-                                   jobs)
+                                   jobs, input_health)
         else:
-            counts = _run_here(trial, w, names, axes, has_truth, limits)
+            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
                          jobs, counts["health"])
 
 
-def _run_here(trial: str, w, names: list[str], axes, has_truth, limits) -> dict[str, int]:
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health) -> dict[str, int]:
     """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
-    pipe = Pipeline(axes, limits=limits)
+    pipe = Pipeline(axes, limits=limits, input_health=input_health)
     enc = _Encoder(has_truth)
     with _WriterThread() as out:
         counts = _estimate_items(_merged_blocks(trial, names), pipe, enc, out, lambda _key, entries: _write(w, entries))
@@ -485,7 +487,7 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
 
 
 def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime], has_truth, limits,
-                  jobs: int) -> dict[str, int]:
+                  jobs: int, input_health: InputHealthSettings | None) -> dict[str, int]:
     """``jobs`` > 1: children estimate and encode, this process merges and writes (module docstring)."""
     # fork when this process has no other thread (the command line): the children start at once with the
     # estimators as they are; else spawn (a thread holding a lock at fork time would leave it held), and
@@ -501,6 +503,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                     "models": {n: axes[n].status.model_path for n in group},
                     "sha256": {n: axes[n].status.model_sha256 for n in group},
                     "has_truth": [list(k) for k in has_truth], "limits": msgspec.to_builtins(limits),
+                    "input_health": None if input_health is None else msgspec.to_builtins(input_health),
                     "log_format": None if fork else log_format()}
             own = {axes[n].key: axes[n] for n in group} if fork else None
             p = ctx.Process(target=_child_main, args=(child, json.dumps(spec), own), name="feedmon-offline",
@@ -642,7 +645,9 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
             if ax.status.model_sha256 != spec["sha256"][ax.status.name]:
                 raise TrialFileError(f"model file {ax.status.model_path} changed after the run started; run again")
     by_name = {f"{m}/{a}": ax for (m, a), ax in axes.items()}
-    pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits))
+    ih = spec.get("input_health")
+    pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits),
+                    input_health=None if ih is None else msgspec.convert(ih, InputHealthSettings))
     enc = _Encoder({tuple(k) for k in spec["has_truth"]})
     index = spec["index"]
     buf: list[bytes] = []
