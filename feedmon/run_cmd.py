@@ -323,8 +323,7 @@ def _start_sinks(cfg: RunConfig, axes, sinks: list, mcap: tuple | None) -> None:
         try:  # fed the bytes received and published (no second encoding)
             rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info, **common)
         except OSError as exc:
-            raise OSError(f"{exc}: try again, allow it more time with [run] sink_start_seconds in --config "
-                          f"(now {cfg.sink_start_seconds:g} s), or run without --rrd/--serve-rerun") from None
+            raise OSError(_start_failed(exc, cfg, "run without --rrd/--serve-rerun")) from None
         sinks.append(rs_)
         if cfg.rrd:
             _say(f"Rerun recording: {cfg.rrd}")
@@ -338,12 +337,20 @@ def _start_sinks(cfg: RunConfig, axes, sinks: list, mcap: tuple | None) -> None:
             sink = McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()],
                                    min_free_bytes=int(cfg.min_free_mb * 2**20), **common)
         except OSError as exc:
-            raise OSError(f"{exc}: try again, or allow it more time with [run] sink_start_seconds in --config "
-                          f"(now {cfg.sink_start_seconds:g} s)") from None
+            raise OSError(_start_failed(exc, cfg, "")) from None
         sinks.append(sink)
         rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") \
             + "; the next files are numbered on)" if rb or rs else ""
         _say(f"MCAP log: {sink.first_file}{rot}")
+
+
+def _start_failed(exc: OSError, cfg: RunConfig, other: str) -> str:
+    """The error of a sink process that did not start, with what to do when it was only slow."""
+    if "did not start in" not in str(exc):
+        return str(exc)
+    ways = ["try again", f"allow it more time with [run] sink_start_seconds in --config (now {cfg.sink_start_seconds:g} "
+            "s)", *([other] if other else [])]
+    return f"{exc}: " + ", or ".join(ways)
 
 
 def _discard_empty_outputs(sinks) -> None:
