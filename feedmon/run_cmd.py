@@ -15,14 +15,17 @@ cleanly (input stopped, queue drained, MCAP finished, tracker state saved), exit
 
 ``--config FILE`` (TOML) holds the options in a ``[run]`` table with the long option names
 (``model = [...]``, ``mcap``, ``rrd``, ``serve_rerun``, ``state_dir``, ``rotate_mb``,
-``rotate_minutes``, ``record_truth``, ``sink_priority``, ``drain_seconds``, ``listen``, ``connect``, ``mode``,
-``zenoh_config``, ``multicast``, ``prefix``) and the input limits in ``[run.limits]``
-(:class:`feedio.limits.InputLimits`); see :mod:`feedmon.run_config`. Paths are relative to the
-config file; options on the command line win.
+``rotate_minutes``, ``record_truth``, ``sink_priority``, ``drain_seconds``, ``sink_start_seconds``,
+``sink_stall_seconds``, ``sink_close_seconds``, ``min_free_mb``, ``listen``, ``connect``, ``mode``,
+``zenoh_config``, ``multicast``, ``prefix``), the input limits in ``[run.limits]``
+(:class:`feedio.limits.InputLimits`) and the input-health thresholds in ``[run.input_health]``
+(:class:`monitor.input_health.InputHealthSettings`); see :mod:`feedmon.run_config`. Paths are
+relative to the config file; options on the command line win.
 
 Exit code 0 after a clean stop; 1 when the stop could not finish everything (a tracker state not
-saved, a sink not finished, the estimator not stopped: each said on stderr); 2 for bad options,
-configuration or model files.
+saved, a sink that did not write everything offered to it, the estimator not stopped: each said on
+stderr); 2 for bad options, configuration or model files, and for outputs that cannot be written
+(checked at start).
 """
 
 from __future__ import annotations
@@ -66,7 +69,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     g = p.add_argument_group("outputs (live)")
     g.add_argument("--mcap", default=None, metavar="DIR_OR_FILE",
                    help="MCAP log of inputs and estimates: a .mcap file, or a directory "
-                        "(file feedmon-<time>.mcap, rotated at --rotate-mb/--rotate-minutes)")
+                        "(files feedmon-<date>-<time>-<pid>-000.mcap, -001, ..., rotated at "
+                        "--rotate-mb/--rotate-minutes); an existing file is never overwritten")
     g.add_argument("--rotate-mb", type=float, default=None, metavar="MB",
                    help="start a new MCAP file at about this size (default 256 for a directory, none for a file)")
     g.add_argument("--rotate-minutes", type=float, default=None, metavar="MIN",
