@@ -40,13 +40,17 @@ Threads of the live monitor
   ``status_burst``), queries beyond are not answered and counted (``status.refused``).
 * The **main thread** waits for SIGINT/SIGTERM (see :mod:`feedmon.run_cmd`).
 
-Shutdown (:meth:`Monitor.stop`) always finishes; every step is guarded, its errors logged and
-returned: stop accepting input (later messages counted ``shutdown_discarded``), undeclare the
-subscribers, let the estimator thread drain the queue for up to ``drain_seconds``, then discard
-(and count, per axis) what is still queued and wait for the message in progress (on either
-thread) up to ``finish_seconds``; close the sinks (MCAP finished and readable, .rrd finalised);
-save the tracker states — only when no message is being estimated any more (a state that may
-still be changing is never written); undeclare the rest.
+Shutdown (:meth:`Monitor.stop`) always finishes, within ``drain_seconds`` + ``finish_seconds`` +
+the sinks' ``timeout``; every step is guarded, its errors logged and returned: stop accepting
+input (later messages counted ``shutdown_discarded``), undeclare the subscribers, let the estimator
+thread drain the queue for up to ``drain_seconds``, then discard (and count, per axis) what is
+still queued and wait for the message in progress (on either thread) up to ``finish_seconds``;
+close the sinks side by side, all by one deadline (MCAP finished and readable, .rrd finalised; a
+sink process not done by then is killed and what it had not written counted), and return as a
+problem what each did not write (:func:`sink_losses`); save the tracker states — only when no
+message is being estimated any more (a state that may still be changing is never written), and
+not the state of an axis that learned nothing or learned from input its health flagged
+(:mod:`monitor.input_health`); undeclare the rest.
 
 The per-sample work is :class:`~monitor.pipeline.Pipeline`, shared with
 :func:`monitor.offline.run_offline`, so a trial estimated offline gives the same numbers, sample

@@ -20,8 +20,12 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
   new file when the current one reaches about that size (checked after each
   flush, so files overshoot by up to one chunk) or age. Files are then named
   ``<stem>-000.mcap``, ``<stem>-001.mcap``, ... next to ``path``; without
-  rotation the single file is ``path`` itself. :attr:`McapSink.files` lists
-  them; every file is complete and self-describing.
+  rotation the first file is ``path`` itself. :attr:`McapSink.files` lists
+  them; every file is complete and self-describing. Every file is created
+  exclusively: a name that exists already (another monitor's log, an older
+  one) is skipped for the next number, so no file is ever overwritten or
+  shared. Before a file is opened its directory is made again if it was
+  removed, and its free space checked (``min_free_bytes``: ``degraded`` below).
 * Failures: a block the writer refuses (an absurd value) is counted and the file goes on.
   A disk that refuses a flush (full, file too large) is counted each time; the bytes wait
   in memory (``pending_bytes`` in the status) and go out with the next flush that works,
@@ -29,8 +33,14 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
   :data:`~feedio.mcapio.MAX_PENDING_BYTES` wait, or the writer failed in any other way,
   the file is given up — it ends on its last complete record, is listed in
   ``incomplete_files`` (finish it with ``feedmon recover``) and what never reached it is
-  counted in ``messages_lost`` — and the next block opens a fresh file. These counters
+  counted in ``messages_lost`` — and the next block opens a fresh file. A file removed
+  or replaced by someone else while written (checked twice a second: the path no
+  longer names the open file) is given up, listed in ``removed_files``, its items
+  counted in ``removed``, and logging goes on in a new file. These counters
   never go back, and ``last_error`` keeps the last failure after a recovery.
+* Accounting: an item is ``written`` once the chunk holding it reached the disk, so
+  ``written`` is what the files hold (minus ``removed``); an item whose file was given
+  up before that is ``lost``.
 * Axes: a TrialWriter needs the :class:`~feedio.schema.TrialMeta` of every
   axis up front. Pass ``metas`` (the monitor knows Ts and form from its model
   files). A block of an axis without meta gets one from ``meta_factory``
@@ -63,7 +73,10 @@ block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``), ``H`` h
 drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
 the pipe closes and it finishes the file anyway), logs like the monitor (same format) and runs
 below the monitor, as the Rerun process (:func:`~monitor.sinks.child.background_priority`; default
-``SCHED_IDLE``): the estimator always gets the CPU first.
+``SCHED_IDLE``): the estimator always gets the CPU first. The parent supervises it and replaces a
+process that stalls or dies (:mod:`monitor.sinks.child`): what it had not written is counted
+``lost``, its file is left ending on its last complete record, and the new process writes a new
+file.
 """
 
 from __future__ import annotations

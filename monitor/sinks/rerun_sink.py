@@ -27,12 +27,14 @@ a batch. In ``feedmon run`` the whole sink runs in a child process
 
 Failures
 --------
-Every failure is counted in ``failures`` (per lost block): a block that cannot be recorded
-(a time outside Rerun's nanosecond timeline, ±292 years), an exception while sending, too many
-axes (``max_axes``). The recording is flushed every ``flush_interval`` s; a flush that does not
-finish within ``flush_timeout`` s (e.g. the disk is full: Rerun's file writer stops) is a failure,
-and after ``broken_after`` such flushes in a row the output is declared broken: later blocks are
-dropped and counted instead of piling up in Rerun's buffers, and the final flush is skipped
+Every failure is counted in ``failures`` (per lost block, also counted ``lost``): a block that
+cannot be recorded (a time outside Rerun's nanosecond timeline, ±292 years), an exception while
+sending, too many axes (``max_axes``). A block is ``written`` when its batch was sent. The
+recording is flushed every ``flush_interval`` s; a flush that does not finish within
+``flush_timeout`` s makes the sink ``degraded`` (a busy machine: Rerun still holds the data, nothing
+is lost, nothing alarming is logged), and ``broken_after`` such flushes in a row are a failure
+(e.g. the disk is full: Rerun's file writer stopped): the output is declared broken, later blocks
+are dropped and counted instead of piling up in Rerun's buffers, and the final flush is skipped
 (it would wait for ever).
 
 The ``.rrd`` file is written with a footer (``rerun rrd verify`` needs it); the footer index is
