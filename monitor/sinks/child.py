@@ -216,7 +216,9 @@ class ChildProcessSink(QueuedSink):
         proc.start()
         child.close()
         hello = None
-        while hello is None and time.monotonic() < deadline and proc.is_alive():
+        # (the deadline of a close begun meanwhile counts too: a stop never waits for a slow start)
+        while hello is None and time.monotonic() < min(deadline, getattr(self, "_deadline", deadline)) \
+                and proc.is_alive():
             hello = _receive(conn, 0.1)
         if hello is None:
             hello = _receive(conn, 0.0)

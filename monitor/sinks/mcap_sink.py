@@ -21,10 +21,10 @@ message of plain numbers per sample (:mod:`feedio.scalars`) that Foxglove and
   flush, so files overshoot by up to one chunk) or age. Files are then named
   ``<stem>-000.mcap``, ``<stem>-001.mcap``, ... next to ``path``; without
   rotation the first file is ``path`` itself. :attr:`McapSink.files` lists
-  them; every file is complete and self-describing. Every file is created
-  exclusively: a name that exists already (another monitor's log, an older
-  one) is skipped for the next number, so no file is ever overwritten or
-  shared. Before a file is opened its directory is made again if it was
+  them; every file is complete and self-describing. With ``exclusive`` (the
+  process sink of ``feedmon run``) every file is created exclusively: a name that
+  exists already (another monitor's log, an older one) is skipped for the next
+  number, so no file is ever overwritten or shared. Before a file is opened its directory is made again if it was
   removed, and its free space checked (``min_free_bytes``: ``degraded`` below).
 * Failures: a block the writer refuses (an absurd value) is counted and the file goes on.
   A disk that refuses a flush (full, file too large) is counted each time; the bytes wait
@@ -157,6 +157,9 @@ class McapSink(QueuedSink):
     min_free_bytes:
         when a new file is opened with less free space than this in its directory, the sink is
         ``degraded`` (and says so) until a later file finds enough (0: not checked).
+    exclusive:
+        create every file exclusively, skipping names that exist (``feedmon run``: a log never
+        overwrites nor shares a file); False: ``path`` and its numbered names are overwritten.
     """
 
     recover_on_tick = True  # writes go to memory; only the flush proves the disk works
@@ -180,6 +183,7 @@ class McapSink(QueuedSink):
         scalars: bool = True,
         max_pending_bytes: int | None = None,
         min_free_bytes: int = 0,
+        exclusive: bool = False,
     ) -> None:
         if rotate_bytes is not None and rotate_bytes <= 0:
             raise ValueError(f"rotate_bytes must be > 0, got {rotate_bytes}")
@@ -194,6 +198,7 @@ class McapSink(QueuedSink):
         self.rotate_seconds = rotate_seconds
         self.flush_seconds = float(flush_seconds)
         self.min_free_bytes = int(min_free_bytes)
+        self.exclusive = bool(exclusive)
         self.meta_factory = meta_factory or infer_meta
         ms = [metas] if isinstance(metas, S.TrialMeta) else list(metas or [])
         self._metas: dict[tuple[str, str], S.TrialMeta] = {(m.machine, m.axis): m for m in ms}
@@ -257,8 +262,8 @@ class McapSink(QueuedSink):
         return str(self.path.with_name(f"{self.path.stem}-{self._index:03d}{self.path.suffix or '.mcap'}"))
 
     def _open(self) -> None:
-        """Open the next file: the directory made again if it was removed, a name nobody uses (created
-        exclusively, so another process' file is never overwritten nor shared)."""
+        """Open the next file: the directory made again if it was removed; with :attr:`exclusive` a name
+        nobody uses (created exclusively, so another process' file is never overwritten nor shared)."""
         d = self.path.parent
         if not d.is_dir():
             os.makedirs(d, exist_ok=True)  # OSError: counted by the caller (the item is lost)
@@ -269,7 +274,7 @@ class McapSink(QueuedSink):
             self._index += 1
             try:
                 self._writer = TrialWriter(path, list(self._metas.values()), chunk_seconds=self.flush_seconds,
-                                           start=time.time_ns(), exclusive=True, **self._writer_kw)
+                                           start=time.time_ns(), exclusive=self.exclusive, **self._writer_kw)
                 break
             except FileExistsError:
                 continue
@@ -545,7 +550,7 @@ class McapProcessSink(ChildProcessSink):
 
         options = {"flush_seconds": float(flush_seconds), "maxsize": int(maxsize), "max_bytes": int(max_bytes),
                    "scalars": bool(scalars), "max_pending_bytes": max_pending_bytes,
-                   "min_free_bytes": int(min_free_bytes)}
+                   "min_free_bytes": int(min_free_bytes), "exclusive": True}
         self._args = (os.fspath(path), rotate_bytes, rotate_seconds, [S.encode(m) for m in ms], options,
                       float(report_interval), log_format(), check_priority(priority))
         self.path = path

@@ -112,15 +112,19 @@ class SinkLog:
             self._events += 1
             self._text = msg % args if args else msg
 
-    def flush(self, state: str) -> None:
-        """Sum up what was counted since the last line, when the interval is over (worker thread)."""
-        if (self._failures or self._recoveries or self._events) and self._due():
-            self._emit(logging.WARNING if state == "ok" else logging.ERROR,
-                       "sink %s: %d more failure(s), %d recover(ies), %d other event(s) in the last %.0f s; state %s; "
-                       "last error: %s%s", self.name, self._failures, self._recoveries, self._events, self.interval,
-                       state, self._error, f"; last event: {self._text}" if self._text else "")
-            self._failures = self._recoveries = self._events = 0
-            self._text = None
+    def flush(self, state: str, final: bool = False) -> None:
+        """Sum up what was counted since the last line, when the interval is over (worker thread);
+        ``final`` (the sink closed): now, if a failure or an event was not said yet."""
+        if not (self._failures or self._events) if final else \
+                not ((self._failures or self._recoveries or self._events) and self._due()):
+            return
+        since = time.monotonic() - self._last
+        self._emit(logging.WARNING if state in ("ok", "closed") and not self._failures else logging.ERROR,
+                   "sink %s, since its last log line (%.0f s): %d more failure(s), %d recover(ies), %d other event(s); "
+                   "state %s; last error: %s%s", self.name, since, self._failures, self._recoveries, self._events,
+                   state, self._error, f"; last event: {self._text}" if self._text else "")
+        self._failures = self._recoveries = self._events = 0
+        self._text = None
 
 
 class QueuedSink:
@@ -415,7 +419,8 @@ class QueuedSink:
                 break
         self._guard(self.tick, time.monotonic())
         self._guard(self.finish)
-        self.closed = True  # (what the log did not say yet is in the counters, which the monitor's summary prints)
+        self.closed = True
+        self.log.flush(self.state, final=True)  # a failure not said yet is said now
 
     def _handle_items(self, items: list[Any]) -> None:
         durable = not self.recover_on_tick
