@@ -38,11 +38,14 @@ import numpy as np
 
 from kernels import online
 
-__all__ = ["InputHealthSettings", "InputHealth", "LEVELS", "BUCKETS"]
+__all__ = ["InputHealthSettings", "InputHealth", "LEVELS", "BUCKETS", "REPORT_PERIOD"]
 
 LEVELS = ("ok", "warn", "alarm")
 #: the window is kept as this many partial sums (its resolution: window / BUCKETS)
 BUCKETS = 10
+#: s of samples between two reports the pipeline makes of its own while the verdict is not ok and the
+#: estimator makes none (the estimator's default health period)
+REPORT_PERIOD = 1.0
 #: recent sample intervals kept for the median the reason quotes
 _DT_KEEP = 64
 

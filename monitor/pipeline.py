@@ -22,7 +22,11 @@ columns; the schema object and its JSON are made once, by whoever needs them fir
 of data per axis), which the daemon publishes on
 ``<prefix>/<machine>/<axis>/health`` and hands to the sinks (``offer_health``), and the offline
 runner writes on ``/<machine>/<axis>/health`` — produced here, next to the estimator whose state
-they describe, so that live and offline give the same messages.
+they describe, so that live and offline give the same messages. The health of the input stream
+itself (:mod:`monitor.input_health`: a frozen measurement, another rate, nothing learned) is judged
+here from the estimator's per-block counts and merged into those reports (the worse state, its
+reasons first); when it changes between two of the estimator's reports, or stays not ok while the
+estimator makes none, the pipeline makes a report of its own.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from kernels.online import COUNTERS
 
 from .axes import AxisRuntime
 from .estimator import EstimateRows
-from .input_health import LEVELS, InputHealth, InputHealthSettings
+from .input_health import LEVELS, REPORT_PERIOD, InputHealth, InputHealthSettings
 from .status import BoundedCounter, BurstLog
 
 __all__ = ["Pipeline", "Estimated"]
@@ -193,7 +197,7 @@ class Pipeline:
             self._model_report[ax.key] = reports[-1]
             if ih.level or ih.reasons:
                 reports = [_merged(h, ih) for h in reports]
-        elif input_changed or (ih.level and quiet * ih.Ts >= ax.estimator.settings.health.period):
+        elif input_changed or (ih.level and quiet * ih.Ts >= REPORT_PERIOD):
             own = self._own_report(ax, block, ih)  # (the loop makes none while every sample is refused)
             reports = [own] if own is not None else []
         if reports:
@@ -220,7 +224,7 @@ class Pipeline:
         last = self._model_report.get(ax.key)
         if last is None:
             last = S.Health(machine=ax.model.machine, axis=ax.model.axis, seq=seq, t=float(t), state="ok",
-                            adaptation=ax.estimator.mode)
+                            adaptation=getattr(ax.estimator, "mode", "track"))
         return _merged(msgspec.structs.replace(last, seq=seq, t=float(t)), ih)
 
 
