@@ -94,15 +94,16 @@ INLINE_BYTES = 2048
 
 
 def sink_losses(st: dict[str, Any]) -> str | None:
-    """What a closed sink did not write, in one sentence (None: it wrote everything offered): messages
-    refused by its full queue (``dropped``), accepted but never written (``lost``), written to files
-    someone removed (``removed``), files given up (to finish with ``feedmon recover``)."""
+    """What a closed sink did not write, in one sentence (None: it wrote everything offered into complete
+    files): messages refused by its full queue (``dropped``), accepted but never written (``lost``),
+    written to files someone removed (``removed``), files left incomplete (given up, or of a process
+    that was replaced), restarts of its process."""
     dropped, lost, removed = int(st.get("dropped") or 0), int(st.get("lost") or 0), int(st.get("removed") or 0)
-    if not (dropped or lost or removed):
+    if not (dropped or lost or removed or st.get("incomplete_files") or st.get("restarts")):
         return None
     offered = st.get("offered", int(st.get("accepted") or 0) + dropped)
     parts = [f"{dropped + lost} of {offered} messages not written ({dropped} dropped: queue full, {lost} lost)"] \
-        if dropped or lost else []
+        if dropped or lost else [f"all {offered} messages written"]
     if removed:
         parts.append(f"{removed} written to files removed while open ({', '.join(st.get('removed_files') or [])})")
     incomplete = st.get("incomplete_files") or []
