@@ -1,7 +1,7 @@
 # feedmon live monitor (feedmon run) in a container.
 #
 #   docker build -t feedmon .
-#   docker run -d --name feedmon --stop-timeout 60 -p 127.0.0.1:7448:7448 \
+#   docker run -d --name feedmon --stop-timeout 90 -p 127.0.0.1:7448:7448 \
 #       -v feedmon-data:/var/lib/feedmon -v feedmon-logs:/var/log/feedmon \
 #       -v "$PWD/monitor.toml:/etc/feedmon/monitor.toml:ro" feedmon
 #
@@ -12,7 +12,7 @@
 #   unreachable from outside it); publish the port only where the controller bridge runs, or
 #   use a router (`--connect tls/router:7447 --zenoh-config ...`, deploy/zenoh/).
 # * Stop: SIGTERM; the monitor drains its queue, finishes the MCAP file and saves the tracker
-#   state. Give it time: `docker run --stop-timeout 60` / compose `stop_grace_period: 60s`
+#   state. Give it time: `docker run --stop-timeout 90` / compose `stop_grace_period: 90s`
 #   (Docker's default of 10 s can cut the MCAP short).
 # * Health: `feedmon status` asks the monitor's status queryable (<prefix>/monitor/status) over
 #   loopback; it exits 1 when no monitor answers within --timeout.

@@ -88,7 +88,9 @@ __all__ = [
     "MAX_LOG_TIME_NS",
     "MAX_MESSAGE_BYTES",
     "MAX_PENDING_BYTES",
-    "MAX_READ_AHEAD_BLOCKS",
+    "MAX_READ_AHEAD_BYTES",
+    "AxisStreams",
+    "held_bytes",
     "ZSTD_LEVEL",
     "Limits",
 ]
@@ -113,9 +115,10 @@ MAX_PENDING_BYTES = 64 * 2**20
 #: 3.2). ``feedmon recover`` writes with the same writer and level: a healthy file written by feedmon comes
 #: out byte for byte, one compressed at another level (an older feedmon, other tools) with the same records
 ZSTD_LEVEL = 1
-#: blocks of other axes buffered while reading several axes in one pass, merged by time
-#: (replay, run --from); files whose axes are not interleaved in time beyond this are refused
-MAX_READ_AHEAD_BLOCKS = 200_000
+#: bytes of decoded blocks of other axes held while reading several axes in one pass, merged by time
+#: (replay, run --from; :func:`held_bytes`); beyond, the axes not being consumed re-read the file on
+#: their own (a file whose axes are not interleaved in time costs one more read, never more memory)
+MAX_READ_AHEAD_BYTES = 64 * 2**20
 
 
 def topic(machine: str, axis: str, kind: str) -> str:
@@ -199,8 +202,9 @@ class _StagedFile:
     disk, and the mcap ``Writer``'s offsets and state never disagree with the file.
     ``damaged`` when even the truncation failed."""
 
-    def __init__(self, path: str):
-        self.file = open(path, "wb", buffering=0)  # OSError propagates with the path
+    def __init__(self, path: str, exclusive: bool = False):
+        # OSError propagates with the path; exclusive: FileExistsError rather than overwrite a file
+        self.file = open(path, "xb" if exclusive else "wb", buffering=0)
         self.committed = 0
         self.staged: deque[tuple[bytes, int]] = deque()  # (piece, messages written before it ends)
         self.staged_bytes = 0
@@ -277,7 +281,8 @@ class TrialWriter:
     failure inside the mcap writer, or when more than ``max_pending_bytes`` wait for the disk,
     the writer is :attr:`failed`: the file ends on its last complete record (readable after
     ``feedmon recover``), :attr:`messages_lost` counts what never reached it, and every later
-    write raises :class:`TrialFileError`.
+    write raises :class:`TrialFileError`. ``exclusive``: create the file, never overwrite one
+    (``FileExistsError``), so two writers can never share a file.
     """
 
     def __init__(
@@ -291,6 +296,7 @@ class TrialWriter:
         start=None,
         max_pending_bytes: int = MAX_PENDING_BYTES,
         compression_level: int = ZSTD_LEVEL,
+        exclusive: bool = False,
     ):
         metas = [meta] if isinstance(meta, S.TrialMeta) else list(meta)
         if not metas:
@@ -323,7 +329,7 @@ class TrialWriter:
         self.messages_lost = 0  # accepted but never written to the file (the writer failed)
         self.finished = False  # summary written and committed: a complete file
         self.last_flush_error: OSError | None = None  # the disk's last refusal during a write
-        self._stream = _StagedFile(self.path)
+        self._stream = _StagedFile(self.path, exclusive)
         try:
             self._start(chunk_size, comp, int(compression_level))
         except BaseException:
@@ -367,6 +373,29 @@ class TrialWriter:
     @property
     def bytes_on_disk(self) -> int:
         return self._stream.committed
+
+    @property
+    def messages_on_disk(self) -> int:
+        """Messages in the chunks committed to the file so far (the first ones written)."""
+        return self._stream.messages_on_disk
+
+    def is_gone(self) -> bool:
+        """True when the path no longer names the file being written (removed, renamed away or replaced:
+        what is written goes nowhere anyone will find it)."""
+        try:
+            mine = os.fstat(self._stream.file.fileno())
+            there = os.stat(self.path)
+        except FileNotFoundError:
+            return True
+        except (OSError, ValueError):  # a closed file, a directory we may not search: not known to be gone
+            return False
+        return mine.st_nlink == 0 or (mine.st_dev, mine.st_ino) != (there.st_dev, there.st_ino)
+
+    def give_up(self, why: str) -> None:
+        """Stop writing this file (it keeps what was committed: complete records) and close it; what
+        never reached it is counted in :attr:`messages_lost`."""
+        self._fail(why)
+        self.close()
 
     # -- failure ------------------------------------------------------------------------------
     def _fail(self, why: str) -> TrialFileError:
@@ -981,24 +1010,62 @@ def iter_file(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",)) ->
         f.close()
 
 
+class AxisStreams(dict):
+    """What :func:`iter_axes` returns: axis name → iterator, plus how the read-ahead went."""
+
+    own_passes = 0  #: axes that left the shared pass and re-read the file on their own
+    peak_bytes = 0  #: most bytes of blocks (:func:`held_bytes`) that waited at once
+
+
+def held_bytes(block) -> int:
+    """About the memory (bytes) a decoded block holds: 32 per list element (a float object and its
+    pointer), 64 per field and 256 for the object. What the byte bounds of read-ahead buffers count."""
+    n = 256
+    for name in block.__struct_fields__:
+        v = getattr(block, name)
+        n += 64 + (32 * len(v) if isinstance(v, list) else 0)
+    return n
+
+
 def iter_axes(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",), *,
-              read_ahead: int = MAX_READ_AHEAD_BLOCKS) -> dict[str, Iterator[tuple[str, int, object]]]:
-    """One iterator of ``(kind, log_time, block)`` per axis (``machine/axis``), all fed by **one**
-    pass over the file (:func:`iter_file`), so reading N axes costs one read, not N. Blocks of
-    the axes not being consumed are buffered; more than ``read_ahead`` of them raises
-    :class:`TrialFileError` (the file's axes are not interleaved in time; read one axis at a
-    time). Meant for consuming the axes together, e.g. merged with ``heapq.merge``."""
+              read_ahead_bytes: int = MAX_READ_AHEAD_BYTES) -> AxisStreams:
+    """One iterator of ``(kind, log_time, block)`` per axis (``machine/axis``), fed by **one**
+    pass over the file (:func:`iter_file`) as long as the axes are interleaved in time, so reading
+    N axes costs one read, not N. Blocks of the axes not being consumed wait in memory, at most
+    ``read_ahead_bytes`` of them (:func:`held_bytes`); beyond, those axes are dropped from the
+    shared pass and each re-reads the file on its own from the block it had reached (its waiting
+    blocks are read again), so memory stays bounded whatever the order of the file, at the cost
+    of one more read per such axis (counted in the result's :attr:`AxisStreams.own_passes`).
+    Meant for consuming the axes together, e.g. merged with ``heapq.merge``."""
     source = iter_file(path, axes, kinds)
     queues: dict[str, deque] = {name: deque() for name in axes}
-    state = {"buffered": 0, "done": False, "open": len(axes)}
+    given = dict.fromkeys(axes, 0)  # items handed out per axis
+    own: set[str] = set()  # axes that left the shared pass
+    state = {"held": 0, "done": False, "open": len(axes)}
+    info = AxisStreams()
+
+    def spill(consumer: str) -> None:
+        for name, q in queues.items():
+            if name != consumer and q:
+                state["held"] -= sum(size for *_, size in q)
+                q.clear()
+                own.add(name)
+                info.own_passes += 1
+
+    def own_pass(axis_name: str) -> Iterator[tuple[str, int, object]]:
+        for j, (_, kind, lt, block) in enumerate(iter_file(path, [axis_name], kinds)):
+            if j >= given[axis_name]:
+                yield kind, lt, block
 
     def stream(axis_name: str) -> Iterator[tuple[str, int, object]]:
         q = queues[axis_name]
         try:
-            while True:
+            while axis_name not in own:
                 if q:
-                    state["buffered"] -= 1
-                    yield q.popleft()
+                    *item, size = q.popleft()
+                    state["held"] -= size
+                    given[axis_name] += 1
+                    yield tuple(item)
                     continue
                 if state["done"]:
                     return
@@ -1008,22 +1075,23 @@ def iter_axes(path, axes: Sequence[str], kinds: Sequence[str] = ("samples",), *,
                     state["done"] = True
                     continue
                 if target == axis_name:
+                    given[axis_name] += 1
                     yield kind, lt, block
-                    continue
-                queues[target].append((kind, lt, block))
-                state["buffered"] += 1
-                if state["buffered"] > read_ahead:
-                    state["done"] = True
-                    source.close()
-                    raise TrialFileError(
-                        f"{path}: more than {read_ahead} blocks of other axes precede the next block of "
-                        f"{axis_name} (the axes are not interleaved in time); read the axes one at a time")
+                elif target not in own:
+                    size = held_bytes(block)
+                    queues[target].append((kind, lt, block, size))
+                    state["held"] += size
+                    info.peak_bytes = max(info.peak_bytes, state["held"])
+                    if state["held"] > read_ahead_bytes:
+                        spill(axis_name)
+            yield from own_pass(axis_name)
         finally:
             state["open"] -= 1
             if state["open"] == 0:
                 source.close()
 
-    return {name: stream(name) for name in axes}
+    info.update((name, stream(name)) for name in axes)
+    return info
 
 
 def _column(blocks, name: str, n_total: int) -> np.ndarray | None:

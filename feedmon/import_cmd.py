@@ -34,10 +34,15 @@ def register(subparsers) -> None:
     c.add_argument("-o", "--output", required=True, help="output MCAP file")
     c.add_argument("--map", required=True,
                    help="feedmon field=CSV column, comma separated: t=…,v_meas=…[,v_ref=…,u=…,current=…,position=…,spindle_rpm=…]")
-    c.add_argument("--units", default=None, help="field=unit, comma separated (default SI), e.g. t=ms,v_meas=mm/min")
-    c.add_argument("--form", choices=("velocity-loop", "force-input"), default="velocity-loop")
-    c.add_argument("--machine", default="machine")
-    c.add_argument("--axis", default="X")
+    c.add_argument("--units", default=None, help="field=unit, comma separated (default SI: t in s), e.g. "
+                                                    "t=ms,v_meas=mm/min")
+    c.add_argument("--form", choices=("velocity-loop", "force-input"), default="velocity-loop",
+                   help="velocity-loop (default): the controller closes a velocity loop, map v_ref; force-input: "
+                        "the command is a force or current, map u")
+    c.add_argument("--machine", default="machine",
+                   help="machine name in the trial (letters, digits, _ . -; default 'machine'): the monitor's "
+                        "model files and Zenoh keys use it")
+    c.add_argument("--axis", default="X", help="axis name in the trial (letters, digits, _ . -; default 'X')")
     c.add_argument("--loop-gain", type=float, default=None, help="velocity loop gain K (N·s/m) when known")
     c.add_argument("--Ts", type=float, default=None, help="sampling time (s); default: median time step")
     c.add_argument("--start", default=None, metavar="TIME", help=_START_HELP)

@@ -15,14 +15,17 @@ cleanly (input stopped, queue drained, MCAP finished, tracker state saved), exit
 
 ``--config FILE`` (TOML) holds the options in a ``[run]`` table with the long option names
 (``model = [...]``, ``mcap``, ``rrd``, ``serve_rerun``, ``state_dir``, ``rotate_mb``,
-``rotate_minutes``, ``record_truth``, ``sink_priority``, ``drain_seconds``, ``listen``, ``connect``, ``mode``,
-``zenoh_config``, ``multicast``, ``prefix``) and the input limits in ``[run.limits]``
-(:class:`feedio.limits.InputLimits`); see :mod:`feedmon.run_config`. Paths are relative to the
-config file; options on the command line win.
+``rotate_minutes``, ``record_truth``, ``sink_priority``, ``drain_seconds``, ``sink_start_seconds``,
+``sink_stall_seconds``, ``sink_close_seconds``, ``min_free_mb``, ``listen``, ``connect``, ``mode``,
+``zenoh_config``, ``multicast``, ``prefix``), the input limits in ``[run.limits]``
+(:class:`feedio.limits.InputLimits`) and the input-health thresholds in ``[run.input_health]``
+(:class:`monitor.input_health.InputHealthSettings`); see :mod:`feedmon.run_config`. Paths are
+relative to the config file; options on the command line win.
 
 Exit code 0 after a clean stop; 1 when the stop could not finish everything (a tracker state not
-saved, a sink not finished, the estimator not stopped: each said on stderr); 2 for bad options,
-configuration or model files.
+saved, a sink that did not write everything offered to it, the estimator not stopped: each said on
+stderr); 2 for bad options, configuration or model files, and for outputs that cannot be written
+(checked at start).
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ import argparse
 import gc
 import json
 import logging
+import os
+import shutil
 import signal
 import sys
 import threading
@@ -64,7 +69,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     g = p.add_argument_group("outputs (live)")
     g.add_argument("--mcap", default=None, metavar="DIR_OR_FILE",
                    help="MCAP log of inputs and estimates: a .mcap file, or a directory "
-                        "(file feedmon-<time>.mcap, rotated at --rotate-mb/--rotate-minutes)")
+                        "(files feedmon-<date>-<time>-<pid>-000.mcap, -001, ..., rotated at "
+                        "--rotate-mb/--rotate-minutes); an existing file is never overwritten")
     g.add_argument("--rotate-mb", type=float, default=None, metavar="MB",
                    help="start a new MCAP file at about this size (default 256 for a directory, none for a file)")
     g.add_argument("--rotate-minutes", type=float, default=None, metavar="MIN",
@@ -98,17 +104,47 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def _mcap_path(spec: str, cfg: RunConfig) -> tuple[Path, int | None, float | None]:
+    """The MCAP log's path and rotation. A directory gets ``feedmon-<time>-<pid>.mcap`` (the sink numbers
+    the files ``-000``, ``-001`` …): unique per process, and the sink creates every file exclusively, so
+    two monitors logging into one directory never share a file."""
     p = Path(spec)
     rb = None if cfg.rotate_mb is None else int(cfg.rotate_mb * 1024 * 1024)
     rs = None if cfg.rotate_minutes is None else cfg.rotate_minutes * 60.0
     if p.suffix.lower() == ".mcap" and not p.is_dir():
         if not p.parent.is_dir():
             raise FileNotFoundError(f"directory of --mcap {spec!r} does not exist")
+        _check_output_dir(p.parent, "--mcap", cfg)
         return p, rb, rs
-    p.mkdir(parents=True, exist_ok=True)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"--mcap {spec}: cannot make the directory: {exc.strerror or exc}; choose another one") from None
+    _check_output_dir(p, "--mcap", cfg)
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return (p / f"feedmon-{stamp}.mcap", rb if rb is not None else 256 * 1024 * 1024,
+    return (p / f"feedmon-{stamp}-{os.getpid()}.mcap", rb if rb is not None else 256 * 1024 * 1024,
             rs if rs is not None else 3600.0)
+
+
+def _check_output_dir(d: Path, option: str, cfg: RunConfig, need_space: bool = True) -> None:
+    """Refuse to start with an output directory that does not take a new file (read-only, immutable, not
+    ours: tried with a real file, since root ignores permission bits) or has less than ``min_free_mb``
+    free (``need_space``) — rather than a monitor that says "ok" and writes nothing."""
+    probe = d / f".feedmon-write-test-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"x")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        raise OSError(f"{option}: cannot write a file in {d}: {exc.strerror or exc}; make the directory writable "
+                      "or choose another one") from None
+    free = shutil.disk_usage(d).free
+    if need_space and free < cfg.min_free_mb * 2**20:
+        raise OSError(f"{option}: only {free / 2**20:.1f} MiB free in {d}, less than min_free_mb = {cfg.min_free_mb:g} "
+                      "MiB ([run] min_free_mb of --config); free some space or choose another directory")
 
 
 def _say(msg: str) -> None:
@@ -152,7 +188,7 @@ def _run_offline(args, cfg: RunConfig) -> int:
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
     axes = load_axes(cfg.model, cfg)
-    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs)
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs, input_health=cfg.input_health)
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     lost = 0
@@ -165,8 +201,12 @@ def _run_offline(args, cfg: RunConfig) -> int:
             lost += failed
             refused += (f"; {failed} samples LOST to estimator errors, tracker restarted {c['tracker_restarts']} "
                         "time(s) (see the log above)")
+        h = ax.status.health or {}
+        flagged = [r for r in h.get("reasons") or [] if r.startswith("input:")]
+        health = f"; health at the end {h['state']}" + (f" ({'; '.join(flagged)})" if flagged else "") \
+            if h.get("state") not in (None, "ok") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
-             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}")
+             f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}{health}")
     procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
           f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
@@ -181,7 +221,7 @@ def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:
 
 def _run_live(cfg: RunConfig) -> int:
     from feedio.transport import config_from_args, describe_config, limit_message_size, open_session
-    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.axes import load_axes, warm_up
     from monitor.daemon import Monitor
     from monitor.state import StateStore
 
@@ -189,8 +229,14 @@ def _run_live(cfg: RunConfig) -> int:
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
     sys.setswitchinterval(0.0005)
     axes = load_axes(cfg.model, cfg)
-    warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
+    # the outputs before anything slow: a directory that cannot take the files is refused at once
+    mcap = _mcap_path(cfg.mcap, cfg) if cfg.mcap is not None else None
+    if cfg.rrd is not None:
+        _check_output_dir(Path(cfg.rrd).resolve().parent, "--rrd", cfg)
     store = StateStore(cfg.state_dir)
+    if cfg.state_dir is not None:
+        _check_output_dir(Path(cfg.state_dir), "--state-dir", cfg, need_space=False)
+    warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
     for ax in axes.values():
         how = store.load(ax, fresh=cfg.fresh).detail  # restored (when saved, samples learned) / why not
         _say(f"axis {ax.status.name}: model {ax.status.model_path} (sha256 {ax.status.model_sha256[:12]}…), "
@@ -199,30 +245,10 @@ def _run_live(cfg: RunConfig) -> int:
     sinks = []
     session = None
     monitor = None
+    started = False
     problems: list[str] = []
     try:
-        if cfg.mcap is not None:
-            from monitor.sinks.mcap_sink import McapProcessSink
-
-            path, rb, rs = _mcap_path(cfg.mcap, cfg)
-            # own process: decoding, pairing, compression and disk never hold the estimator's GIL
-            sinks.append(McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()],
-                                         priority=cfg.sink_priority))
-            rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") + ")" \
-                if rb or rs else ""
-            _say(f"MCAP log: {path}{rot}")
-        if cfg.rrd is not None or cfg.serve_rerun is not None:
-            from monitor.sinks.forward import RerunForwardSink
-            from monitor.sinks.rerun_layout import describe_model
-
-            info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
-            # own process: never holds our GIL; fed the bytes received and published (no second encoding)
-            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info, priority=cfg.sink_priority)
-            sinks.append(rs_)
-            if cfg.rrd:
-                _say(f"Rerun recording: {cfg.rrd}")
-            if rs_.server_uri:
-                _say(f"Rerun live: rerun --connect {rs_.server_uri}")
+        _start_sinks(cfg, axes, sinks, mcap)
         # Zenoh itself drops what is far too large, before reassembling it (the callback counts the rest)
         zconfig = limit_message_size(config_from_args(_zenoh_args(cfg)), cfg.limits.transport_max_message_bytes)
         _estimate_queue(zconfig)
@@ -232,7 +258,7 @@ def _run_live(cfg: RunConfig) -> int:
         endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in connect]
         monitor = Monitor(axes, session, prefix=cfg.prefix, sinks=sinks, limits=cfg.limits,
                           record_truth=cfg.record_truth, state=store, endpoints=endpoints,
-                          drain_seconds=cfg.drain_seconds)
+                          drain_seconds=cfg.drain_seconds, input_health=cfg.input_health)
         stop = threading.Event()
         received = []
 
@@ -243,6 +269,7 @@ def _run_live(cfg: RunConfig) -> int:
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             monitor.start()
+            started = True
             # everything allocated so far (modules, JIT, sessions, sinks) lives for the whole run:
             # move it out of the collector's generations so full collections stay short
             gc.collect()
@@ -260,13 +287,15 @@ def _run_live(cfg: RunConfig) -> int:
                 signal.signal(s, h)
     finally:
         if monitor is not None:
-            problems = monitor.stop()  # idempotent; always finishes
+            problems = monitor.stop(cfg.sink_close_seconds)  # idempotent; always finishes within its bound
         else:
             for s in sinks:
                 try:
-                    s.close()
+                    s.close(cfg.sink_close_seconds)
                 except Exception as exc:  # noqa: BLE001 - report, keep closing the others
                     _say(f"closing sink {s.name} failed: {exc}")
+        if not started:
+            _discard_empty_outputs(sinks)
         if session is not None:
             try:
                 session.close()
@@ -280,6 +309,68 @@ def _run_live(cfg: RunConfig) -> int:
         _say(f"stopped with {len(problems)} problem(s): " + "; ".join(problems))
         return 1
     return 0
+
+
+def _start_sinks(cfg: RunConfig, axes, sinks: list, mcap: tuple | None) -> None:
+    """Start the Rerun sink (the slow one to start), then the MCAP sink, each in its own process
+    (decoding, pairing, compression and disk never hold the estimator's GIL), appending each to
+    ``sinks`` as soon as it runs (so that a failure later closes it); say where each writes."""
+    from monitor.axes import live_meta
+
+    common = dict(priority=cfg.sink_priority, start_timeout=cfg.sink_start_seconds,
+                  stall_seconds=cfg.sink_stall_seconds)
+    if cfg.rrd is not None or cfg.serve_rerun is not None:
+        from monitor.sinks.forward import RerunForwardSink
+        from monitor.sinks.rerun_layout import describe_model
+
+        info = {f"{a.model.machine}/{a.model.axis}": describe_model(a.model) for a in axes.values()}
+        try:  # fed the bytes received and published (no second encoding)
+            rs_ = RerunForwardSink(cfg.rrd, cfg.serve_rerun, axis_info=info, **common)
+        except OSError as exc:
+            raise OSError(_start_failed(exc, cfg, "run without --rrd/--serve-rerun")) from None
+        sinks.append(rs_)
+        if cfg.rrd:
+            _say(f"Rerun recording: {cfg.rrd}")
+        if rs_.server_uri:
+            _say(f"Rerun live: rerun --connect {rs_.server_uri}")
+    if mcap is not None:
+        from monitor.sinks.mcap_sink import McapProcessSink
+
+        path, rb, rs = mcap
+        try:
+            sink = McapProcessSink(path, rb, rs, metas=[live_meta(a) for a in axes.values()],
+                                   min_free_bytes=int(cfg.min_free_mb * 2**20), **common)
+        except OSError as exc:
+            raise OSError(_start_failed(exc, cfg, "")) from None
+        sinks.append(sink)
+        rot = " (rotated" + (f" at {rb / 2**20:g} MB" if rb else "") + (f" / {rs / 60:g} min" if rs else "") \
+            + "; the next files are numbered on)" if rb or rs else ""
+        _say(f"MCAP log: {sink.first_file}{rot}")
+
+
+def _start_failed(exc: OSError, cfg: RunConfig, other: str) -> str:
+    """The error of a sink process that did not start, with what to do when it was only slow."""
+    if "did not start in" not in str(exc):
+        return str(exc)
+    ways = ["try again", f"allow it more time with [run] sink_start_seconds in --config (now {cfg.sink_start_seconds:g} "
+            "s)", *([other] if other else [])]
+    return f"{exc}: " + ", or ".join(ways)
+
+
+def _discard_empty_outputs(sinks) -> None:
+    """After a failed start: remove the files the sinks made that hold nothing (no stub log is left behind)."""
+    for s in sinks:
+        try:
+            st = s.status()
+        except Exception:  # noqa: BLE001
+            continue
+        if st.get("written") or st.get("accepted"):
+            continue
+        for f in (st.get("files") or []) + (st.get("rrd_files") or []):
+            try:
+                os.unlink(f)
+            except OSError:
+                pass
 
 
 #: Zenoh transmission queue (batches) of the estimates' priority (DATA_HIGH, Zenoh's default 2). Estimates
@@ -307,20 +398,29 @@ def _summary(monitor) -> None:
     _say(f"input: {inp['received']} messages received, {inp['handled']} handled")
     for name, a in st["axes"].items():
         lat = a["latency_us"]
+        when = f"latency p50 {lat['p50']} µs, p99 {lat['p99']} µs" if lat.get("p50") is not None \
+            else "latency: no estimate published"
         _say(f"{name}: {a['blocks']} blocks, {a['samples_in']} samples in, {a['estimates_out']} estimates out, "
-             f"{a['dropped_total']} dropped{' ' + str(a['drops']) if a['drops'] else ''}, {a['gaps']} gaps; "
-             f"latency p50 {lat['p50']} µs, p99 {lat['p99']} µs")
-    refused = {k: inp[k] for k in ("too_large", "queue_full", "malformed", "key_mismatch_total", "shutdown_discarded")
-               if inp.get(k)}
+             f"{a['dropped_total']} dropped{' ' + str(a['drops']) if a['drops'] else ''}, {a['gaps']} gaps; {when}")
+    refused = [f"{k}={inp[k]}" for k in ("too_large", "queue_full", "malformed", "key_mismatch_total",
+                                         "shutdown_discarded") if inp.get(k)]
     nm = sum(inp["no_model"].values()) + inp["no_model_overflow"]
-    if refused or nm:
-        _say("input refused (messages): " + ", ".join(f"{k}={v}" for k, v in refused.items())
-             + (f"; samples of axes without a model: {nm}" if nm else ""))
+    if refused:
+        _say("input refused (messages): " + ", ".join(refused))
+    if nm:
+        _say(f"samples of axes without a model (not estimated): {nm}")
     if st["status"]["refused"]:
         _say(f"status queries: {st['status']['served']} answered, {st['status']['refused']} refused (rate limit)")
     for s in st["sinks"]:
-        files = s.get("files") or ([s["rrd_path"]] if s.get("rrd_path") else [])
-        _say(f"sink {s['name']}: {s['written']} written, {s['dropped']} dropped, {s['failures']} failures; "
-             + ", ".join(map(str, files)))
+        files = s.get("files") or s.get("rrd_files") or ([s["rrd_path"]] if s.get("rrd_path") else [])
+        extra = "".join(f", {s[k]} {k}" for k in ("restarts", "removed") if s.get(k))
+        _say(f"sink {s['name']}: {s.get('offered', s['accepted'] + s['dropped'])} messages offered, {s['written']} "
+             f"written, {s['dropped']} dropped, {s.get('lost', 0)} lost, {s['failures']} failures{extra}; "
+             + (", ".join(map(str, files)) or "no file"))
+        if s.get("incomplete_files"):
+            _say(f"sink {s['name']}: incomplete files ({s.get('incomplete_note') or 'they end where writing stopped'}): "
+                 f"{', '.join(map(str, s['incomplete_files']))}")
     for p in monitor.saved_states:
         _say(f"tracker state saved: {p}")
+    for name in monitor.unsaved_states:
+        _say(f"tracker state of {name} NOT saved: learned from input the monitor flagged (see the log above)")

@@ -32,6 +32,7 @@ import msgspec
 
 from feedio.limits import InputLimits, range_text
 from monitor import online_settings as OS
+from monitor.input_health import InputHealthSettings
 from monitor.sinks.child import Priority
 
 __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
@@ -56,6 +57,12 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     state_dir: str | None = None
     fresh: bool = False
     drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0
+    # the sink processes (monitor.sinks.child): start, stall detection, finishing at stop
+    sink_start_seconds: Annotated[float, msgspec.Meta(ge=5.0, le=3600.0)] = 60.0
+    sink_stall_seconds: Annotated[float, msgspec.Meta(ge=2.0, le=3600.0)] = 10.0
+    sink_close_seconds: Annotated[float, msgspec.Meta(ge=1.0, le=3600.0)] = 30.0
+    # MiB an output directory (--mcap, --rrd) must have free at start; below it when a new file opens: degraded
+    min_free_mb: Annotated[float, msgspec.Meta(ge=0.0, le=1e7)] = 64.0
     jobs: Annotated[int, msgspec.Meta(ge=1, le=1024)] | None = None  # offline: processes (None: one per core)
     listen: list[str] | None = None
     connect: list[str] | None = None
@@ -68,6 +75,8 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     tracker: OS.TrackerOverride = OS.TrackerOverride()
     adaptation: OS.AdaptationOverride = OS.AdaptationOverride()
     health: OS.HealthOverride = OS.HealthOverride()
+    # thresholds of the input-health verdict ([run.input_health]; monitor.input_health)
+    input_health: InputHealthSettings = InputHealthSettings()
 
 
 class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -184,7 +193,7 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         cfg = RunConfig()
     cli: dict[str, Any] = {}
     for name in RunConfig.__struct_fields__:
-        if name in ("limits", "tracker", "adaptation", "health") or not hasattr(args, name):
+        if name in ("limits", "tracker", "adaptation", "health", "input_health") or not hasattr(args, name):
             continue
         value = getattr(args, name)
         if value is None or value is False:  # not given (flags cannot switch off what the file switches on)

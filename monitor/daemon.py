@@ -40,13 +40,17 @@ Threads of the live monitor
   ``status_burst``), queries beyond are not answered and counted (``status.refused``).
 * The **main thread** waits for SIGINT/SIGTERM (see :mod:`feedmon.run_cmd`).
 
-Shutdown (:meth:`Monitor.stop`) always finishes; every step is guarded, its errors logged and
-returned: stop accepting input (later messages counted ``shutdown_discarded``), undeclare the
-subscribers, let the estimator thread drain the queue for up to ``drain_seconds``, then discard
-(and count, per axis) what is still queued and wait for the message in progress (on either
-thread) up to ``finish_seconds``; close the sinks (MCAP finished and readable, .rrd finalised);
-save the tracker states — only when no message is being estimated any more (a state that may
-still be changing is never written); undeclare the rest.
+Shutdown (:meth:`Monitor.stop`) always finishes, within ``drain_seconds`` + ``finish_seconds`` +
+the sinks' ``timeout``; every step is guarded, its errors logged and returned: stop accepting
+input (later messages counted ``shutdown_discarded``), undeclare the subscribers, let the estimator
+thread drain the queue for up to ``drain_seconds``, then discard (and count, per axis) what is
+still queued and wait for the message in progress (on either thread) up to ``finish_seconds``;
+close the sinks side by side, all by one deadline (MCAP finished and readable, .rrd finalised; a
+sink process not done by then is killed and what it had not written counted), and return as a
+problem what each did not write (:func:`sink_losses`); save the tracker states — only when no
+message is being estimated any more (a state that may still be changing is never written), and
+not the state of an axis that learned nothing or learned from input its health flagged
+(:mod:`monitor.input_health`); undeclare the rest.
 
 The per-sample work is :class:`~monitor.pipeline.Pipeline`, shared with
 :func:`monitor.offline.run_offline`, so a trial estimated offline gives the same numbers, sample
@@ -72,11 +76,12 @@ from feedio import schema as S
 from feedio.limits import DEFAULT, InputLimits
 
 from .axes import AxisRuntime
+from .input_health import InputHealthSettings
 from .pipeline import Pipeline
 from .state import StateStore
 from .status import StageRing
 
-__all__ = ["Monitor", "INLINE_BYTES"]
+__all__ = ["Monitor", "INLINE_BYTES", "sink_losses"]
 
 log = logging.getLogger("monitor.daemon")
 
@@ -86,6 +91,28 @@ _CALLBACK_REASONS = {"too_large": "too_large", "queue_full": "input_queue_full",
 #: messages up to this size (bytes) are estimated in the Zenoh callback when nothing else is (a few
 #: tens of samples: well under a millisecond of tracker work); larger ones go through the input queue
 INLINE_BYTES = 2048
+
+
+def sink_losses(st: dict[str, Any]) -> str | None:
+    """What a closed sink did not write, in one sentence (None: it wrote everything offered into complete
+    files): messages refused by its full queue (``dropped``), accepted but never written (``lost``),
+    written to files someone removed (``removed``), files left incomplete (given up, or of a process
+    that was replaced), restarts of its process."""
+    dropped, lost, removed = int(st.get("dropped") or 0), int(st.get("lost") or 0), int(st.get("removed") or 0)
+    if not (dropped or lost or removed or st.get("incomplete_files") or st.get("restarts")):
+        return None
+    offered = st.get("offered", int(st.get("accepted") or 0) + dropped)
+    parts = [f"{dropped + lost} of {offered} messages not written ({dropped} dropped: queue full, {lost} lost)"] \
+        if dropped or lost else [f"all {offered} messages written"]
+    if removed:
+        parts.append(f"{removed} written to files removed while open ({', '.join(st.get('removed_files') or [])})")
+    incomplete = st.get("incomplete_files") or []
+    if incomplete:
+        note = st.get("incomplete_note") or "they end where writing stopped"
+        parts.append(f"incomplete files ({note}): {', '.join(map(str, incomplete))}")
+    if st.get("restarts"):
+        parts.append(f"its process was restarted {st['restarts']} time(s)")
+    return f"sink {st.get('name')}: " + "; ".join(parts)
 
 
 class Monitor:
@@ -118,6 +145,8 @@ class Monitor:
     inline_bytes:
         messages up to this size are estimated in the Zenoh callback when nothing else is being
         estimated or waits (0: always through the queue and the estimator thread).
+    input_health:
+        thresholds of the input-health verdict (:mod:`monitor.input_health`; None: the defaults).
     """
 
     def __init__(
@@ -134,10 +163,11 @@ class Monitor:
         drain_seconds: float = 30.0,
         finish_seconds: float = 10.0,
         inline_bytes: int = INLINE_BYTES,
+        input_health: InputHealthSettings | None = None,
     ) -> None:
         if not drain_seconds >= 0 or not finish_seconds >= 0:
             raise ValueError(f"drain_seconds and finish_seconds must be ≥ 0, got {drain_seconds}, {finish_seconds}")
-        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits)
+        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits, input_health=input_health)
         self.axes = axes
         self.session = session
         self.prefix = prefix
@@ -186,6 +216,7 @@ class Monitor:
         self._started_wall = time.time()
         self.state = "new"
         self.saved_states: list[str] = []
+        self.unsaved_states: list[str] = []  # axes whose state was not saved: learned from flagged input
         self.problems: list[str] = []  # what went wrong while stopping (empty: a clean stop)
 
     # ---- Zenoh side ----------------------------------------------------------------------------
@@ -477,17 +508,23 @@ class Monitor:
             if not stopped:
                 self._problem("the estimator thread did not stop (a block still in progress); tracker states are "
                               "NOT saved, the saved ones are left as they were")
-            for sink in self.sinks:
-                try:
-                    if not sink.close(timeout):
-                        self._problem("sink %s did not finish within %.0f s", sink.name, timeout)
-                except Exception as exc:  # noqa: BLE001
-                    self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+            self._close_sinks(timeout)
             # never overwrite a state when start failed (no thread) or the estimator may still change it
             if self.state_store is not None and self._thread is not None and stopped:
                 for ax in self.axes.values():
+                    ih = self.pipeline.input_health[ax.key]
+                    if ih.tainted:  # a state learned from a stream flagged bad is not saved over a good one
+                        log.warning("tracker state of %s NOT saved: it learned %d samples from input the monitor "
+                                    "flagged (%s); %s is left as it was", ax.status.name, ih.tainted,
+                                    "; ".join(ih.reasons) or "see the health reports", self.state_store.path_for(ax))
+                        self.unsaved_states.append(ax.status.name)
+                        continue
                     try:
-                        self.saved_states.append(str(self.state_store.save(ax)))
+                        path = self.state_store.save(ax)
+                        if path is None:
+                            log.info("tracker state of %s not saved: it learned nothing", ax.status.name)
+                        else:
+                            self.saved_states.append(str(path))
                     except Exception as exc:  # noqa: BLE001 - OSError, a bad name, anything: say it, go on
                         self._problem("cannot save the tracker state of %s: %s: %s", ax.status.name,
                                       type(exc).__name__, exc)
@@ -507,6 +544,27 @@ class Monitor:
             self.state = "stopped"
         return self.problems
 
+    def _close_sinks(self, timeout: float) -> None:
+        """Close every sink side by side, all done by ``timeout`` s from now (a sink gives up on what it
+        cannot finish by then, counted); then say what each did not write."""
+        deadline = time.monotonic() + timeout
+        for sink in self.sinks:
+            try:
+                if hasattr(sink, "begin_close"):  # (a sink of the plain protocol has close only)
+                    sink.begin_close(timeout)
+            except Exception as exc:  # noqa: BLE001
+                self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+        for sink in self.sinks:
+            try:
+                if not sink.close(max(0.0, deadline - time.monotonic())):
+                    self._problem("sink %s did not finish within %.0f s", sink.name, timeout)
+            except Exception as exc:  # noqa: BLE001
+                self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
+                continue
+            loss = sink_losses(sink.status())
+            if loss:
+                self._problem("%s", loss)
+
     # ---- status ------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
         """The status document (built fresh; the queryable serves a cached copy)."""
@@ -522,8 +580,9 @@ class Monitor:
             totals[reason] += n
             if name:
                 per_axis.setdefault(name, {})[_CALLBACK_REASONS[reason]] = n
-        axes = {ax.status.name: ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
-                                                 per_axis.get(ax.status.name))
+        axes = {ax.status.name: {**ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
+                                                    per_axis.get(ax.status.name)),
+                                 "input": p.input_health[ax.key].status()}
                 for ax in self.axes.values()}
         all_lat = [ax.status.latency.values() for ax in self.axes.values()]
         lat = np.concatenate(all_lat) if all_lat else np.zeros(0)

@@ -41,10 +41,10 @@ import json
 import math
 import multiprocessing
 import os
-import queue
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -57,7 +57,9 @@ from feedio.limits import DEFAULT, InputLimits
 from kernels.errors import ParameterError
 
 from .axes import AxisRuntime
+from .input_health import InputHealthSettings
 from .pipeline import Estimated, Pipeline
+from .state import learned_snapshot
 from .status import install_log_format, log_format
 
 __all__ = ["OfflineResult", "run_offline"]
@@ -171,7 +173,7 @@ def _write(w, entries: list[tuple]) -> None:
 # ---- the entry point ------------------------------------------------------------------------------
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT,
-                jobs: int | None = None) -> OfflineResult:
+                jobs: int | None = None, input_health: InputHealthSettings | None = None) -> OfflineResult:
     """Estimate a recorded trial without Zenoh, as fast as the machine goes.
 
     Every samples block of the axes that have a model goes through the same
@@ -186,7 +188,8 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     gives the same bytes — whatever ``jobs`` is.
 
     ``jobs``: processes for a trial with several modelled axes (None: one per core, at most one
-    per axis; 1: this process only). See the module docstring.
+    per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
+    input-health verdict merged into the health reports (:mod:`monitor.input_health`).
     """
     from feedio.mcapio import TrialWriter, _Open
 
@@ -229,34 +232,44 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     with TrialWriter(output, out_metas, start=start) as w:
         if jobs > 1:
             counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
-                                   jobs)
+                                   jobs, input_health)
         else:
-            counts = _run_here(trial, w, names, axes, has_truth, limits)
+            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
                          jobs, counts["health"])
 
 
-def _run_here(trial: str, w, names: list[str], axes, has_truth, limits) -> dict[str, int]:
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health) -> dict[str, int]:
     """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
-    pipe = Pipeline(axes, limits=limits)
+    pipe = Pipeline(axes, limits=limits, input_health=input_health)
     enc = _Encoder(has_truth)
-    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
     with _WriterThread() as out:
-        for key, name, kind, lt, block in _prefetch(_merged_blocks(trial, names)):
-            if kind == "truth":
-                out.put(lambda k=key, n=name, b=block, t=lt: _write(w, enc.truth(k, n, b, t)))
-                counts["truth"] += 1
-                continue
-            counts["samples"] += len(block.t)
-            res = pipe.estimate(block)
-            if res.ax is None:  # refused (too long): counted, not copied, as live
-                continue
-            if res.est is not None:
-                counts["estimates"] += len(res.est)
-            counts["health"] += len(res.health)
-            out.put(lambda k=key, b=block, t=lt, r=res: _write(w, enc.samples(k, b, t, r)))
+        counts = _estimate_items(_merged_blocks(trial, names), pipe, enc, out, lambda _key, entries: _write(w, entries))
         out.put(lambda: _write_drain(w, enc.drain(), {n: enc.touched.get(n) for n in names}))
+    return counts
+
+
+def _estimate_items(items: Iterator, pipe: Pipeline, enc: _Encoder, out: _WriterThread,
+                    emit: Callable[[tuple, list[tuple]], None]) -> dict[str, int]:
+    """The work per input item of both paths: estimate each samples block (here, on the reader's
+    items), and hand what the item puts into the output (:class:`_Encoder`) to ``emit(key, entries)``
+    on the writer thread. A refused block (too long, no model) is counted by the pipeline, not
+    copied, as live. Returns the counts (samples estimated, estimates, truth blocks, health reports)."""
+    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
+    for key, name, kind, lt, block in _prefetch(items):
+        if kind == "truth":
+            counts["truth"] += 1
+            out.put(lambda k=key, n=name, b=block, t=lt: emit(k, enc.truth(k, n, b, t)), _held(block))
+            continue
+        res = pipe.estimate(block)
+        if res.ax is None:
+            continue
+        counts["samples"] += len(block.t)
+        if res.est is not None:
+            counts["estimates"] += len(res.est)
+        counts["health"] += len(res.health)
+        out.put(lambda k=key, b=block, t=lt, r=res: emit(k, enc.samples(k, b, t, r)), _held(block, res))
     return counts
 
 
@@ -284,22 +297,76 @@ def _fresh(ax: AxisRuntime) -> bool:
         return False
 
 
-def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
-    """Iterate ``items`` on a second thread (MCAP reading, zstd decompression and JSON decoding
-    overlap with the estimation); exceptions are re-raised here, order is kept."""
-    q: queue.Queue = queue.Queue(maxsize=depth)
+class _Fifo:
+    """A FIFO between two threads, bounded in items and in bytes (each item's ``size``; an item
+    larger than the bound passes alone): what waits in it never grows past the bounds, whatever
+    the trial holds. ``put`` gives up (False) once ``stop`` is set."""
+
+    def __init__(self, items: int, max_bytes: int) -> None:
+        self.items, self.max_bytes = int(items), int(max_bytes)
+        self._q: deque = deque()
+        self._bytes = 0
+        self._cv = threading.Condition()
+
+    def put(self, item: Any, size: int, stop: threading.Event | None = None) -> bool:
+        with self._cv:
+            while self._q and (len(self._q) >= self.items or self._bytes + size > self.max_bytes):
+                if stop is not None and stop.is_set():
+                    return False
+                self._cv.wait(0.1)
+            self._q.append((item, size))
+            self._bytes += size
+            self._cv.notify_all()
+            return True
+
+    def get(self) -> Any:
+        with self._cv:
+            while not self._q:
+                self._cv.wait()
+            item, size = self._q.popleft()
+            self._bytes -= size
+            self._cv.notify_all()
+            return item
+
+
+def _held(block, res: Estimated | None = None) -> int:
+    """About the bytes a queued item holds: the decoded block (:func:`feedio.mcapio.held_bytes`) and,
+    for a samples block, its estimate rows (float64 and int64 columns) and health reports."""
+    from feedio.mcapio import held_bytes
+
+    n = held_bytes(block)
+    if res is not None and res.est is not None:
+        e = res.est
+        n += e.rows.nbytes + e.irows.nbytes + e.t.nbytes + e.v_meas.nbytes + (0 if e.force is None else e.force.nbytes)
+    return n + 1024 * len(res.health if res is not None else ())
+
+
+#: bytes of decoded blocks the reader thread may hold ahead of the estimator (:func:`_prefetch`)
+PREFETCH_BYTES = 16 * 2**20
+#: bytes of blocks and their results waiting for the writer thread (:class:`_WriterThread`)
+WRITE_BEHIND_BYTES = 32 * 2**20
+
+
+def _prefetch(items: Iterator, depth: int = 64, max_bytes: int = PREFETCH_BYTES) -> Iterator:
+    """Iterate ``items`` (``(key, name, kind, log_time, block)``) on a second thread (MCAP reading,
+    zstd decompression and JSON decoding overlap with the estimation), at most ``depth`` items and
+    ``max_bytes`` of blocks (:func:`feedio.mcapio.held_bytes`) ahead; exceptions are re-raised
+    here, order is kept."""
+    from feedio.mcapio import held_bytes
+
+    q = _Fifo(depth, max_bytes)
     done = object()
     stop = threading.Event()
 
     def run() -> None:
         try:
             for item in items:
-                if stop.is_set():
+                if stop.is_set() or not q.put((None, item), held_bytes(item[-1]), stop):
                     return
-                q.put((None, item))
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
-            q.put((exc, None))
-        q.put((None, done))
+            q.put((exc, None), 0)
+            return
+        q.put((None, done), 0)
 
     th = threading.Thread(target=run, name="offline-reader", daemon=True)
     th.start()
@@ -313,24 +380,21 @@ def _prefetch(items: Iterator, depth: int = 64) -> Iterator:
             yield item
     finally:
         stop.set()
-        while th.is_alive():  # unblock a producer waiting on a full queue
-            try:
-                q.get_nowait()
-            except queue.Empty:
-                th.join(0.01)
+        th.join()
 
 
 class _WriterThread:
     """Runs callables on a second thread, in order (the writes of :func:`run_offline`, or the
-    encoding and sending of a child).
+    encoding and sending of a child), at most ``depth`` of them and ``max_bytes`` of what they hold
+    (the ``size`` given to :meth:`put`) waiting.
 
     The tracker loop (``@njit(nogil=True)``) and zstd compression both release the GIL, so
     estimating and encoding/compressing/writing overlap on two cores; one thread and a FIFO
     keep the output byte-identical to writing inline. An error is raised in the caller.
     """
 
-    def __init__(self, depth: int = 256) -> None:
-        self._q: queue.Queue = queue.Queue(maxsize=depth)
+    def __init__(self, depth: int = 256, max_bytes: int = WRITE_BEHIND_BYTES) -> None:
+        self._q = _Fifo(depth, max_bytes)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="offline-writer", daemon=True)
 
@@ -338,10 +402,10 @@ class _WriterThread:
         self._thread.start()
         return self
 
-    def put(self, fn: Callable[[], Any]) -> None:
+    def put(self, fn: Callable[[], Any], size: int = 0) -> None:
         if self._error is not None:
             raise self._error
-        self._q.put(fn)
+        self._q.put(fn, size)
 
     def _run(self) -> None:
         while True:
@@ -355,7 +419,7 @@ class _WriterThread:
                     self._error = exc
 
     def __exit__(self, *exc) -> None:
-        self._q.put(None)
+        self._q.put(None, 0)
         self._thread.join()
         if self._error is not None and exc[0] is None:
             raise self._error
@@ -423,7 +487,7 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
 
 
 def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime], has_truth, limits,
-                  jobs: int) -> dict[str, int]:
+                  jobs: int, input_health: InputHealthSettings | None) -> dict[str, int]:
     """``jobs`` > 1: children estimate and encode, this process merges and writes (module docstring)."""
     # fork when this process has no other thread (the command line): the children start at once with the
     # estimators as they are; else spawn (a thread holding a lock at fork time would leave it held), and
@@ -439,6 +503,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                     "models": {n: axes[n].status.model_path for n in group},
                     "sha256": {n: axes[n].status.model_sha256 for n in group},
                     "has_truth": [list(k) for k in has_truth], "limits": msgspec.to_builtins(limits),
+                    "input_health": None if input_health is None else msgspec.to_builtins(input_health),
                     "log_format": None if fork else log_format()}
             own = {axes[n].key: axes[n] for n in group} if fork else None
             p = ctx.Process(target=_child_main, args=(child, json.dumps(spec), own), name="feedmon-offline",
@@ -495,34 +560,26 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
     return {k: sum(r[k] for r in results) for k in ("samples", "estimates", "truth", "health")}
 
 
-#: pipe messages of one worker read ahead (each up to ~_SEND_BYTES): a worker whose axes run ahead in
-#: time is not held by the merge, which waits for the others (about 64 MiB per worker at most)
+#: pipe messages of one worker read ahead (each about _SEND_BYTES): a worker whose axes run ahead in time
+#: is not held by the merge, which waits for the others — at most this many messages and READ_AHEAD_BYTES
 _READ_AHEAD = 256
+READ_AHEAD_BYTES = 64 * 2**20
 
 
 def _read_ahead(conn) -> Iterator[bytes | None]:
-    """The pipe messages of a worker, read on a thread of their own into a bounded queue, until the
-    worker closes the pipe (then None)."""
-    q: queue.Queue = queue.Queue(maxsize=_READ_AHEAD)
+    """The pipe messages of a worker, read on a thread of their own into a FIFO bounded in messages
+    and bytes, until the worker closes the pipe (then None)."""
+    q = _Fifo(_READ_AHEAD, READ_AHEAD_BYTES)
     stop = threading.Event()
-
-    def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
 
     def run() -> None:
         while True:
             try:
                 msg = conn.recv_bytes()
             except (EOFError, OSError):
-                put(None)
+                q.put(None, 0, stop)
                 return
-            if not put(msg):
+            if not q.put(msg, len(msg), stop):
                 return
 
     th = threading.Thread(target=run, name="offline-merge-reader", daemon=True)
@@ -546,11 +603,11 @@ def _read_final(view: memoryview, pos: int, axes: dict[str, AxisRuntime]) -> dic
     for name, a in doc["axes"].items():
         (nz,) = struct.unpack_from("<Q", view, pos)
         pos += 8
-        with np.load(io.BytesIO(view[pos:pos + nz].tobytes()), allow_pickle=False) as z:
-            snap = {k: z[k] for k in z.files}
-        pos += nz
         ax = axes[name]
-        ax.estimator.restore(snap)
+        if nz:  # else the child's tracker never stepped: the parent's is as fresh
+            with np.load(io.BytesIO(view[pos:pos + nz].tobytes()), allow_pickle=False) as z:
+                ax.estimator.restore({k: z[k] for k in z.files})
+        pos += nz
         ax.estimator.counters.update(a["estimator"])
         ax.status.counters.update(a["status"])
         ax.status.blocks = a["blocks"]
@@ -588,10 +645,11 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
             if ax.status.model_sha256 != spec["sha256"][ax.status.name]:
                 raise TrialFileError(f"model file {ax.status.model_path} changed after the run started; run again")
     by_name = {f"{m}/{a}": ax for (m, a), ax in axes.items()}
-    pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits))
+    ih = spec.get("input_health")
+    pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits),
+                    input_health=None if ih is None else msgspec.convert(ih, InputHealthSettings))
     enc = _Encoder({tuple(k) for k in spec["has_truth"]})
     index = spec["index"]
-    counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
     buf: list[bytes] = []
     size = [0]
 
@@ -609,19 +667,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
         send(part)
 
     with _WriterThread() as out:
-        for key, name, kind, lt, block in _prefetch(_merged_blocks(spec["trial"], spec["axes"], index)):
-            if kind == "truth":
-                counts["truth"] += 1
-                out.put(lambda k=key, n=name, b=block, t=lt: item(k, enc.truth(k, n, b, t)))
-                continue
-            counts["samples"] += len(block.t)
-            res = pipe.estimate(block)
-            if res.ax is None:
-                continue
-            if res.est is not None:
-                counts["estimates"] += len(res.est)
-            counts["health"] += len(res.health)
-            out.put(lambda k=key, b=block, t=lt, r=res: item(k, enc.samples(k, b, t, r)))
+        counts = _estimate_items(_merged_blocks(spec["trial"], spec["axes"], index), pipe, enc, out, item)
 
         def finish() -> None:
             drained = enc.drain()
@@ -640,8 +686,10 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
                                      "blocks": ax.status.blocks, "last_seq": ax.status.last_seq,
                                      "last_t": ax.status.last_t, "health": ax.status.health,
                                      "health_changes": ax.status.health_changes}
+                snap = learned_snapshot(ax.estimator)  # None: its tracker never stepped, nothing to hand back
                 z = io.BytesIO()
-                np.savez(z, **ax.estimator.snapshot())
+                if snap is not None:
+                    np.savez(z, **snap)
                 snaps.append(z.getvalue())
             body = json.dumps(doc).encode()
             part = [b"F", struct.pack("<I", len(body)), body]

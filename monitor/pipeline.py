@@ -22,7 +22,11 @@ columns; the schema object and its JSON are made once, by whoever needs them fir
 of data per axis), which the daemon publishes on
 ``<prefix>/<machine>/<axis>/health`` and hands to the sinks (``offer_health``), and the offline
 runner writes on ``/<machine>/<axis>/health`` — produced here, next to the estimator whose state
-they describe, so that live and offline give the same messages.
+they describe, so that live and offline give the same messages. The health of the input stream
+itself (:mod:`monitor.input_health`: a frozen measurement, another rate, nothing learned) is judged
+here from the estimator's per-block counts and merged into those reports (the worse state, its
+reasons first); when it changes between two of the estimator's reports, or stays not ok while the
+estimator makes none, the pipeline makes a report of its own.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import logging
 from collections import Counter
 from typing import NamedTuple
 
+import msgspec
 import numpy as np
 
 from feedio import schema as S
@@ -39,6 +44,7 @@ from kernels.online import COUNTERS
 
 from .axes import AxisRuntime
 from .estimator import EstimateRows
+from .input_health import LEVELS, REPORT_PERIOD, InputHealth, InputHealthSettings
 from .status import BoundedCounter, BurstLog
 
 __all__ = ["Pipeline", "Estimated"]
@@ -79,8 +85,12 @@ class Pipeline:
     """Decode → check the key → route → estimate. No I/O; one thread only."""
 
     def __init__(self, axes: dict[tuple[str, str], AxisRuntime], *, prefix: str = "feedmon",
-                 limits: InputLimits = DEFAULT) -> None:
+                 limits: InputLimits = DEFAULT, input_health: InputHealthSettings | None = None) -> None:
         self.axes = axes
+        #: the health of each axis' input stream (:mod:`monitor.input_health`), merged into its reports
+        self.input_health = {key: InputHealth(float(ax.model.Ts), input_health) for key, ax in axes.items()}
+        self._model_report: dict[tuple[str, str], S.Health] = {}  # each axis' last report of the loop
+        self._unreported: dict[tuple[str, str], int] = {}  # samples of each axis since its last report
         self.prefix = prefix
         self.limits = limits
         self.counters: Counter[str] = Counter()  # monitor-wide: malformed / key_mismatch / too_large of no axis
@@ -153,16 +163,18 @@ class Pipeline:
             self.burst(f"too_large:{st.name}", "axis %s: refusing a block of %d samples (max_block_samples = %d)",
                        st.name, n, self.limits.max_block_samples)
             return _REFUSED
+        ih = self.input_health[ax.key]
         try:
             est = ax.estimator.process_rows(block)
         except ValueError as exc:  # e.g. the model's form needs a column the block lacks
             self.burst(f"error:{st.name}", "axis %s: block dropped: %s", st.name, str(exc))
-            return Estimated(ax)
+            return Estimated(ax, None, self._health(ax, block, ih.block(None, n)))
         except Exception as exc:  # noqa: BLE001 - never fatal; counted and logged
             st.counters["estimator_error"] += n
             self.burst(f"error:{st.name}", "axis %s: estimator failed on a block: %s: %s", st.name,
                        type(exc).__name__, str(exc), level=logging.ERROR)
-            return Estimated(ax)
+            return Estimated(ax, None, self._health(ax, block, ih.block(None, n)))
+        changed = ih.block(ax.estimator.block_counts, n, block.seq, block.t)
         # the estimator only counts; say it once per burst (per reason and axis)
         bc = ax.estimator.block_counts[self._logged_idx]
         if bc.any():
@@ -172,12 +184,24 @@ class Pipeline:
         if est is not None:
             st.last_seq = est.seq + len(est) - 1
             st.last_t = float(est.t[-1])
-        return Estimated(ax, est, self._health(ax))
+        return Estimated(ax, est, self._health(ax, block, changed))
 
-    def _health(self, ax: AxisRuntime) -> list[S.Health] | tuple:
-        """Collect the axis' health reports (returned), update its
-        status and log every change of the health state once (WARNING into warn/alarm, INFO back to ok)."""
+    def _health(self, ax: AxisRuntime, block: S.SampleBlock, input_changed: bool) -> list[S.Health] | tuple:
+        """Collect the axis' health reports (returned) with the input's verdict merged in (a report of its
+        own when it changed and the loop made none), update its status and log every change of the health
+        state once (WARNING into warn/alarm, INFO back to ok)."""
         reports = ax.estimator.take_health()
+        ih = self.input_health[ax.key]
+        quiet = self._unreported[ax.key] = self._unreported.get(ax.key, 0) + len(block.t)
+        if reports:
+            self._model_report[ax.key] = reports[-1]
+            if ih.level or ih.reasons:
+                reports = [_merged(h, ih) for h in reports]
+        elif input_changed or (ih.level and quiet * ih.Ts >= REPORT_PERIOD):
+            own = self._own_report(ax, block, ih)  # (the loop makes none while every sample is refused)
+            reports = [own] if own is not None else []
+        if reports:
+            self._unreported[ax.key] = 0
         if not reports:
             return _NO_HEALTH
         st = ax.status
@@ -188,3 +212,24 @@ class Pipeline:
                 log.log(logging.INFO if h.state == "ok" else logging.WARNING,
                         "axis %s: health %s → %s at t = %.3f s (seq %d): %s", st.name, was, h.state, h.t, h.seq, why)
         return reports
+
+    def _own_report(self, ax: AxisRuntime, block: S.SampleBlock, ih: InputHealth) -> S.Health | None:
+        """A report at the block's last sample when the input's verdict changed between two of the loop's, or
+        is not ok and the loop made none for a health period: the loop's last one (or an empty one) with the
+        verdict merged in."""
+        n = len(block.t)
+        seq, t = block.seq + n - 1, block.t[-1] if n else None
+        if t is None or not (0.0 <= t <= S.T_MAX) or not 0 <= seq <= S.SEQ_MAX:
+            return None
+        last = self._model_report.get(ax.key)
+        if last is None:
+            last = S.Health(machine=ax.model.machine, axis=ax.model.axis, seq=seq, t=float(t), state="ok",
+                            adaptation=getattr(ax.estimator, "mode", "track"))
+        return _merged(msgspec.structs.replace(last, seq=seq, t=float(t)), ih)
+
+
+def _merged(h: S.Health, ih: InputHealth) -> S.Health:
+    """``h`` with the input's verdict: the worse state, the input's reasons first (the schema's bounds kept)."""
+    state = LEVELS[max(LEVELS.index(h.state), ih.level)]
+    reasons = [r[:S.REASON_CHARS_MAX] for r in [*ih.reasons, *h.reasons][:S.REASONS_MAX]]
+    return msgspec.structs.replace(h, state=state, reasons=reasons)

@@ -36,7 +36,7 @@ import numpy as np
 from .axes import AxisRuntime
 from .state_check import StateError
 
-__all__ = ["StateStore", "StateLoad", "STATE_FORMAT", "read_state_file"]
+__all__ = ["StateStore", "StateLoad", "STATE_FORMAT", "read_state_file", "learned_snapshot"]
 
 log = logging.getLogger("monitor.state")
 
@@ -178,31 +178,60 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, dtype: np.dtype, sh
     return np.array(arr, order="C")  # own, writable, C-contiguous copy
 
 
+def learned_snapshot(estimator) -> dict[str, np.ndarray] | None:
+    """The estimator's snapshot when it holds something learned and can be restored as it is; None for
+    an estimator that never stepped its tracker (a snapshot with the online β and health parts but no
+    tracker state matches neither template of :func:`monitor.state_check.check_snapshot`, and there is
+    nothing in it worth keeping)."""
+    snap = estimator.snapshot()
+    _, after = estimator.snapshot_templates()
+    return snap if set(snap) == set(after) else None
+
+
+#: joins machine and axis in a state file's name: a character no machine or axis name may hold
+#: (:data:`feedio.limits.NAME_PATTERN`), so two axes never share a file (``cell_3``/``X`` and ``cell``/``3_X``
+#: did with ``_``)
+NAME_JOIN = "+"
+
+
 class StateStore:
-    """Where tracker snapshots live: ``<dir>/<machine>_<axis>.state.npz`` with ``state_dir``,
-    else next to the model file (``axis-x.model.toml`` → ``axis-x.model.state.npz``)."""
+    """Where tracker snapshots live: ``<dir>/<machine>+<axis>.state.npz`` with ``state_dir``,
+    else next to the model file (``axis-x.model.toml`` → ``axis-x.model.state.npz``).
+
+    A state saved by an older feedmon as ``<dir>/<machine>_<axis>.state.npz`` (a name two axes could
+    share) is read when the new name does not exist yet — used only when it holds this axis' state
+    (its recorded machine and axis), and removed once this axis' state is saved under the new name."""
 
     def __init__(self, state_dir: str | os.PathLike | None = None) -> None:
         self.dir = None if state_dir is None else Path(state_dir)
         if self.dir is not None and not self.dir.is_dir():
             self.dir.mkdir(parents=True, exist_ok=True)  # OSError: reported by the CLI
+        self._legacy_read: set[Path] = set()  # legacy files this store restored an axis from
 
     def path_for(self, ax: AxisRuntime) -> Path:
         if self.dir is not None:
-            return self.dir / f"{ax.model.machine}_{ax.model.axis}.state.npz"
+            return self.dir / f"{ax.model.machine}{NAME_JOIN}{ax.model.axis}.state.npz"
         mp = Path(ax.status.model_path)
         stem = mp.name[:-5] if mp.name.endswith(".toml") else mp.name
         return mp.with_name(stem + ".state.npz")
+
+    def _legacy_path(self, ax: AxisRuntime) -> Path | None:
+        return None if self.dir is None else self.dir / f"{ax.model.machine}_{ax.model.axis}.state.npz"
 
     @staticmethod
     def _tmp(path: Path) -> Path:
         return path.with_name(path.name + ".tmp")
 
-    def save(self, ax: AxisRuntime) -> Path:
+    def save(self, ax: AxisRuntime) -> Path | None:
         """Atomically write the axis' snapshot (+ model hash, axis, time); on any failure no
-        ``.tmp`` file is left behind and an existing state is untouched."""
+        ``.tmp`` file is left behind and an existing state is untouched. None (nothing written) when
+        the tracker never learned a sample (:func:`learned_snapshot`: nothing worth keeping, and a
+        state saved earlier stays as it is)."""
         path = self.path_for(ax)
-        snap = dict(ax.estimator.snapshot())
+        snap = learned_snapshot(ax.estimator)
+        if snap is None:
+            return None
+        snap = dict(snap)
         snap["meta.format"] = np.array(STATE_FORMAT, dtype=np.int64)
         snap["meta.model_sha256"] = np.array(ax.status.model_sha256)
         snap["meta.machine"] = np.array(ax.model.machine)
@@ -225,6 +254,11 @@ class StateStore:
                 os.fsync(fd)
             finally:
                 os.close(fd)
+        legacy = self._legacy_path(ax)
+        if legacy in self._legacy_read:  # this axis' state, now under its own name
+            with contextlib.suppress(OSError):
+                legacy.unlink()
+            self._legacy_read.discard(legacy)
         ax.status.state_path = str(path)
         return path
 
@@ -245,6 +279,11 @@ class StateStore:
                 log.warning("cannot remove the partial tracker state %s: %s", tmp, exc)
         if fresh:
             return self._result(ax, "fresh", "fresh (--fresh)")
+        legacy = self._legacy_path(ax)
+        if not path.exists() and legacy is not None and legacy.exists():
+            if self._legacy_axis(ax, legacy) != ax.key:  # another axis' (the old names were ambiguous)
+                return self._result(ax, "fresh", f"fresh (no saved state; {legacy.name} is another axis' state)")
+            path = legacy
         if not path.exists():
             return self._result(ax, "fresh", "fresh (no saved state)")
         try:
@@ -256,11 +295,25 @@ class StateStore:
             reason = str(exc) if isinstance(exc, (StateError, OSError)) else f"{type(exc).__name__}: {exc}"
             log.warning("tracker state %s of %s is unreadable: %s; starting fresh", path, ax.status.name, reason)
             return self._result(ax, "unreadable", f"unreadable: {reason}")
+        if path == legacy:
+            self._legacy_read.add(legacy)
+            log.info("tracker state of %s read from %s (the name of an older feedmon); it is saved as %s from now on",
+                     ax.status.name, legacy, self.path_for(ax))
         age = time.time() - float(snap["meta.saved_unix"])
         when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(float(snap["meta.saved_unix"])))
         est = ax.estimator
         return self._result(ax, "restored", f"restored (saved {when}, {_age(age)}; {est.trained:,} samples "
                                             f"learned, dictionary {est.tracker.size} of {est.tracker.budget})")
+
+    @staticmethod
+    def _legacy_axis(ax: AxisRuntime, path: Path) -> tuple[str, str] | None:
+        """``(machine, axis)`` a legacy state file records (None: unreadable — then it is read as this
+        axis' and refused with the reason)."""
+        try:
+            arrays = read_state_file(path, *_layout(ax))
+        except Exception:  # noqa: BLE001 - StateError, OSError: judged again (and reported) when read
+            return ax.key
+        return str(arrays["meta.machine"][()]), str(arrays["meta.axis"][()])
 
     @staticmethod
     def _result(ax: AxisRuntime, origin: str, detail: str) -> StateLoad:
@@ -269,10 +322,7 @@ class StateStore:
 
     def _read(self, ax: AxisRuntime, path: Path) -> dict[str, np.ndarray]:
         """Read, check and restore; raises :class:`StateError` (unusable) or :class:`_Ignored` (other model)."""
-        before, after = ax.estimator.snapshot_templates()
-        layout = {k: (v.dtype, v.shape) for k, v in after.items()}
-        layout.update(_META)
-        snap = read_state_file(path, layout, optional=frozenset(set(after) - set(before)))
+        snap = read_state_file(path, *_layout(ax))
         saved = str(snap["meta.model_sha256"][()])
         if saved != ax.status.model_sha256:
             raise _Ignored(f"was saved with another model file (sha256 {saved[:12]}…, now "
@@ -288,6 +338,14 @@ class StateStore:
             raise StateError(f"its time of saving {saved_unix!r} is not a plausible Unix time")
         ax.estimator.restore({k: v for k, v in snap.items() if not k.startswith("meta.")})
         return snap
+
+
+def _layout(ax: AxisRuntime) -> tuple[dict[str, tuple[np.dtype, tuple[int, ...]]], frozenset[str]]:
+    """The entries of a state file of this axis' model (:func:`read_state_file`'s ``layout``, ``optional``)."""
+    before, after = ax.estimator.snapshot_templates()
+    layout = {k: (v.dtype, v.shape) for k, v in after.items()}
+    layout.update(_META)
+    return layout, frozenset(set(after) - set(before))
 
 
 class _Ignored(Exception):

@@ -393,8 +393,8 @@ def format_status(status: dict[str, Any], console=None) -> None:
         f"malformed {inp.get('malformed', 0)}, key_mismatch {inp.get('key_mismatch_total', 0)}", limit=2000))
     console.print(head)
     t = Table(title="axes")
-    for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state", "health"):
-        t.add_column(col, justify="left" if col in ("axis", "dropped", "state", "health") else "right")
+    for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state", "health", "input"):
+        t.add_column(col, justify="left" if col in ("axis", "dropped", "state", "health", "input") else "right")
     axes = _dict(status.get("axes"))
     for name, a in axes.items():
         a = _dict(a)
@@ -402,7 +402,7 @@ def format_status(status: dict[str, Any], console=None) -> None:
         t.add_row(_cell(name), _cell(a.get("samples_in")), _cell(a.get("estimates_out")),
                   _cell(_counts(a.get("drops")) or "0"), _cell(a.get("gaps")), _fmt_us(lat.get("p50")),
                   _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")),
-                  _cell(_dict(a.get("health")).get("state", "–")))
+                  _cell(_dict(a.get("health")).get("state", "–")), _cell(_dict(a.get("input")).get("state", "–")))
     console.print(t)
     if any(_dict(_dict(a).get("stages_us")) for a in axes.values()):
         st = Table(title="latency by stage, µs (p50 / p99): queue, decode, estimate, encode, publish, then sinks")
@@ -434,13 +434,20 @@ def format_status(status: dict[str, Any], console=None) -> None:
     sinks = status.get("sinks") if isinstance(status.get("sinks"), list) else []
     if sinks:
         st = Table(title="sinks")
-        cols = ("name", "state", "accepted", "written", "dropped", "failures", "pending")
+        cols = ("name", "state", "accepted", "written", "dropped", "lost", "failures", "restarts", "pending")
         for col in cols:
             st.add_column("sink" if col == "name" else col)
         for s in map(_dict, sinks):
-            st.add_row(*(_cell(s.get(c)) for c in cols))
+            st.add_row(*(_cell(s.get(c, 0 if c in ("lost", "restarts") else None)) for c in cols))
         console.print(st)
         for s in map(_dict, sinks):
             where = [x for x in (s.get("current_file"), s.get("rrd_path"), s.get("server_uri")) if x]
             if where:
                 console.print(_cell(f"  {s.get('name')}: {', '.join(map(str, where))}", 1000))
+            if s.get("state") not in ("ok", "closed", None) or s.get("lost") or s.get("restarts"):
+                why = s.get("degraded") if s.get("state") == "degraded" else s.get("last_error")
+                console.print(_cell(f"  {s.get('name')} {str(s.get('state')).upper()}: {why}", 2000))
+            for key, what in (("incomplete_files", f"incomplete ({s.get('incomplete_note') or 'cut short'})"),
+                              ("removed_files", "removed while being written")):
+                if s.get(key):
+                    console.print(_cell(f"  {s.get('name')}: {what}: {', '.join(map(str, s[key]))}", 2000))

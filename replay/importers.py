@@ -217,6 +217,26 @@ def _parse_pairs(text: str | None, what: str) -> dict[str, str]:
     return out
 
 
+#: sampling times (s) a machine-tool controller records at: 10 µs (100 kHz) … 1 s. A time step outside
+#: is a time column read in the wrong unit (``t=ms`` on seconds gives 1000 × too small), not a recording
+TS_RANGE = (1e-5, 1.0)
+
+
+def _check_sampling_time(path, Ts: float, step: float, unit: str, given: bool) -> None:
+    """Refuse a sampling time no controller has, naming the likely fix (another unit of ``t``)."""
+    lo, hi = TS_RANGE
+    if lo <= Ts <= hi:
+        return
+    what = f"Ts = {Ts:.6g} s (given)" if given else f"the median time step is {step:.6g} s (t read in {unit})"
+    hint = ""
+    for other, f in UNIT_FACTORS.items():
+        if f[0] == "time" and other != unit and lo <= step / UNIT_FACTORS[unit][1] * f[1] <= hi and not given:
+            hint = f"; if the column is in {other}, say units t={other}"
+            break
+    raise ParameterError(f"CSV file {path}: {what}, outside the {lo:g} … {hi:g} s a machine-tool controller samples "
+                         f"at: check the unit of the time column{hint}", "Ts" if given else "units")
+
+
 def _float(cell: str) -> float | None:
     cell = cell.strip()
     if cell == "" or cell.lower() in ("nan", "na", "null", "none"):
@@ -250,8 +270,17 @@ def read_csv_trial(
         raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {loop_gain!r}", "loop_gain")
     need = ["t", "v_meas"] + (["v_ref"] if form == "velocity-loop" else ["u"])
     lacking = [f for f in need if f not in mapping]
+    if lacking == ["v_ref"] and "u" in mapping:  # a force command and no velocity reference: the other form
+        raise ParameterError("mapping gives u (a force command) and no v_ref: that is the force-input form; set "
+                             "form='force-input' (or map the velocity reference v_ref for the velocity-loop form)",
+                             "form", "mapping")
+    if lacking == ["u"] and "v_ref" in mapping:
+        raise ParameterError("mapping gives v_ref (a velocity reference) and no u: that is the velocity-loop form; set "
+                             "form='velocity-loop' (or map the force command u for the force-input form)",
+                             "form", "mapping")
     if lacking:
-        raise ParameterError(f"mapping must give the column of {', '.join(lacking)} for the {form} form", "mapping")
+        raise ParameterError(f"mapping must give the column of {', '.join(lacking)} for the {form} form "
+                             "(form='velocity-loop' needs v_ref, form='force-input' needs u)", "mapping", "form")
     for field, unit in units.items():
         if field not in FIELD_DIMENSION:
             raise ParameterError(f"units: unknown field {field!r}; fields: {', '.join(FIELD_DIMENSION)}", "units")
@@ -332,6 +361,7 @@ def read_csv_trial(
     Ts_ = float(Ts) if Ts is not None else float(np.median(dts))
     if not (np.isfinite(Ts_) and Ts_ > 0):
         raise ParameterError(f"Ts must be a positive number of seconds, got {Ts!r}", "Ts")
+    _check_sampling_time(path, Ts_, float(np.median(dts)), units.get("t", "s"), Ts is not None)
     off = np.flatnonzero((dts < 0.5 * Ts_) | (dts > 1.5 * Ts_))
     if off.size:  # a gap (lost rows) or another rate: consecutive rows would pose as consecutive samples
         k = int(off[0])

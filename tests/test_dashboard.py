@@ -320,19 +320,30 @@ def _wait(cond, timeout: float = 60.0) -> bool:
     return cond()
 
 
-def test_a_dead_recording_process_is_counted_not_fatal(tmp_path):
+def test_a_dead_recording_process_is_replaced_and_what_it_lost_is_counted(tmp_path):
+    """SIGKILL of the recording process: the sink notices, counts what it had not written, starts a new one
+    writing a new file (the old one left as it was), and is ``failed`` until the new one recorded a block;
+    every block offered ends written, lost or dropped."""
     from monitor.sinks.rerun_process import RerunProcessSink
 
-    sink = RerunProcessSink(tmp_path / "dead.rrd")
+    sink = RerunProcessSink(tmp_path / "dead.rrd", stall_seconds=5.0, batch_interval=0.05)
     sink.offer(est_block(0, 50))
+    assert _wait(lambda: sink.status()["written"] == 1)
     os.kill(sink.status()["pid"], signal.SIGKILL)
-    assert _wait(lambda: not sink.status()["process_alive"])
     for k in range(1, 6):
         assert sink.offer(est_block(50 * k, 50))  # offer never blocks nor raises
-    assert _wait(lambda: sink.status()["failures"] >= 5)
+    assert _wait(lambda: sink.status()["restarts"] == 1 and sink.status()["process_alive"])
+    st = sink.status()
+    assert st["failures"] >= 1 and ("died" in st["last_error"] or "broke" in st["last_error"]), st
+    sink.offer(est_block(300, 50))
+    assert _wait(lambda: sink.status()["state"] == "ok" and sink.status()["written"] > 1)  # the new one records
     assert sink.close(timeout=30)
     st = sink.status()
-    assert st["failures"] >= 5 and "Pipe" in (st["last_error"] or "")
+    assert st["rrd_files"] == [str(tmp_path / "dead.rrd"), str(tmp_path / "dead-001.rrd")]
+    assert st["incomplete_files"] == [str(tmp_path / "dead.rrd")]
+    assert st["written"] + st["lost"] + st["dropped"] == st["offered"] == 7, st
+    assert st["written"] >= 2 and st["state"] == "closed"
+    assert os.path.getsize(tmp_path / "dead-001.rrd") > 0
 
 
 _FULL_DISK = textwrap.dedent("""

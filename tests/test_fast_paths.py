@@ -192,20 +192,32 @@ def test_mcap_log_in_its_own_process_holds_what_the_in_process_sink_writes(work,
     assert st["process_alive"] is False and st["state"] == "closed"
 
 
-def test_mcap_process_sink_reports_a_failing_writer_in_the_parent_status(tmp_path):
-    """The child cannot create its file (the path is a directory): the failure and its message reach the
-    parent's status; offering never blocks and nothing is lost silently (counted as failures)."""
+def test_mcap_process_sink_never_overwrites_and_says_when_it_cannot_create_its_file(tmp_path):
+    """The path is taken (here by a directory): the child logs into the next free name instead; a directory
+    that takes no new file at all (immutable: root ignores permission bits): the sink is not made, the error
+    names the file and why (a failing writer later: tests/test_sink_faults.py)."""
+    import subprocess
+
     target = tmp_path / "taken.mcap"
     target.mkdir()
     sink = McapProcessSink(target, metas=[_meta()], start_timeout=60)
-    blk = S.SampleBlock(machine="m", axis="X", seq=0, t=[0.0, 0.003], v_ref=[0.0, 0.0], v_meas=[0.0, 0.0])
-    for k in range(50):  # taken while the child cannot write (no wall-clock bound: the machine may be loaded)
+    assert sink.first_file == str(tmp_path / "taken-001.mcap")
+    for k in range(50):
         assert sink.offer(S.SampleBlock(machine="m", axis="X", seq=2 * k, t=[0.006 * k, 0.006 * k + 0.003],
-                                        v_ref=blk.v_ref, v_meas=blk.v_meas))
+                                        v_ref=[0.0, 0.0], v_meas=[0.0, 0.0]))
     assert sink.close(timeout=60)
     st = sink.status()
-    assert st["failures"] >= 1 and "Is a directory" in st["last_error"], st
-    assert st["accepted"] == 50 and st["dropped"] == 0
+    assert st["written"] == st["accepted"] == 50 and st["failures"] == 0 and target.is_dir()
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    r = subprocess.run(["chattr", "+i", str(locked)], capture_output=True, text=True)
+    assert r.returncode == 0, f"chattr +i is needed (root): {r.stderr}"
+    try:
+        with pytest.raises(OSError, match=r"MCAP logging process PermissionError: .*locked/log\.mcap"):
+            McapProcessSink(locked / "log.mcap", metas=[_meta()], start_timeout=60)
+    finally:
+        subprocess.run(["chattr", "-i", str(locked)], capture_output=True)
+    assert list(locked.iterdir()) == []
 
 
 def test_mcap_process_sink_queue_is_bounded_in_bytes(tmp_path):

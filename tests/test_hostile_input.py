@@ -283,5 +283,5 @@ def test_sigterm_under_flood_counts_what_it_discards(work, trial):
     assert discarded >= 5 and handled + discarded == count and samples_in == handled * n
     assert f"shutdown_discarded={discarded}" in mon.stderr  # the input summary says it too
     assert f"input: {count} messages received, {handled} handled" in mon.stderr
-    with np.load(state / "linear-drive_Z.state.npz", allow_pickle=False) as z:
+    with np.load(state / "linear-drive+Z.state.npz", allow_pickle=False) as z:
         assert 0 < int(z["estimator.trained"]) <= samples_in

@@ -107,12 +107,21 @@ def test_csv_missing_column_lists_available(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("kwargs", "parameter", "flag", "text"), [
-    ({"units": "v_meas=parsec"}, "units", "--units", "units v_meas=parsec: unknown unit; known: s, ms"),
-    ({"units": "v_meas=N"}, "units", "--units", "units v_meas=N: N is a force unit, v_meas needs a velocity unit"),
-    ({"mapping": "t=time,v_meas=vm"}, "mapping", "--map", "mapping must give the column of v_ref for the "
-                                                          "velocity-loop form"),
-    ({"mapping": "t=time,speed=vm"}, "mapping", "--map", "mapping: unknown field 'speed'; fields: t, v_ref"),
-    ({"form": "force-input"}, "mapping", "--map", "mapping must give the column of u for the force-input form"),
+    ({"units": "v_meas=parsec"}, ("units",), "--units", "units v_meas=parsec: unknown unit; known: s, ms"),
+    ({"units": "v_meas=N"}, ("units",), "--units", "units v_meas=N: N is a force unit, v_meas needs a velocity unit"),
+    ({"mapping": "t=time,v_meas=vm"}, ("mapping", "form"), "--map, --form",
+     "mapping must give the column of v_ref for the velocity-loop form (form='velocity-loop' needs v_ref, "
+     "form='force-input' needs u)"),
+    ({"mapping": "t=time,speed=vm"}, ("mapping",), "--map", "mapping: unknown field 'speed'; fields: t, v_ref"),
+    ({"form": "force-input"}, ("form", "mapping"), "--form, --map",
+     "mapping gives v_ref (a velocity reference) and no u: that is the velocity-loop form"),
+    # a force command mapped without --form: the error names the form (it once named v_ref only)
+    ({"mapping": "t=time,v_meas=vm,u=F"}, ("form", "mapping"), "--form, --map",
+     "mapping gives u (a force command) and no v_ref: that is the force-input form; set form='force-input'"),
+    # a time column read in the wrong unit (seconds as ms gave Ts = 3 µs, silently): here ms read as s
+    ({"units": "t=s,v_ref=mm/min,v_meas=mm/min"}, ("units",), "--units", "the median time step is 3 s (t read in s), outside the 1e-05 … 1 s a "
+                                             "machine-tool controller samples at: check the unit of the time column; "
+                                             "if the column is in ms, say units t=ms"),
 ])
 def test_a_bad_argument_names_the_parameter_and_the_cli_names_the_flag(tmp_path, capsys, kwargs, parameter, flag,
                                                                         text):
@@ -123,7 +132,7 @@ def test_a_bad_argument_names_the_parameter_and_the_cli_names_the_flag(tmp_path,
     args = {"mapping": "t=time,v_ref=vr,v_meas=vm", "units": None, "form": "velocity-loop"} | kwargs
     with pytest.raises(ParameterError) as err:
         read_csv_trial(src, args["mapping"], args["units"], form=args["form"])
-    assert err.value.parameters == (parameter,) and text in str(err.value) and "--" not in str(err.value)
+    assert err.value.parameters == parameter and text in str(err.value) and "--" not in str(err.value)
     argv = ["import", "csv", str(src), "-o", str(tmp_path / "o.mcap"), "--map", args["mapping"], "--form", args["form"]]
     assert main(argv + (["--units", args["units"]] if args["units"] else [])) == 2
     out = capsys.readouterr().err

@@ -136,7 +136,7 @@ def test_stop_saves_state_only_after_the_estimator_stopped_and_counts_discards(w
     assert st["input"]["shutdown_discarded"] == discarded and st["input"]["pending"] == 0
     assert discarded == (0 if drain > 0 else len(blocks) - 1)
     assert a["samples_in"] == a["blocks"] * len(trial)
-    with np.load(tmp_path / "linear-drive_Z.state.npz", allow_pickle=False) as z:
+    with np.load(tmp_path / "linear-drive+Z.state.npz", allow_pickle=False) as z:
         saved = int(z["estimator.trained"])
     assert saved == ax.estimator.trained == a["trained"] > 0  # the state of the stopped estimator, not a moment of it
 
@@ -155,7 +155,7 @@ def test_stuck_estimator_stop_finishes_without_saving_state(work, trial, tmp_pat
         problems = live.monitor.stop()
         assert live.monitor.state == "stopped"
         assert any("did not stop" in p and "NOT saved" in p for p in problems), problems
-        assert not (tmp_path / "linear-drive_Z.state.npz").exists()
+        assert not (tmp_path / "linear-drive+Z.state.npz").exists()
         assert live.monitor.status()["input"]["shutdown_discarded"] >= 1
     finally:
         sink.release.set()

@@ -199,4 +199,4 @@ def test_sigterm_during_replay_leaves_complete_mcap(work):
     seq, _ = estimates(out)
     assert 500 < len(trial) < 6660
     np.testing.assert_array_equal(seq, trial.seq)  # every sample that got in has its estimate
-    assert (work / "st2" / "linear-drive_Z.state.npz").exists()
+    assert (work / "st2" / "linear-drive+Z.state.npz").exists()

@@ -211,3 +211,45 @@ def test_self_check_reports_a_tracker_breakdown_as_an_alarm(work, monkeypatch):
     assert check.state == "alarm" and check.reports > 0
     assert "the tracker broke down 1 time(s): axis linear-drive/Z: the tracker's numerics broke down " \
            "(non-finite state (injected))" in check.summary()
+
+
+def test_jobs_n_gives_the_file_and_exit_code_of_jobs_1_whatever_was_refused(work, tmp_path):
+    """Two axes, every block of Y refused (longer than max_block_samples): ``--jobs 2`` once exited 2
+    ("missing tracker.D …") where ``--jobs 1`` exited 0; now the same exit code, the same bytes, the same
+    per-axis summary."""
+    import subprocess
+    import sys
+
+    import msgspec
+
+    from feedio.mcapio import TrialWriter
+
+    src = read_trial(work / "trial.mcap")
+    mx, my = (msgspec.structs.replace(src.meta, axis=a) for a in ("X", "Y"))
+    blocks = [b for _, b in iter_blocks(work / "trial.mcap")]
+    path = tmp_path / "two.mcap"
+    with TrialWriter(path, [mx, my], start="2024-05-01T08:00:00Z") as w:
+        for i, b in enumerate(blocks):
+            w.write_samples(msgspec.structs.replace(b, axis="X"))
+            if i % 20 == 19:  # 200 samples of Y ending here
+                j = sum(len(x.t) for x in blocks[:i + 1])
+                w.write_samples(S.SampleBlock(machine=src.machine, axis="Y", seq=j - 200,
+                                              t=src.t[j - 200:j].tolist(), v_ref=src.v_ref[j - 200:j].tolist(),
+                                              v_meas=src.v_meas[j - 200:j].tolist()))
+    models = []
+    for a in ("X", "Y"):
+        (tmp_path / f"{a}.model.toml").write_text((work / "z.model.toml").read_text().replace('axis = "Z"',
+                                                                                               f'axis = "{a}"'))
+        models += ["--model", str(tmp_path / f"{a}.model.toml")]
+    runs = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"out-{jobs}.mcap"
+        r = subprocess.run([sys.executable, "-m", "feedmon.cli", "run", "--from", str(path), "-o", str(out), *models,
+                            "--limit", "max_block_samples=150", "--jobs", str(jobs)], capture_output=True, text=True,
+                           timeout=300)
+        lines = [x for x in r.stderr.splitlines() if x.startswith("feedmon run: linear-drive/")]
+        runs[jobs] = (r.returncode, out.read_bytes() if out.exists() else None, lines)
+        assert ("2 processes" in r.stdout) == (jobs == 2), r.stdout + r.stderr
+    assert runs[1][0] == runs[2][0] == 0, runs
+    assert runs[1][1] == runs[2][1] and runs[1][2] == runs[2][2], runs[2][2]
+    assert any("linear-drive/Y: 0 samples" in x and "blocks refused (too_large)" in x for x in runs[2][2])

@@ -19,6 +19,7 @@ import time
 import zipfile
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -411,7 +412,7 @@ def test_failed_save_leaves_no_tmp_and_keeps_the_old_state(saved, tmp_path):
 
 
 def _axis_state_path(d: Path) -> Path:
-    return d / f"{AXIS[0]}_{AXIS[1]}.state.npz"
+    return d / f"{AXIS[0]}+{AXIS[1]}.state.npz"
 
 
 def test_stale_tmp_of_a_killed_save_is_removed_at_start(work, saved, tmp_path, caplog):
@@ -483,3 +484,58 @@ def test_restart_after_sigkill_says_how_old_the_state_is(work, trial, tmp_path):
         assert rc == (-signal.SIGKILL if sig == signal.SIGKILL else 0), mon.stderr
         assert float(_arrays(sf)["meta.saved_unix"]) == saved_at or sig == signal.SIGTERM
     assert not tmp.exists()
+
+
+# ---- file names --------------------------------------------------------------------------------------------
+def _renamed_axis(work, tmp_path, machine: str, axis: str):
+    text = (work / "z.model.toml").read_text().replace('machine = "linear-drive"', f'machine = "{machine}"')
+    path = tmp_path / f"{machine}-{axis}.model.toml"
+    path.write_text(text.replace('axis = "Z"', f'axis = "{axis}"'))
+    return load_axes([path])[(machine, axis)]
+
+
+def test_state_names_of_two_axes_never_collide(work, trial, tmp_path):
+    """``cell_3``/``X`` and ``cell``/``3_X`` (the old ``<machine>_<axis>`` made both ``cell_3_X``): each keeps
+    its own file and restores its own state."""
+    store = StateStore(tmp_path / "s")
+    a, b = _renamed_axis(work, tmp_path, "cell_3", "X"), _renamed_axis(work, tmp_path, "cell", "3_X")
+    assert store.path_for(a) != store.path_for(b)
+    blocks = [blk for _, blk in iter_blocks(work / "trial.mcap")]
+    for ax, name in ((a, ("cell_3", "X")), (b, ("cell", "3_X"))):
+        for blk in blocks[: 5 if ax is a else 9]:  # two different states
+            ax.estimator.process(msgspec.structs.replace(blk, machine=name[0], axis=name[1]))
+        store.save(ax)
+    for ax in (a, b):
+        again = _renamed_axis(work, tmp_path, *ax.key)
+        res = StateStore(tmp_path / "s").load(again)
+        assert res.origin == "restored" and again.estimator.trained == ax.estimator.trained > 0
+
+
+def test_state_under_the_old_name_is_read_once_and_only_by_its_axis(work, saved, tmp_path, caplog):
+    path, ax = saved
+    d = tmp_path / "s"
+    legacy = _write(d / "linear-drive_Z.state.npz", _arrays(path))
+    other = _renamed_axis(work, tmp_path, "linear", "drive_Z")  # its old name was linear_drive_Z: not this file
+    assert StateStore(d).load(other).origin == "fresh" and legacy.exists()
+    lookalike = _renamed_axis(work, tmp_path, "linear-drive", "Z")
+    store = StateStore(d)
+    with caplog.at_level(logging.INFO, logger="monitor.state"):
+        res = store.load(lookalike)
+    assert res.origin == "restored" and "name of an older feedmon" in caplog.text
+    assert lookalike.estimator.trained == ax.estimator.trained
+    new = store.save(lookalike)
+    assert new == d / "linear-drive+Z.state.npz" and new.exists() and not legacy.exists()
+    # a file of the old name that holds another axis' state: not used, left alone
+    _write(d / "cell_3_X.state.npz", {**_arrays(path), "meta.machine": np.array("cell"), "meta.axis": np.array("3_X")})
+    mine = _renamed_axis(work, tmp_path, "cell_3", "X")
+    res = StateStore(d).load(mine)
+    assert res.origin == "fresh" and "another axis" in res.detail and (d / "cell_3_X.state.npz").exists()
+
+
+def test_an_axis_that_learned_nothing_leaves_the_saved_state_alone(work, saved, tmp_path):
+    path, _ = saved
+    d = tmp_path / "s"
+    kept = _write(d / path.name, _arrays(path))
+    before = kept.read_bytes()
+    idle = _axis(work)  # never saw a sample: its snapshot could not even be restored
+    assert StateStore(d).save(idle) is None and kept.read_bytes() == before

@@ -39,13 +39,15 @@ class RerunForwardSink(RerunProcessSink):
         ``b"T"`` (TruthBlock JSON, ``head`` = ``b"machine\\0axis"``). ``received_ns`` is not used (the
         recording is stamped with controller time)."""
         if tag == b"T":
-            return self.offer(_Encoded(b"T" + head + b"\0" + payload))
-        if tag not in (b"S", b"E"):
+            wire = b"T" + head + b"\0" + payload
+        elif tag in (b"S", b"E"):
+            wire = tag + payload
+        else:
             raise ValueError(f"RerunForwardSink: unknown tag {tag!r}")
-        return self.offer(_Encoded(tag + payload))
+        return self.offer(_Encoded(wire), len(wire))
 
     def handle(self, item: Any) -> None:
         if isinstance(item, _Encoded):
-            self._conn.send_bytes(item.wire)
+            self._send(item.wire, 1)
         else:
             super().handle(item)

@@ -29,8 +29,9 @@ from typing import Any
 import msgspec
 
 from feedio import schema as S
+from feedio.mcapio import held_bytes
 
-from .child import ChildProcessSink, background_priority, check_priority, send_final, start_reporter
+from .child import STALL_SECONDS, ChildProcessSink, background_priority, check_priority, send_final, start_reporter
 
 __all__ = ["RerunProcessSink", "check_outputs"]
 
@@ -46,12 +47,15 @@ def check_outputs(rrd_path, serve_port) -> None:
 
 
 class RerunProcessSink(ChildProcessSink):
-    """A :class:`RerunSink` run in a child process (same arguments, same entities and blueprint).
+    """A :class:`RerunSink` run in a child process (same arguments, same entities and blueprint),
+    supervised and replaced when it stalls or dies (:mod:`monitor.sinks.child`; a new child writes
+    a new file, ``<stem>-001.rrd``, … next to ``rrd_path``: :attr:`rrd_files`).
 
-    Its :meth:`status` adds what went wrong inside the child to the sink's own counters: the
-    child's ``failures`` and undecodable messages to ``failures``, the child's queue drops to
-    ``dropped``, its last error to ``last_error`` (the child reports every ``report_interval`` s
-    while something changes, and once more at the end).
+    Its :meth:`status` adds what went wrong inside the children to the sink's own counters: their
+    ``failures`` and undecodable messages to ``failures``, their queue drops to ``dropped``, the
+    blocks they recorded to ``written``, the blocks they could not record to ``lost``, the last error
+    to ``last_error`` (a child reports every ``report_interval`` s while something changes, at
+    least every heartbeat, and once more at the end).
 
     Parameters
     ----------
@@ -63,18 +67,39 @@ class RerunProcessSink(ChildProcessSink):
         seconds between the child's status reports.
     priority:
         "idle" or "low" (:func:`~monitor.sinks.child.background_priority`).
+    stall_seconds:
+        :data:`~monitor.sinks.child.STALL_SECONDS`.
+    maxsize, max_bytes:
+        the queue's bounds (items; bytes of the messages).
     """
 
+    incomplete_note = "it has no footer: the viewer opens it as it is, 'rerun rrd optimize' writes it with one"
+
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
-                 maxsize: int = 4096, name: str = "rerun", start_timeout: float = 60.0, report_interval: float = 0.5,
-                 priority: str = "idle", **rerun_options) -> None:
+                 maxsize: int = 4096, max_bytes: int = 64 * 2**20, name: str = "rerun", start_timeout: float = 60.0,
+                 report_interval: float = 0.5, priority: str = "idle", stall_seconds: float = STALL_SECONDS,
+                 **rerun_options) -> None:
         check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
-        hello = self._spawn(_child_main, "feedmon-rerun", (self.rrd_path, serve_port, memory_limit, rerun_options,
-                                                           float(report_interval), check_priority(priority)),
-                            start_timeout, "Rerun sink: the recording process")
+        self.rrd_files: list[str] = []
+        self._opts = (serve_port, memory_limit, rerun_options, float(report_interval), check_priority(priority))
+        hello = self._spawn(start_timeout, stall_seconds)
         self.server_uri: str | None = hello.get("server_uri")
-        super().__init__(maxsize, name=name)
+        super().__init__(maxsize, name=name, max_bytes=max_bytes)
+
+    def _child_spec(self, restart: bool):
+        path = self.rrd_path
+        if path is not None and restart:
+            path = _next_free(path)
+        if path is not None:
+            self.rrd_files.append(path)
+        return _child_main, "feedmon-rerun", (path, *self._opts), "the Rerun recording process"
+
+    def _where(self, hello: dict) -> str:
+        return f", writing {self.rrd_files[-1]}" if self.rrd_files else ""
+
+    def _current_files(self, report: dict) -> list[str]:
+        return self.rrd_files[-1:]
 
     # ---- producer side ---------------------------------------------------------------------
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
@@ -92,55 +117,65 @@ class RerunProcessSink(ChildProcessSink):
             health = msgspec.to_builtins(health)
         return self.offer(("health", {"machine": machine, "axis": axis, "health": dict(health)}))
 
-    def status(self):
-        st = super().status()
-        c = self.child_status
-        if c:
-            st["failures"] += int(c.get("failures", 0)) + int(c.get("undecodable", 0))
-            st["dropped"] += int(c.get("dropped", 0))
-            if c.get("last_error"):
-                st["last_error"] = f"recording process: {c['last_error']}"
-            if (c.get("state") == "failed" or c.get("broken")) and st["state"] == "ok":
-                st["state"] = "failed"
-        return st
+    def offer(self, item: Any, size: int | None = None) -> bool:
+        """Queue an item (``size`` bytes; default: a block's :func:`feedio.mcapio.held_bytes`, 1 KiB else)."""
+        if size is None:
+            size = held_bytes(item) if isinstance(item, msgspec.Struct) else 1024
+        return super().offer(item, size)
 
     def extra_status(self) -> dict[str, Any]:
-        return {"rrd_path": self.rrd_path, "server_uri": self.server_uri, "process_alive": self._proc.is_alive(),
-                "pid": self._proc.pid, **({"child": self.child_status} if self.child_status else {})}
+        return {"rrd_path": self.rrd_files[-1] if self.rrd_files else self.rrd_path, "rrd_files": list(self.rrd_files),
+                "incomplete_files": list(self.incomplete_children), "server_uri": self.server_uri,
+                **({"child": c} if (c := self.child_status or self.last_report) else {})}
 
     # ---- worker side (a thread of the monitor process) ----------------------------------------
     def handle(self, item: Any) -> None:
+        self._send(self._wire(item), 1)
+
+    @staticmethod
+    def _wire(item: Any) -> bytes:
         if isinstance(item, S.SampleBlock):
-            self._conn.send_bytes(b"S" + S.encode(item))
-        elif isinstance(item, S.EstimateBlock):
-            self._conn.send_bytes(b"E" + S.encode(item))
-        elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
-            head = f"{item[0]}\0{item[1]}\0".encode()
-            self._conn.send_bytes(b"T" + head + S.encode(item[2]))
-        elif isinstance(item, tuple) and len(item) == 2 and item[0] in ("event", "health"):
-            tag = b"V" if item[0] == "event" else b"H"
-            self._conn.send_bytes(tag + json.dumps(item[1], allow_nan=False).encode())
-        else:
-            raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
-                            f"events and health reports, got {type(item).__name__}")
+            return b"S" + S.encode(item)
+        if isinstance(item, S.EstimateBlock):
+            return b"E" + S.encode(item)
+        if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
+            return b"T" + f"{item[0]}\0{item[1]}\0".encode() + S.encode(item[2])
+        if isinstance(item, tuple) and len(item) == 2 and item[0] in ("event", "health"):
+            return (b"V" if item[0] == "event" else b"H") + json.dumps(item[1], allow_nan=False).encode()
+        raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
+                        f"events and health reports, got {type(item).__name__}")
+
+
+def _next_free(path: str) -> str:
+    """``<stem>-001<suffix>``, ``-002`` … next to ``path``: the first name no file has."""
+    stem, suffix = os.path.splitext(path)
+    for i in range(1, 10_000):
+        candidate = f"{stem}-{i:03d}{suffix or '.rrd'}"
+        if not os.path.exists(candidate):
+            return candidate
+    raise FileExistsError(f"9999 names after {path} exist already")
+
+
+#: bytes of messages the recording process' own queue holds at most
+CHILD_QUEUE_BYTES = 64 * 2**20
 
 
 def _report_key(st: dict) -> tuple:
     """What makes the recording process report: its error counts and state, not every message written."""
-    return st["failures"], st["dropped"], st["state"], st.get("broken"), st["undecodable"]
+    return st["failures"], st["dropped"], st["lost"], st["state"], st.get("broken"), st["undecodable"]
 
 
 def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5, priority="idle") -> None:
     """The recording process: pipe → decode → :class:`RerunSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from .rerun_sink import RerunSink  # (imports first: a process in SCHED_IDLE would take minutes on a busy machine)
+
     # a recording is background work: the estimator must win every contended core (before Rerun starts
     # its threads, which inherit it)
     background_priority(priority)
-    from .rerun_sink import RerunSink
-
     try:
-        sink = RerunSink(rrd_path, serve_port, memory_limit, **options)
+        sink = RerunSink(rrd_path, serve_port, memory_limit, max_bytes=CHILD_QUEUE_BYTES, **options)
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
         conn.send_bytes(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
         return
@@ -157,9 +192,9 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interv
             if tag == b"Q":
                 break
             if tag == b"S":
-                sink.offer(S.decode_samples(body))
+                sink.offer(S.decode_samples(body), len(body))
             elif tag == b"E":
-                sink.offer(S.decode_estimates(body))
+                sink.offer(S.decode_estimates(body), len(body))
             elif tag == b"T":
                 machine, axis, payload = body.split(b"\0", 2)
                 sink.offer_truth(machine.decode(), axis.decode(), S.decode_truth(payload))

@@ -27,12 +27,14 @@ a batch. In ``feedmon run`` the whole sink runs in a child process
 
 Failures
 --------
-Every failure is counted in ``failures`` (per lost block): a block that cannot be recorded
-(a time outside Rerun's nanosecond timeline, ±292 years), an exception while sending, too many
-axes (``max_axes``). The recording is flushed every ``flush_interval`` s; a flush that does not
-finish within ``flush_timeout`` s (e.g. the disk is full: Rerun's file writer stops) is a failure,
-and after ``broken_after`` such flushes in a row the output is declared broken: later blocks are
-dropped and counted instead of piling up in Rerun's buffers, and the final flush is skipped
+Every failure is counted in ``failures`` (per lost block, also counted ``lost``): a block that
+cannot be recorded (a time outside Rerun's nanosecond timeline, ±292 years), an exception while
+sending, too many axes (``max_axes``). A block is ``written`` when its batch was sent. The
+recording is flushed every ``flush_interval`` s; a flush that does not finish within
+``flush_timeout`` s makes the sink ``degraded`` (a busy machine: Rerun still holds the data, nothing
+is lost, nothing alarming is logged), and ``broken_after`` such flushes in a row are a failure
+(e.g. the disk is full: Rerun's file writer stopped): the output is declared broken, later blocks
+are dropped and counted instead of piling up in Rerun's buffers, and the final flush is skipped
 (it would wait for ever).
 
 The ``.rrd`` file is written with a footer (``rerun rrd verify`` needs it); the footer index is
@@ -223,6 +225,8 @@ class RerunSink(QueuedSink):
 
     #: blocks are only buffered by ``handle``: a batch sent and flushed proves the output works
     recover_on_tick = True
+    #: a block is written when its batch was sent (events and health reports when taken)
+    counts_written = False
 
     def __init__(
         self,
@@ -248,6 +252,7 @@ class RerunSink(QueuedSink):
         broken_after: int = 3,
         max_axes: int = 64,
         maxsize: int = 4096,
+        max_bytes: int | None = None,
         name: str = "rerun",
     ) -> None:
         import rerun as rr
@@ -295,7 +300,7 @@ class RerunSink(QueuedSink):
         self.events_logged = 0
         self._layout: tuple = ()
         self._tick_failed = False
-        super().__init__(maxsize, name=name, tick_interval=min(0.05, self.batch_interval / 2))
+        super().__init__(maxsize, name=name, tick_interval=min(0.05, self.batch_interval / 2), max_bytes=max_bytes)
 
     # ---- producer helpers ----------------------------------------------------------------
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock) -> bool:
@@ -368,6 +373,8 @@ class RerunSink(QueuedSink):
         else:
             raise TypeError(f"RerunSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), events "
                             f"and health reports, got {type(item).__name__}")
+        if isinstance(item, _EventItem | _HealthItem):
+            self.count_written(1)  # (an event line is sent with the flags' lines; a report is one only on a change)
 
     def _take_health(self, item: _HealthItem) -> None:
         h = item.health
@@ -578,8 +585,9 @@ class RerunSink(QueuedSink):
         )
         self.events_logged += len(evs)
 
-    def _attempt(self, fn, *args, items: int = 1) -> None:
-        """Run one send step; a failure loses ``items`` blocks, each counted."""
+    def _attempt(self, fn, *args, items: int = 0) -> None:
+        """Run one send step of ``items`` blocks: written when it worked, each counted lost (and a
+        failure) when it did not."""
         try:
             fn(*args)
         except Exception as exc:  # noqa: BLE001 - one bad batch must not stop the recording
@@ -587,6 +595,9 @@ class RerunSink(QueuedSink):
             self._record_failure(exc)
             with self._lock:
                 self.failures += max(0, items - 1)
+            self.count_lost(items)
+            return
+        self.count_written(items)
 
     def _record_success(self) -> None:
         # a tick clears the failed state only when everything in it was sent and the output takes data
@@ -597,11 +608,12 @@ class RerunSink(QueuedSink):
         if self.broken:
             lost = 0
             for ax in self._axes.values():
-                lost += len(ax.samples) + len(ax.estimates) + len(ax.truth) + len(ax.events)
+                lost += len(ax.samples) + len(ax.estimates) + len(ax.truth)
                 ax.samples, ax.estimates, ax.truth, ax.events = [], [], [], []
             if lost:
                 with self._lock:
                     self.failures += lost
+                self.count_lost(lost)
             return
         for ax in self._axes.values():  # the estimates tell whether the axis is in newtons
             if ax.estimates:
@@ -616,20 +628,27 @@ class RerunSink(QueuedSink):
                     self._attempt(send, ax, blocks, items=len(blocks))
                     self.batches += 1
             if ax.events:
-                self._attempt(self._log_events, ax, items=len(ax.events))
+                self._attempt(self._log_events, ax)
 
     def _flush(self, timeout: float) -> None:
+        """Flush the recording; one that does not finish in ``timeout`` s makes the sink ``degraded`` (Rerun
+        still holds the data: a busy machine), ``broken_after`` in a row a failure and the output broken."""
         try:
             self.rec.flush(timeout_sec=timeout)
         except Exception as exc:  # noqa: BLE001 - Rerun raises RuntimeError when the writer is stuck
             self._flush_failures += 1
-            self._record_failure(exc)
-            if self._flush_failures >= self.broken_after and not self.broken:
+            why = f"a flush of the recording did not finish in {timeout:g} s ({self._flush_failures} in a row: {exc})"
+            if self._flush_failures < self.broken_after:
+                self.set_degraded(why)
+                return
+            self._record_failure(TimeoutError(why), f"TimeoutError: {why}")
+            if not self.broken:
                 self.broken = True
-                log.error("sink %s: the Rerun output does not take data any more (%s); further blocks are "
-                          "dropped and counted as failures", self.name, exc)
+                self.log.say(logging.ERROR, "the Rerun output does not take data any more (%s); further blocks are "
+                             "dropped and counted lost", why)
             return
         self._flush_failures = 0
+        self.set_degraded(None)
 
     def tick(self, now: float) -> None:
         self._tick_failed = False
@@ -648,10 +667,13 @@ class RerunSink(QueuedSink):
                 if ax.since_psd and ax.last_seq is not None:
                     self._attempt(self._log_spectra, ax, ax.last_seq - 1, ax.last_seq, ax.last_t)
                 if ax.events:
-                    self._attempt(self._log_events, ax, items=len(ax.events))
+                    self._attempt(self._log_events, ax)
             self._flush(max(10.0, self.flush_timeout))
         if self._flush_failures:  # Rerun's disconnect waits for ever on a writer that stopped
             self.broken = True
+            if not self.failed:
+                why = "the last flush of the recording did not finish: it may end without its footer"
+                self._record_failure(TimeoutError(why), f"TimeoutError: {why}")
         if not self.broken:
             self.rec.disconnect()  # finalises the .rrd footer and stops the gRPC server
 
