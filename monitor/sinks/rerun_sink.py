@@ -150,6 +150,7 @@ class _Axis:
     rpm: float | None = None
     markers_said: tuple | None = None
     health: str | None = None
+    context: bool = False  # the estimates carry context columns (NC program line, tool)
     pruned: _Rolling = field(default_factory=_Rolling)
     reduced: _Rolling = field(default_factory=_Rolling)
 
@@ -411,12 +412,12 @@ class RerunSink(QueuedSink):
         """Static styling of every series of an axis (legend names, colours, aggregation)."""
         import rerun as rr
 
-        for ent, s in L.series_styles(bool(ax.force is None or ax.force)).items():
+        for ent, s in L.series_styles(bool(ax.force is None or ax.force), ax.context).items():
             self.rec.log(f"{ax.root}/{ent}", rr.SeriesLines(names=s.label, colors=s.colour, widths=s.width,
                                                             aggregation_policy=s.aggregation), static=True, strict=True)
 
     def _send_layout(self) -> None:
-        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force))
+        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force), ax.context)
                       for (m, a), ax in sorted(self._axes.items()))
         if views == self._layout:
             return
@@ -489,6 +490,10 @@ class RerunSink(QueuedSink):
         if not ax.has_samples:
             self._send(ax, "velocity/measured", seq, t, 1e3 * col("v_meas"))
         self._send(ax, "velocity/predicted", seq, t, 1e3 * col("v_pred"))
+        for name in S.CONTEXT_COLUMNS:  # NC program line, tool number of sample j, at j
+            ctx = col(name)
+            ax.context |= ctx is not None
+            self._send(ax, f"context/{name}", seq, t, ctx)
         # --- dictionary ---
         size = _column(blocks, "dict_size", n, dtype=np.int64)
         removed = _column(blocks, "removed", n, dtype=np.int64)
