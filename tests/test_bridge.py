@@ -167,12 +167,12 @@ def _rows(counts, x=None, v=5.0, line=7, u=0.0) -> np.ndarray:
 
 
 def test_the_counter_is_unwrapped_and_a_jump_is_a_gap_of_exactly_the_missing_samples():
-    m = Mapper(_mcfg())
+    m = Mapper(_mcfg(v_meas="v"))
     runs = m.map(_rows([WRAP - 2, WRAP - 1, 0, 1]), 100.0)  # u32 wraps
     assert [(r.seq0, len(r)) for r in runs] == [(WRAP - 2, 4)] and m.gaps == 0
     runs = m.map(_rows([2, 3, 10, 11, 12]), 100.01)       # 6 cycles not delivered (FIFO overrun)
     assert [(r.seq0, len(r)) for r in runs] == [(WRAP + 2, 2), (WRAP + 10, 3)]
-    assert (m.gaps, m.missing, m.sessions) == (1, 6, 1)
+    assert (m.gaps, m.missing, m.sessions, m.held) == (1, 6, 1, 0)
     t = np.concatenate([r.t for r in runs])
     np.testing.assert_allclose(np.diff(t), [0.001, 0.007, 0.001, 0.001], atol=1e-9)  # t = (seq + k0) Ts
     assert t[-1] == pytest.approx(100.0 + 11 * 0.001)  # k0 fixed by the session's first read: seq WRAP+1 at 100 s
@@ -181,7 +181,7 @@ def test_the_counter_is_unwrapped_and_a_jump_is_a_gap_of_exactly_the_missing_sam
 
 
 def test_a_new_session_restarts_seq_while_time_goes_on():
-    m = Mapper(_mcfg())
+    m = Mapper(_mcfg(v_meas="v"))
     first = m.map(_rows(np.arange(5000, 5010)), 50.0)[0]
     again = m.map(_rows([3, 4, 5]), 49.0)[0]  # LinuxCNC restarted; a read stamp even earlier than the last sample
     assert again.seq0 == 3 and m.sessions == 2
@@ -192,7 +192,8 @@ def test_velocity_from_position_units_and_nonfinite_values():
     m = Mapper(_mcfg())
     x = np.array([0.0, 0.1, 0.3, 0.6])  # mm
     a = m.map(_rows([1, 2, 3, 4], x=x), 1.0)[0]
-    np.testing.assert_allclose(a.cols["X.v_meas"], [np.nan, 0.1, 0.2, 0.3], equal_nan=True)  # (Δx mm · 0.001)/Ts
+    assert a.seq0 == 2 and m.held == 1  # the first sample has no velocity: it only gives the second one its own
+    np.testing.assert_allclose(a.cols["X.v_meas"], [0.1, 0.2, 0.3])  # (Δx mm · 0.001)/Ts
     np.testing.assert_allclose(a.cols["X.v_ref"], 0.005)  # 5 mm/s
     b = m.map(_rows([5, 6], x=[1.0, 1.5]), 1.002)[0]  # continues: the previous frame's last position is used
     np.testing.assert_allclose(b.cols["X.v_meas"], [0.4, 0.5])
@@ -203,6 +204,7 @@ def test_velocity_from_position_units_and_nonfinite_values():
     decoded = S.decode_samples(S.encode(blk))  # NaN travels as null: the monitor rejects that sample
     assert decoded.v_ref == [None, None, None] and decoded.v_meas[0] is not None and decoded.v_meas[1] is None
     assert decoded.program_line == [7, 7, 7] and decoded.seq == 7
+    assert [r.seq0 for r in m.map(_rows([20, 21, 22]), 1.02)] == [21] and m.held == 2  # after a gap, too
 
 
 def test_blocks_carry_the_axis_columns_in_si_and_the_context():
@@ -229,7 +231,7 @@ class _Pub:
 
 
 def test_outlet_cuts_blocks_splits_at_gaps_and_bounds_the_wait():
-    cfg = BridgeConfig(**{**_fields(_mcfg()), "publish": type(_mcfg().publish)(block=4, max_delay=0.02)})
+    cfg = BridgeConfig(**{**_fields(_mcfg(v_meas="v")), "publish": type(_mcfg().publish)(block=4, max_delay=0.02)})
     pub = _Pub()
     out, m = Outlet(cfg, {"X": pub}, None), Mapper(cfg)
     out.add(m.map(_rows(range(1, 11)), 1.0), now=0.0)

@@ -10,20 +10,49 @@ from __future__ import annotations
 
 import os
 import pwd
+import re
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import tempfile
+import threading
 import time
+import tomllib
 from pathlib import Path
 
-__all__ = ["HAL_DIR", "SIM_DIR", "INSTALL_HINT", "hal_user", "as_hal_user", "linuxcnc_missing", "workdir",
-           "halcmd", "counting", "give", "HalPlant", "LinuxCNC", "Rsh", "wait_for"]
+from feedio import schema as S
+from kernels.feed_drive import beta_names, physical_to_beta
+
+__all__ = ["HAL_DIR", "SIM_DIR", "INSTALL_HINT", "plant_truth", "plant_meta", "hal_user", "as_hal_user", "linuxcnc_missing", "workdir",
+           "halcmd", "counting", "give", "HalPlant", "LinuxCNC", "Rsh", "wait_for", "Proc",
+           "bridge_config", "start_bridge"]
 
 HAL_DIR = Path(__file__).with_name("hal")
 SIM_DIR = Path(__file__).with_name("sim")
 INSTALL_HINT = ("install LinuxCNC: apt-get install -y --no-install-recommends linuxcnc-uspace (Debian 12), and, when "
                 "running as root, create the user HAL runs as: useradd -m lcnc (or set FEEDMON_HAL_USER)")
+
+
+def plant_truth() -> dict:
+    """The HAL plant's known truth (``hal/truth.toml``): mass (kg), damping (N·s/m), coulomb (N), omega (m/s),
+    loop_gain (N·s/m), and each plant file's servo period (``rates``)."""
+    return tomllib.loads((HAL_DIR / "truth.toml").read_text(encoding="utf-8"))
+
+
+def plant_meta(Ts: float, machine: str = "plant", axis: str = "X") -> S.TrialMeta:
+    """Trial metadata of the plant sampled every ``Ts`` s with its true β (force-input form, the exact ZOH
+    discretisation the plant integrates): ``monitor.model_file.truth_model`` makes its model from it."""
+    tr = plant_truth()
+    beta = physical_to_beta("force-input", Ts, tr["mass"], tr["damping"], coulomb_pos=tr["coulomb"],
+                            coulomb_neg=tr["coulomb"])
+    physical = {"inertia": tr["mass"], "damping": tr["damping"], "coulomb_pos": tr["coulomb"],
+                "coulomb_neg": tr["coulomb"], "loop_gain": tr["loop_gain"]}
+    return S.TrialMeta(Ts=Ts, form="force-input", machine=machine, axis=axis,
+                       provenance=S.Provenance(source="linuxcnc", tool="HAL plant", version="1"),
+                       truth=S.TrialTruth(beta=beta.tolist(), omega=tr["omega"], coulomb=True, physical=physical,
+                                          beta_names=list(beta_names("force-input"))))
 
 
 def hal_user() -> str | None:
@@ -110,7 +139,10 @@ class HalPlant:
 
     def __init__(self, hal_file: Path, work: Path, *, timeout: float = 60.0) -> None:
         self.work = work
-        self.file = give(Path(shutil.copy(hal_file, work)))
+        self.file = work / hal_file.name
+        if hal_file.resolve() != self.file.resolve():
+            shutil.copy(hal_file, self.file)
+        give(self.file)
         wait_for(_no_hal, timeout, "an earlier HAL session to end")
         self.log = open(work / f"{self.file.stem}.halrun.log", "w")
         self.proc = subprocess.Popen(as_hal_user(["halrun", "-I", "-f", str(self.file)]), cwd=work,
@@ -126,7 +158,10 @@ class HalPlant:
 
     def streamer(self, values_file: Path, channel: int = 0) -> subprocess.Popen:
         """``halstreamer -c CHANNEL FILE``: feeds ``streamer.CHANNEL`` until the file ends."""
-        path = give(Path(shutil.copy(values_file, self.work)))
+        path = self.work / values_file.name
+        if values_file.resolve() != path.resolve():
+            shutil.copy(values_file, path)
+        give(path)
         proc = subprocess.Popen(as_hal_user(["halstreamer", "-c", str(channel), str(path)]), cwd=self.work,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.children.append(proc)
@@ -171,10 +206,11 @@ class Rsh:
 
     def __init__(self, port: int = 5007, timeout: float = 30.0) -> None:
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=timeout)
-        self.file = self.sock.makefile("rw", newline="\r\n")
+        self.file = self.sock.makefile("rw")
         self.ask("hello EMC feedmon 1.0")
-        self.ask("set enable EMCTOO")
+        self.ask("set enable EMCTOO")  # echoed (echo is on until the next line)
         self.ask("set echo off")
+        self.ask("set verbose on")  # from now on every set command is answered ACK or NAK
 
     def ask(self, line: str) -> str:
         self.file.write(line + "\r\n")
@@ -186,7 +222,7 @@ class Rsh:
 
     def run_program(self, path: Path) -> None:
         """Estop off, machine on, home every joint in place, run ``path`` in auto mode."""
-        for line in ("set verbose on", "set estop off", "set machine on", "set mode manual", "set home 0",
+        for line in ("set estop off", "set machine on", "set mode manual", "set home 0",
                      "set home 1", "set home 2", "set mode auto", f"set open {path}", "set run"):
             self.ask(line)
 
@@ -243,3 +279,73 @@ class LinuxCNC:
         finally:
             self.log.close()
             wait_for(_no_hal, timeout, "HAL to end after LinuxCNC")
+
+
+class Proc:
+    """A ``feedmon`` sub-command as a subprocess (this interpreter), its stderr collected by a thread."""
+
+    def __init__(self, args: list[str], cwd: Path) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "feedmon.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line)
+
+    @property
+    def stderr(self) -> str:
+        return "".join(self.lines)
+
+    def count(self, text: str) -> int:
+        return sum(text in line for line in list(self.lines))
+
+    def wait_line(self, pattern: str, timeout: float, n: int = 1) -> re.Match:
+        """The ``n``-th stderr line matching ``pattern`` (a regex), waiting up to ``timeout`` s."""
+        def found():
+            hits = [m for m in (re.search(pattern, line) for line in list(self.lines)) if m]
+            if len(hits) < n and self.proc.poll() is not None:
+                self._reader.join(5)
+                raise RuntimeError(f"process ended ({self.proc.returncode}) before {pattern!r}:\n{self.stderr}")
+            return hits[n - 1] if len(hits) >= n else None
+        try:
+            return wait_for(found, timeout, f"a line {pattern!r}")
+        except TimeoutError as exc:
+            raise TimeoutError(f"{exc}; stderr so far:\n{self.stderr[-3000:]}") from None
+
+    def wait(self, timeout: float) -> int:
+        rc = self.proc.wait(timeout)
+        self._reader.join(5)
+        return rc
+
+    def stop(self, timeout: float = 60.0) -> int:
+        """SIGTERM and wait; the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.wait(10)
+            raise RuntimeError(f"process did not stop within {timeout:g} s:\n{self.stderr[-3000:]}") from None
+
+
+def bridge_config(src: Path, work: Path, extra: str = "") -> Path:
+    """``src`` (a bridge config) written into ``work`` with ``extra`` appended and, when this process is
+    root, ``[hal] user`` set to :func:`hal_user`."""
+    text = src.read_text(encoding="utf-8") + "\n" + extra
+    user = hal_user()
+    if user is not None:
+        text += f'\n[hal]\nuser = "{user}"\n'
+    path = work / src.name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def start_bridge(config: Path, work: Path, *args: str, timeout: float = 60.0) -> Proc:
+    """``feedmon bridge linuxcnc --config CONFIG ARGS``, once attached to HAL."""
+    proc = Proc(["bridge", "linuxcnc", "--config", str(config), *args], work)
+    proc.wait_line(r"attached to sampler", timeout)
+    return proc

@@ -20,7 +20,9 @@ Columns
 -------
 Velocities and positions are scaled by ``length_scale`` (m per machine unit), ``u`` by
 ``force_scale``, ``current`` by ``current_scale``; ``v_meas`` from a position is the backward
-difference ``(x(k) − x(k−1))/Ts`` (HAL's ``ddt``), unknown (null) for the first sample of a run;
+difference ``(x(k) − x(k−1))/Ts`` (HAL's ``ddt``): the first sample of a run (after a gap or at a
+session's start) has none, so it is not sent — it only gives the next sample its velocity (counted
+in :attr:`Mapper.held`; the monitor sees a gap one sample longer);
 ``spindle_angle = 2π·revs`` (rad); ``spindle_rpm`` from rpm or rps. A non-finite value becomes
 null (the monitor rejects that sample) and is counted per pin in :attr:`Mapper.nonfinite`.
 """
@@ -88,6 +90,7 @@ class Mapper:
         self.sessions = 0  # HAL sessions seen
         self.gaps = 0  # runs that started after missing samples
         self.missing = 0  # samples the counter says were not delivered
+        self.held = 0  # first samples of a run not sent: their velocity (a position difference) is unknown
         self._low: int | None = None  # last counter value (mod 2**32)
         self._seq = 0  # its unwrapped value
         self._k0 = 0  # t = (seq + k0) Ts
@@ -126,7 +129,13 @@ class Mapper:
                 self._seq += 1
             seq0 = self._seq
             self._seq += int(b - a) - 1
-            runs.append(self._run(rows[a:b], seq0, continues=not back[a] and step[a] == 1))
+            continues = not back[a] and step[a] == 1
+            run = self._run(rows[a:b], seq0, continues)
+            if not continues and self._positions:  # its velocity is unknown: it only gives the next one's
+                run = run.cut(1, len(run))
+                self.held += 1
+            if len(run):
+                runs.append(run)
         self._low = int(low[-1])
         return runs
 

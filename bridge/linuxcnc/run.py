@@ -203,7 +203,8 @@ def run_bridge(cfg: BridgeConfig, *, session=None, prefix: str = T.DEFAULT_PREFI
         wayback.close()
         for pub in (publishers or {}).values():
             pub.undeclare()
-    return {**outlet.counters, "gaps": mapper.gaps, "missing_samples": mapper.missing, "sessions": mapper.sessions,
+    return {**outlet.counters, "gaps": mapper.gaps, "missing_samples": mapper.missing, "held": mapper.held,
+            "sessions": mapper.sessions,
             "attaches": attaches, "nonfinite": dict(mapper.nonfinite), **wayback.counters}
 
 
