@@ -36,11 +36,10 @@ sampler float IN -0.01974526 sampler.0.pin.1 <== v_ref
 sampler float IN -0.01434442 sampler.0.pin.2 <== v
 sampler float IN 0.01486439 sampler.0.pin.3 <== x
 sampler float IN -26.06257 sampler.0.pin.4 <== u
-sampler u32   IN 0 sampler.0.pin.5 <== fm-x-sample
 """
 SIGS = """\
 u32    442  count ==> sampler.0.pin.0 ==> sampler.1.pin.0 <== threadtest.0.count
-u32    0  fm-x-sample ==> sampler.0.pin.5
+u32    0  fm-x-sample ==> sampler.1.pin.2
 float  -26.08967  u <== pid.0.output ==> sampler.0.pin.4 ==> sum2.0.in0
 float  -0.01375568  v <== integ.0.out ==> integ.1.in ==> pid.0.feedback ==> sampler.0.pin.2 ==> sum2.0.in1
 float  -0.0191711  v_ref ==> pid.0.command ==> sampler.0.pin.1 <== sum2.4.out
@@ -48,7 +47,7 @@ float  0.01499175  x <== integ.1.out ==> sampler.0.pin.3
 """
 THREADS = ("3000000 YES servo-thread    16660 79356 threadtest.0.increment integ.0 integ.1 siggen.0.update "
            "pid.0.do-pid-calcs sum2.0 sampler.0 sampler.1\n")
-TYPES = "uffffu"
+TYPES = "uffff"
 
 
 def _wiring(pins=PINS, sigs=SIGS, threads=THREADS) -> Wiring:
@@ -76,7 +75,7 @@ def test_shipped_configs_load():
     (("v_meas = \"v\"", "v_meas = \"speed\""), r"axes\.X\.v_meas = 'speed' is not one of the sampler's columns"),
     (("counter = \"threadtest.0.count\"", "counter = \"count\""), r"counter = 'count' is not one of the sampler"),
     (("max_delay = 0.01", "max_dela = 0.01"), r"unknown field `max_dela`.*known keys here: block, max_delay"),
-    (("\"u\", \"fm-x-sample\"]", "\"u\", \"u\"]"), r"columns name u twice"),
+    (("\"x\", \"u\"]", "\"u\", \"u\"]"), r"columns name u twice"),
     (("servo_period = 0.003", "servo_period = -1"), r"servo_period.*allowed: 1e-05 ≤ servo_period ≤ 1"),
     (("sample = \"fm-x-sample\"", "speed = \"fm-x-sample\""), r"axes\.X\.links\.speed: the bridge has no such pin"),
     (("u = \"u\"\n", ""), r"axes\.X: the force-input form needs u"),
@@ -108,7 +107,7 @@ def test_the_plant_is_wired_as_its_config_says():
     check_wiring(cfg, TYPES, w)
     # a column named by any pin on its signal is that column
     check_wiring(cfg.__class__(**{**_fields(cfg), "columns": ["count", "sum2.4.out", "pid.0.feedback",
-                                                                 "x", "sum2.0.in0", "fm-x-sample"],
+                                                                 "x", "sum2.0.in0"],
                                   "counter": "count", "axes": {"X": AxisConfig(
                                       u="sum2.0.in0", v_meas="pid.0.feedback", v_ref="sum2.4.out")}}).check(),
                  TYPES, w)
@@ -120,14 +119,14 @@ def _fields(cfg) -> dict:
 
 @pytest.mark.parametrize("change, message", [
     # a sampler with one more column than the config lists: the pin is named
-    (lambda c: {"columns": c.columns[:-1], "axes": {"X": AxisConfig(u="u", v_meas="v")}},
-     r"sampler\.0\.pin\.5 \(fed by signal fm-x-sample \(no writer\)\) is not in the config's columns"),
+    (lambda c: {"columns": c.columns[:-1], "axes": {"X": AxisConfig(v_ref="v_ref", v_meas="v")}},
+     r"sampler\.0\.pin\.4 \(fed by signal u \(written by pid\.0\.output\)\) is not in the config's columns"),
     # columns out of order
-    (lambda c: {"columns": ["threadtest.0.count", "v", "v_ref", "x", "u", "fm-x-sample"]},
+    (lambda c: {"columns": ["threadtest.0.count", "v", "v_ref", "x", "u"]},
      r"sampler\.0\.pin\.1 is fed by signal v_ref \(written by sum2\.4\.out\), but the config's column 1 is v"),
     # the config lists a column the sampler does not have
-    (lambda c: {"columns": [*c.columns, "extra"]}, r"column 6, extra, has no sampler pin: sampler\.0 was loaded "
-                                                   r"with cfg=uffffu"),
+    (lambda c: {"columns": [*c.columns, "extra"]}, r"column 5, extra, has no sampler pin: sampler\.0 was loaded "
+                                                   r"with cfg=uffff"),
     # a wrong servo period
     (lambda c: {"servo_period": 0.001}, r"servo_period = 0\.001 s in the config, but sampler\.0 runs in "
                                         r"servo-thread every 0\.003 s \(3000000 ns\): set servo_period = 0\.003"),

@@ -68,11 +68,11 @@ def _force(work: Path, scenario: str, *, seed: int, scale: float, duration: floa
 
 
 def _truth(path: Path) -> dict[int, float]:
-    """``halsampler -t`` lines of sampler.1 (tag, counter, force N) → {counter: force}."""
+    """``halsampler -t`` lines of the plant's sampler.1 (tag, counter, force N, way-back sample) → {counter: force}."""
     out = {}
     for line in path.read_text().splitlines():
         parts = line.split()
-        if len(parts) == 3:
+        if len(parts) == 4:
             out[int(parts[1])] = float(parts[2])
     return out
 

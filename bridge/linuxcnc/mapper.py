@@ -74,16 +74,19 @@ class Mapper:
         self.cfg = cfg
         self.Ts = float(cfg.servo_period)
         self._counter = cfg.column(cfg.counter)
-        self._float_cols: list[tuple[str, int, float]] = []  # (key, column, scale)
+        keys, cols, scales = [], [], []  # the float columns: "<axis>.<field>", sampler column, scale to SI
         self._positions: list[str] = []  # axes whose v_meas is the difference of their position
         for axis, ax in cfg.axes.items():
-            scales = {"v_ref": ax.length_scale, "v_meas": ax.length_scale, "position": ax.length_scale,
-                      "u": ax.force_scale, "current": ax.current_scale, "spindle_revs": 2.0 * math.pi,
-                      "spindle_speed": 60.0 if ax.spindle_speed_unit == "rps" else 1.0}
+            si = {"v_ref": ax.length_scale, "v_meas": ax.length_scale, "position": ax.length_scale,
+                  "u": ax.force_scale, "current": ax.current_scale, "spindle_revs": 2.0 * math.pi,
+                  "spindle_speed": 60.0 if ax.spindle_speed_unit == "rps" else 1.0}
             for f, col in ax.pins().items():
-                self._float_cols.append((f"{axis}.{f}", cfg.column(col), scales[f]))
+                keys.append(f"{axis}.{f}")
+                cols.append(cfg.column(col))
+                scales.append(si[f])
             if ax.v_meas is None:
                 self._positions.append(axis)
+        self._keys, self._cols, self._scales = keys, np.array(cols), np.array(scales)
         self._context = [(name, cfg.column(col)) for name, col in cfg.context().items()]
         #: non-finite values per HAL column name (the sample goes out as null)
         self.nonfinite: dict[str, int] = {}
@@ -108,6 +111,11 @@ class Mapper:
         if n == 0:
             return []
         low = np.asarray(rows[:, self._counter], dtype=np.int64) % WRAP
+        if self._low is not None and (int(low[0]) - self._low) % WRAP == 1 and \
+                (n == 1 or bool(np.all(np.diff(low) % WRAP == 1))):  # the usual case: the next samples
+            self._seq += n
+            self._low = int(low[-1])
+            return [self._run(rows, self._seq - n + 1, True)]
         step = np.empty(n, dtype=np.int64)
         step[1:] = (low[1:] - low[:-1]) % WRAP
         step[0] = 0 if self._low is None else (int(low[0]) - self._low) % WRAP
@@ -154,15 +162,14 @@ class Mapper:
         n = rows.shape[0]
         t = (np.arange(seq0, seq0 + n, dtype=np.float64) + self._k0) * self.Ts
         self._t_last = float(t[-1])
-        cols: dict[str, np.ndarray] = {}
-        for key, col, scale in self._float_cols:
-            x = rows[:, col] * scale
-            bad = ~np.isfinite(x)
-            if bad.any():
-                name = self.cfg.columns[col]
-                self.nonfinite[name] = self.nonfinite.get(name, 0) + int(bad.sum())
-                x[bad] = np.nan
-            cols[key] = x
+        X = rows[:, self._cols] * self._scales
+        bad = ~np.isfinite(X)
+        if bad.any():
+            X[bad] = np.nan
+            for i in np.flatnonzero(bad.any(axis=0)):
+                name = self.cfg.columns[self._cols[i]]
+                self.nonfinite[name] = self.nonfinite.get(name, 0) + int(bad[:, i].sum())
+        cols = {key: X[:, i] for i, key in enumerate(self._keys)}
         for axis in self._positions:
             x = cols[f"{axis}.position"]
             prev = self._last_x.get(axis, math.nan) if continues else math.nan

@@ -81,6 +81,9 @@ class Outlet:
         for run in runs:
             if self._pending is not None and run.seq0 != self._pending.end:
                 self.flush()
+            if self._pending is None and len(run) == self.block:  # as it came: no waiting, no cutting
+                self._emit(run)
+                continue
             if self._pending is None:
                 self._pending, self._since = run, now
             else:
