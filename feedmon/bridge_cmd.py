@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -64,6 +65,10 @@ def run_linuxcnc(args: argparse.Namespace) -> int:
     if args.duration is not None and not 0 < args.duration <= 1e7:
         raise ValueError(f"--duration must be 0 < S <= 1e7 seconds, got {args.duration}")
     _logging()
+    if os.geteuid() == 0 and cfg.hal.user is None:
+        logging.getLogger("bridge.linuxcnc").warning(
+            "running as root without [hal] user: the HAL helper runs as root, which LinuxCNC's shutdown cannot "
+            "signal; set [hal] user to the user LinuxCNC runs as")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

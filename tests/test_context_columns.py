@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_dashboard import open_rrd, rrd_scalars
+from test_dashboard import est_block, open_rrd, rrd_scalars
 from truth_models import truth_workdir
 
 from feedio import schema as S
@@ -81,7 +81,6 @@ def test_the_offline_run_logs_the_context_with_the_estimates(work, tmp_path):
 
 def test_the_dashboard_shows_the_nc_line_and_tool(tmp_path):
     from monitor.sinks.rerun_sink import RerunSink
-    from test_dashboard import est_block
 
     rrd = tmp_path / "ctx.rrd"
     sink = RerunSink(rrd_path=rrd, batch_interval=0.02)

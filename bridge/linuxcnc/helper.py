@@ -36,7 +36,7 @@ WAIT_CODES = (4, 5)
 MAX_FRAME = 1 << 26
 
 
-class HalError(RuntimeError):
+class HalError(OSError):
     """The helper failed for a reason waiting will not cure (message from the helper)."""
 
 

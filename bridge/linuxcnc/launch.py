@@ -240,8 +240,9 @@ class LinuxCNC:
         wait_for(_no_hal, timeout, "an earlier HAL session to end")
         self.work = work
         self.log = open(work / "linuxcnc.log", "a")
+        env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}  # headless: never ask through a window
         self.proc = subprocess.Popen(as_hal_user(["linuxcnc", ini]), cwd=work, stdin=subprocess.DEVNULL,
-                                     stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+                                     stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         try:
             self.rsh = wait_for(self._connect, timeout, "linuxcncrsh to answer on port 5007", interval=0.5)
         except BaseException:
