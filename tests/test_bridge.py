@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 import time
 import tomllib
 
@@ -15,7 +16,8 @@ import numpy as np
 import pytest
 
 from bridge.linuxcnc import wayback as W
-from bridge.linuxcnc.config import AxisConfig, BridgeConfig, ConfigError, load_config
+from bridge.linuxcnc.config import AxisConfig, BridgeConfig, ConfigError, HalSide, load_config
+from bridge.linuxcnc.helper import HalError, HalHelper, HalUnavailable
 from bridge.linuxcnc.launch import HAL_DIR, SIM_DIR
 from bridge.linuxcnc.mapper import WRAP, Mapper
 from bridge.linuxcnc.run import Outlet, blocks_of, trial_metas
@@ -363,3 +365,17 @@ def test_the_hal_plants_are_the_exact_discretisation_of_their_truth(hal, prefix)
     assert 1.0 - p[names["gain"]] * -p[names["B"]] * Ts == pytest.approx(pole, rel=1e-15)
     assert (p[names["Fc"]], p[names["max"]], -p[names["min"]]) == (truth["coulomb"], truth["omega"], truth["omega"])
     assert p[names["Kv"]] == truth["loop_gain"]
+
+
+def test_the_hal_helper_says_what_is_missing():
+    """The helper runs under [hal] python: one without LinuxCNC's hal module, or none at all, is an error
+    naming the fix (not a wait for HAL)."""
+    cfg = _mcfg()
+    no_hal = BridgeConfig(**{**_fields(cfg), "hal": HalSide(python=sys.executable)})  # this venv: no hal module
+    helper = HalHelper(no_hal, [], {})
+    with pytest.raises(HalError, match=r"cannot import LinuxCNC's hal module.*apt-get install linuxcnc-uspace") as err:
+        helper.start()
+    assert not isinstance(err.value, HalUnavailable) and helper.proc.returncode == 3
+    missing = BridgeConfig(**{**_fields(cfg), "hal": HalSide(python="/nonexistent/python3")})
+    with pytest.raises(HalError, match=r"/nonexistent/python3 not found \(\[hal\] python"):
+        HalHelper(missing, [], {})

@@ -220,6 +220,11 @@ v_meas = "speed"
 def test_bad_hal_input_is_refused_or_counted_naming_the_pin(work):
     src = work / "probe.hal"
     src.write_text(PROBE_HAL)
+    good = work / "probe.toml"
+    good.write_text(PROBE_CFG)
+    good = L.bridge_config(good, work)
+    early = L.Proc(["bridge", "linuxcnc", "--config", str(good), "--no-publish"], work)  # before LinuxCNC
+    early.wait_line(r"waiting for HAL: sampler\.0 has no FIFO in shared memory", 60)
     bad = {
         "wrong-period": (PROBE_CFG.replace("servo_period = 0.001", "servo_period = 0.003"),
                          "servo_period = 0.003 s in the config, but sampler.0 runs in servo-thread every 0.001 s"),
@@ -229,6 +234,8 @@ def test_bad_hal_input_is_refused_or_counted_naming_the_pin(work):
                           "sampler.0.pin.1 is fed by signal force (no writer), but the config's column 1 is speed"),
     }
     with L.HalPlant(src, work):
+        early.wait_line(r"attached to sampler\.0", 60)  # HAL came: the bridge attached by itself
+        assert early.stop() == 0, early.stderr
         for name, (text, message) in bad.items():
             cfg = work / f"probe-{name}.toml"
             cfg.write_text(text)
@@ -238,10 +245,7 @@ def test_bad_hal_input_is_refused_or_counted_naming_the_pin(work):
         L.halcmd("sets", "force", "12.5")
         L.halcmd("sets", "speed", "nan")
         trial = work / "probe.mcap"
-        cfg = work / "probe.toml"
-        cfg.write_text(PROBE_CFG)
-        rec = L.start_bridge(L.bridge_config(cfg, work), work, "--record", str(trial), "--duration", "0.5",
-                             "--no-publish")
+        rec = L.start_bridge(good, work, "--record", str(trial), "--duration", "0.5", "--no-publish")
         assert rec.wait(60) == 0, rec.stderr
     assert "speed gave" in rec.stderr and "non-finite value(s) so far: those samples go out as null" in rec.stderr
     tr = read_trial(trial)
@@ -282,8 +286,9 @@ def test_linuxcnc_program_overrun_restarts_and_feed_hold(work):
         missing = int(bridge.wait_line(r"gap: (\d+) sample\(s\) not delivered", 30)[1])
         assert 1000 < missing < 4000
         after = L.wait_for(lambda: (a := _status_axis(obs))["gaps"] > before["gaps"] and a, 30, "the monitor's gap")
-        assert after["gaps"] == before["gaps"] + 1
-        assert after["missing_samples"] == before["missing_samples"] + missing + 1  # + the held first sample
+        assert after["gaps"] == before["gaps"] + 1, after
+        assert after["missing_samples"] == before["missing_samples"] + missing + 1, after  # + the held first sample
+        assert after["dropped_total"] == before["dropped_total"], after
         seqs = np.array(sorted(r[0] for r in obs.wait_rows(len(obs.snapshot()) + 500, 60)))
         steps = np.diff(seqs)
         assert np.count_nonzero(steps != 1) == 1 and steps.max() == missing + 2  # nothing else lost

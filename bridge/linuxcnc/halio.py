@@ -60,7 +60,21 @@ def fail(message, code=2):
 
 def make_component(hal, spec):
     """The way-back component: its output pins, linked to the signals the spec names."""
-    comp = hal.component(spec["component"])
+    name = spec["component"]
+    try:
+        comp = hal.component(name)
+    except Exception as exc:  # noqa: BLE001 - hal_init's failure
+        fail(f"cannot create the HAL component {name} ({exc}): is there one of that name already (another bridge, "
+             f"or one killed without leaving HAL: halcmd unload {name})? Or set [hal] component to another name")
+    try:
+        _pins_and_links(hal, comp, spec)
+    except BaseException:
+        comp.exit()
+        raise
+    return comp
+
+
+def _pins_and_links(hal, comp, spec):
     for name, kind in spec["pins"]:
         comp.newpin(name, getattr(hal, TYPE_CODES[kind]), hal.HAL_OUT)
     comp.ready()
@@ -76,7 +90,6 @@ def make_component(hal, spec):
             hal.connect(full, sig)
         except Exception as exc:  # noqa: BLE001 - hal raises RuntimeError/ValueError/TypeError
             fail(f"cannot link {full} to signal {sig}: {exc} (a signal of another type?)")
-    return comp
 
 
 def main(argv):

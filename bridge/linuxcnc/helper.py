@@ -113,9 +113,11 @@ class HalHelper:
         if not ready:
             return None
         chunk = os.read(fd, 1 << 20)
-        if not chunk:
+        if not chunk:  # ended without an error frame: stopped by a signal (LinuxCNC's shutdown), or it broke
             code = self.proc.wait(10)
-            raise HalUnavailable(f"the HAL helper ended (exit code {code}){self._tail()}")
+            killed = code < 0 or code >= 128  # a signal (runuser reports signal n as 128 + n)
+            cls = HalUnavailable if killed or code == 0 or code in WAIT_CODES else HalError
+            raise cls(f"the HAL helper ended (exit code {code}){self._tail()}")
         self._buf += chunk
         return self._next()
 

@@ -102,8 +102,9 @@ def give(path: Path) -> Path:
 
 
 def halcmd(*args: str, check: bool = True) -> str:
-    """``halcmd -s ARGS`` (any user may query a running HAL)."""
-    res = subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, timeout=30)
+    """``halcmd -s ARGS`` as the HAL user (``halcmd`` run before HAL is up would create an empty HAL of its
+    own — owned by root, it would lock the HAL user's next session out)."""
+    res = subprocess.run(as_hal_user(["halcmd", "-s", *args]), capture_output=True, text=True, timeout=30)
     if check and res.returncode != 0:
         raise RuntimeError(f"halcmd {' '.join(args)}: {res.stderr.strip() or res.stdout.strip()}")
     return res.stdout
@@ -123,9 +124,10 @@ def wait_for(condition, timeout: float, what: str, interval: float = 0.05):
 
 def counting() -> int:
     """The servo-cycle counter ``threadtest.0.count`` of a running plant (0: HAL not up or not started)."""
-    res = subprocess.run(["halcmd", "-s", "getp", "threadtest.0.count"], capture_output=True, text=True, timeout=30)
-    text = res.stdout.strip()
-    return int(text) if res.returncode == 0 and text.isdigit() else 0
+    if _no_hal():
+        return 0
+    text = halcmd("getp", "threadtest.0.count", check=False).strip()
+    return int(text) if text.isdigit() else 0
 
 
 def _no_hal() -> bool:

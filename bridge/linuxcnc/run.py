@@ -19,6 +19,8 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 
+import zenoh
+
 from feedio import schema as S
 from feedio import transport as T
 from feedio.mcapio import TrialWriter
@@ -33,6 +35,7 @@ __all__ = ["Outlet", "blocks_of", "trial_metas", "run_bridge"]
 
 log = logging.getLogger("bridge.linuxcnc")
 
+JSON = zenoh.Encoding.APPLICATION_JSON
 #: SampleBlock fields of the mapped axis fields (the rest keep their name)
 _FIELD = {"spindle_revs": "spindle_angle", "spindle_speed": "spindle_rpm"}
 
@@ -171,8 +174,10 @@ def run_bridge(cfg: BridgeConfig, *, session=None, prefix: str = T.DEFAULT_PREFI
     Raises :class:`~bridge.linuxcnc.config.ConfigError` when HAL is not wired as ``cfg`` says,
     :class:`~bridge.linuxcnc.helper.HalError` when the helper cannot run."""
     stop = stop or threading.Event()
-    publishers = None if session is None else {
-        axis: session.declare_publisher(T.samples_key(prefix, cfg.machine, axis)) for axis in cfg.axes}
+    publishers = None if session is None else {  # block rather than drop: a late bridge shows as a FIFO gap
+        axis: session.declare_publisher(T.samples_key(prefix, cfg.machine, axis), encoding=JSON, express=True,
+                                        congestion_control=zenoh.CongestionControl.BLOCK,
+                                        priority=zenoh.Priority.DATA_HIGH) for axis in cfg.axes}
     outlet, mapper, said = Outlet(cfg, publishers, writer), Mapper(cfg), _Said()
     helper: HalHelper | None = None
     wayback = WayBack(cfg, prefix, lambda values: helper.set_pins(values) if helper is not None else False)

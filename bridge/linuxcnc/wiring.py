@@ -8,6 +8,7 @@ what HAL has there and what the configuration says.
 
 from __future__ import annotations
 
+import os
 import subprocess
 from dataclasses import dataclass
 
@@ -64,9 +65,15 @@ def parse_threads(text: str) -> dict[str, tuple[int, list[str]]]:
     return out
 
 
-def _halcmd(halcmd: str, *args: str) -> str:
+def _halcmd(cfg: BridgeConfig, *args: str) -> str:
+    """``halcmd -s ARGS``, as ``[hal] user`` when this process is root: should HAL be gone by then, the
+    ``halcmd`` would create an empty HAL, and one owned by root would lock LinuxCNC's next start out."""
+    halcmd = cfg.hal.halcmd
+    cmd = [halcmd, "-s", *args]
+    if cfg.hal.user is not None and os.geteuid() == 0:
+        cmd = ["runuser", "-u", cfg.hal.user, "--", *cmd]
     try:
-        res = subprocess.run([halcmd, "-s", *args], capture_output=True, text=True, timeout=20)
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=20)
     except FileNotFoundError:
         raise OSError(f"{halcmd} not found: install LinuxCNC (apt-get install linuxcnc-uspace) or set "
                       "[hal] halcmd") from None
@@ -79,9 +86,8 @@ def _halcmd(halcmd: str, *args: str) -> str:
 
 def read_wiring(cfg: BridgeConfig) -> Wiring:
     """The wiring of ``sampler.<cfg.sampler>`` as HAL has it now."""
-    h = cfg.hal.halcmd
-    return Wiring(parse_pins(_halcmd(h, "show", "pin", f"sampler.{cfg.sampler}.")),
-                  parse_signals(_halcmd(h, "show", "sig")), parse_threads(_halcmd(h, "show", "thread")))
+    return Wiring(parse_pins(_halcmd(cfg, "show", "pin", f"sampler.{cfg.sampler}.")),
+                  parse_signals(_halcmd(cfg, "show", "sig")), parse_threads(_halcmd(cfg, "show", "thread")))
 
 
 def _types_needed(cfg: BridgeConfig) -> list[tuple[str, str, str]]:
