@@ -153,8 +153,10 @@ def test_plant_identified_from_a_hal_trial_then_its_force_estimated_live(work):
     log = _sampler1(truth_file)
     count, echo = log[:, 0], log[:, 2]
     answered = echo > 0
-    assert np.all(echo <= count) and np.unique(echo[answered]).size >= 2000  # the way back, seen in HAL
-    assert np.median((count - echo)[answered]) < 100  # a few cycles behind, not a backlog (generous)
+    seen = echo[answered]
+    assert np.all(echo <= count) and np.all(np.diff(seen) >= 0)  # never a sample from the future, never back
+    assert seen[-1] - seen[0] >= 2000  # the pin followed the estimates through the run (seen in HAL)
+    assert np.median((count - echo)[answered]) < 333  # behind by cycles, not by a growing backlog (generous)
     forces = _truth(truth_file)
     # row j's force is the filtered force of sample j − 1
     pairs = [(f, forces[seq - 1]) for seq, f, var, flags, *_ in rows

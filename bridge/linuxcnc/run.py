@@ -206,6 +206,7 @@ def run_bridge(cfg: BridgeConfig, *, session=None, prefix: str = T.DEFAULT_PREFI
             finally:
                 outlet.flush()
                 h, helper = helper, None
+                h.set_pins({f"{axis}.valid": False for axis in cfg.axes})  # the signals keep what the pins last had
                 h.close()
     finally:
         wayback.close()
