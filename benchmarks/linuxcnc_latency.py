@@ -77,6 +77,7 @@ def run_once(work: Path, rate: int, mon: L.Proc, endpoint: str, args) -> dict:
     force = work / f"force-{rate}.txt"
     log = work / f"way-back-{rate}.txt"
     cfg = L.bridge_config(L.HAL_DIR / cfg_name, work)
+    cfg.write_text(cfg.read_text().replace("block = 1 ", f"block = {args.block} "))
     plant_file = work / hal  # the plant with HAL's own measure of its thread's timing (timedelta)
     plant_file.write_text((L.HAL_DIR / hal).read_text().replace(
         "\nstart\n", "\nloadrt timedelta\naddf timedelta.0 servo-thread\nstart\n"))
@@ -124,6 +125,7 @@ def main_(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="measured seconds per run")
     ap.add_argument("--warmup", type=float, default=2.0, help="seconds left out at the start of a run")
     ap.add_argument("--repeat", type=int, default=3, help="runs per rate")
+    ap.add_argument("--block", type=int, default=1, help="samples per message (the bridge's [publish] block)")
     ap.add_argument("--nice", type=int, default=None,
                     help="run HAL, the helper, the bridge and the monitor at this niceness (negative: root)")
     args = ap.parse_args(argv)
@@ -142,7 +144,8 @@ def main_(argv=None) -> int:
             print("work dir kept:", work)
         else:
             shutil.rmtree(work, ignore_errors=True)
-    print(f"\nround trip in HAL time (target p99 ≤ 10 ms){'' if args.nice is None else f', niceness {args.nice}'}; "
+    print(f"\nround trip in HAL time (target p99 ≤ 10 ms), {args.block} sample(s) per message"
+          f"{'' if args.nice is None else f', niceness {args.nice}'}; "
           "HAL thread: longest period and worst scheduling error seen by timedelta")
     print(f"{'rate':>6} {'samples':>8} {'p50 ms':>7} {'p90 ms':>7} {'p99 ms':>7} {'max ms':>7} {'> 10 ms':>8} "
           f"{'load':>5} {'HAL max period ms':>18} {'HAL jitter ms':>14}")

@@ -19,6 +19,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 
+import numpy as np
 import zenoh
 
 from feedio import schema as S
@@ -222,12 +223,21 @@ def _pump(helper: HalHelper, mapper: Mapper, outlet: Outlet, wayback: WayBack, s
     wait = outlet.due(time.monotonic())
     while not stop.is_set():
         item = helper.read(min(wait, 0.05))
-        now = time.monotonic()
-        if isinstance(item, Frame):
+        if isinstance(item, Frame):  # behind? then every frame already there is mapped at once
+            frames, ended = [item], None
+            try:
+                while len(frames) < 256 and isinstance(more := helper.read(0.0), Frame):
+                    frames.append(more)
+            except HalUnavailable as exc:  # the frames read before go out first
+                ended = exc
+            rows = frames[0].rows if len(frames) == 1 else np.concatenate([f.rows for f in frames])
             gaps, missing = mapper.gaps, mapper.missing
-            outlet.add(mapper.map(item.rows, item.t_read), now)
+            outlet.add(mapper.map(rows, frames[-1].t_read), time.monotonic())
             if mapper.gaps > gaps or mapper.nonfinite:
-                _log_news(mapper, said, item.overruns - helper.hello.overruns, gaps, missing)
+                _log_news(mapper, said, frames[-1].overruns - helper.hello.overruns, gaps, missing)
+            if ended is not None:
+                raise ended
+        now = time.monotonic()
         wait = outlet.due(now)
         wayback.tick(now)
         if duration is not None and outlet.first_t is not None and outlet.last_t - outlet.first_t >= duration:
