@@ -77,7 +77,8 @@ def linuxcnc_missing(python: str = "/usr/bin/python3") -> str | None:
         try:
             pwd.getpwnam(user)
         except KeyError:
-            return f"HAL refuses root and the user {user!r} does not exist: {INSTALL_HINT}"
+            return (f"HAL refuses root and the user {user!r} it would run as does not exist: create it (useradd -m "
+                    f"{user}) or set FEEDMON_HAL_USER to an existing user")
     return None
 
 
