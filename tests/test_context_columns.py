@@ -80,6 +80,9 @@ def test_the_offline_run_logs_the_context_with_the_estimates(work, tmp_path):
 
 
 def test_the_dashboard_shows_the_nc_line_and_tool(tmp_path):
+    """A series per context column at the row's own sample, and a panel for them on the axes that have them."""
+    from rerun.chunk import RrdReader
+
     from monitor.sinks.rerun_sink import RerunSink
 
     rrd = tmp_path / "ctx.rrd"
@@ -97,3 +100,7 @@ def test_the_dashboard_shows_the_nc_line_and_tool(tmp_path):
     assert seq.tolist() == list(range(300)) and lines.tolist() == line_of(seq).tolist()  # at the row's own sample
     assert set(rrd_scalars(store, "/mill/X/context/tool")[2]) == {4.0}
     assert rrd_scalars(store, "/mill/Y/context/program_line")[0].size == 0
+    reader = RrdReader(str(rrd))
+    origins = {o for chunk in reader.stream(store=reader.blueprints()[-1]).to_chunks()
+               for row in chunk.to_record_batch().to_pydict().get("ViewBlueprint:space_origin", []) for o in row or []}
+    assert "/mill/X/context" in origins and "/mill/Y/context" not in origins and "/mill/Y/force" in origins
