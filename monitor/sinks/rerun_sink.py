@@ -491,9 +491,7 @@ class RerunSink(QueuedSink):
             self._send(ax, "velocity/measured", seq, t, 1e3 * col("v_meas"))
         self._send(ax, "velocity/predicted", seq, t, 1e3 * col("v_pred"))
         for name in S.CONTEXT_COLUMNS:  # NC program line, tool number of sample j, at j
-            ctx = col(name)
-            ax.context |= ctx is not None
-            self._send(ax, f"context/{name}", seq, t, ctx)
+            self._send(ax, f"context/{name}", seq, t, col(name))
         # --- dictionary ---
         size = _column(blocks, "dict_size", n, dtype=np.int64)
         removed = _column(blocks, "removed", n, dtype=np.int64)
@@ -608,9 +606,10 @@ class RerunSink(QueuedSink):
                 with self._lock:
                     self.failures += lost
             return
-        for ax in self._axes.values():  # the estimates tell whether the axis is in newtons
+        for ax in self._axes.values():  # the estimates tell whether the axis is in newtons, has context
             if ax.estimates:
                 ax.force = ax.estimates[-1].force is not None
+                ax.context |= any(getattr(b, c) is not None for b in ax.estimates for c in S.CONTEXT_COLUMNS)
         self._attempt(self._send_layout)
         for ax in self._axes.values():
             for kind, send in (("samples", self._send_samples), ("truth", self._send_truth),
