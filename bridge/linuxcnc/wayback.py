@@ -20,7 +20,8 @@ Per axis the component (``[hal] component``, default ``feedmon``) has the output
 Alarm sources (:data:`ALARM_SOURCES`): each is a Zenoh key per axis and a function deciding, from
 one message, whether that source is in alarm (and which further pins it sets). The health reports
 (``<prefix>/<machine>/<axis>/health``, ``state == "alarm"``) are the first; another source plugs in
-with one more entry. A message that cannot be decoded is counted and changes nothing.
+with one more entry. A message that cannot be decoded, or is larger than :data:`MAX_MESSAGE_BYTES`, is
+counted and changes nothing.
 """
 
 from __future__ import annotations
@@ -38,12 +39,15 @@ from feedio import transport as T
 
 from .config import LINK_PINS, BridgeConfig
 
-__all__ = ["AlarmSource", "ALARM_SOURCES", "WayBack", "HEALTH_CODES"]
+__all__ = ["AlarmSource", "ALARM_SOURCES", "WayBack", "HEALTH_CODES", "MAX_MESSAGE_BYTES"]
 
 log = logging.getLogger("bridge.linuxcnc")
 
 #: the ``health`` pin's values
 HEALTH_CODES = {state: i for i, state in enumerate(S.HEALTH_STATES)}
+#: a larger message from the monitor's side is refused unread (counted ``too_large``): the monitor's
+#: estimate blocks are ~800 bytes per row, its health reports a few kB
+MAX_MESSAGE_BYTES = 1 << 24
 _NOT_LEARNED = S.REJECTED | S.GAP | S.WARMUP
 
 
@@ -123,6 +127,9 @@ class WayBack:
 
     def estimate(self, axis: str, payload: bytes) -> None:
         """An estimate block: the pins show its newest row."""
+        if len(payload) > MAX_MESSAGE_BYTES:
+            self.counters["too_large"] += 1
+            return
         try:
             blk = S.decode_estimates(payload)
         except S.SchemaError as exc:
@@ -144,6 +151,9 @@ class WayBack:
 
     def alarm(self, axis: str, source: str, payload: bytes) -> None:
         """A message of an alarm source."""
+        if len(payload) > MAX_MESSAGE_BYTES:
+            self.counters["too_large"] += 1
+            return
         try:
             raised, extra = ALARM_SOURCES[source].decide(payload)
         except (S.SchemaError, ValueError) as exc:
