@@ -39,6 +39,7 @@ COPY feedio ./feedio
 COPY monitor ./monitor
 COPY replay ./replay
 COPY feedmon ./feedmon
+COPY bridge ./bridge
 RUN pip install . \
  && cd / && rm -rf /src
 COPY deploy/monitor.toml /etc/feedmon/monitor.toml

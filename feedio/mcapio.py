@@ -770,6 +770,8 @@ class Trial:
     position: np.ndarray | None = None
     spindle_rpm: np.ndarray | None = None
     spindle_angle: np.ndarray | None = None  # rad, unwrapped
+    program_line: np.ndarray | None = None  # NC program line (float64: NaN where not known)
+    tool: np.ndarray | None = None  # tool number (float64: NaN where not known)
     truth: TruthArrays | None = None
     channels: list[str] = field(default_factory=list)
     start_ns: int | None = None  # wall-clock time of controller time 0 (None: files without one)
@@ -1165,6 +1167,8 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
             position=_column(samples, "position", n),
             spindle_rpm=_column(samples, "spindle_rpm", n),
             spindle_angle=_column(samples, "spindle_angle", n),
+            program_line=_column(samples, "program_line", n),
+            tool=_column(samples, "tool", n),
             channels=sorted(f.channels),
             start_ns=start,
         )

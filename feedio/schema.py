@@ -64,6 +64,7 @@ __all__ = [
     "check_name",
     "SampleBlock",
     "SAMPLE_COLUMNS",
+    "CONTEXT_COLUMNS",
     "TruthBlock",
     "EstimateBlock",
     "DisturbanceScalars",
@@ -117,6 +118,8 @@ class SchemaError(ValueError):
 
 Positive = Annotated[float, msgspec.Meta(gt=0.0)]
 Column = list[float | None]  # measured column: null = missing / non-finite sample
+#: a context column (NC program line, tool number: HAL s32 values), null = not known for that sample
+Context = list[Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)] | None]
 Form = Literal["velocity-loop", "force-input"]
 #: machine / axis name (see "Bounds" above). The pattern is checked in ``__post_init__`` (one
 #: compiled ``fullmatch``, also for constructed objects) and stated in the JSON Schema.
@@ -180,7 +183,9 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
 
     ``t`` controller time (s), ``v_ref`` reference velocity (m/s), ``v_meas`` measured
     velocity (m/s); optional ``u`` force command (N), ``current`` motor current (A),
-    ``position`` (m), ``spindle_rpm`` (rpm). ``None`` inside a column = missing sample.
+    ``position`` (m), ``spindle_rpm`` (rpm); context ``program_line`` (the NC program line the
+    controller executes, e.g. LinuxCNC ``motion.program-line``) and ``tool`` (tool number), integers
+    −2**31 … 2**31 − 1, carried unchanged to the estimate rows. ``None`` inside a column = missing sample.
     """
 
     machine: Name
@@ -194,10 +199,12 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
     position: Column | None = None
     spindle_rpm: Column | None = None
     spindle_angle: Column | None = None  # rad, unwrapped spindle angle, finite
+    program_line: Context | None = None
+    tool: Context | None = None
 
     def __post_init__(self) -> None:
         _check_columns(self, ("v_ref", "v_meas", "u", "current", "position", "spindle_rpm"))
-        _check_columns(self, ("spindle_angle",))
+        _check_columns(self, ("spindle_angle", "program_line", "tool"))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -213,6 +220,8 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
 
 #: the per-sample columns of a :class:`SampleBlock` (all fields but machine, axis, seq), in order
 SAMPLE_COLUMNS = tuple(f for f in SampleBlock.__struct_fields__ if f not in ("machine", "axis", "seq"))
+#: the context columns: in a sample block and, for the same samples, in its estimate block
+CONTEXT_COLUMNS = ("program_line", "tool")
 
 
 class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
@@ -255,6 +264,8 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
     (force-input form, or velocity-loop with known K); otherwise ``None``.
     ``dict_size`` KRLS-T dictionary size, ``removed`` index of the pruned element
     (-1 none), ``flags`` bitmask of :class:`EstimateFlag` (STALE, GAP, REJECTED, WARMUP, REDUCED).
+    ``program_line``, ``tool``: the context columns of the sample each row was emitted for
+    (present when the sample block had them).
     """
 
     machine: Name
@@ -274,13 +285,15 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
     force: Column | None = None
     force_var: Column | None = None
     force_next: Column | None = None
+    program_line: Context | None = None
+    tool: Context | None = None
 
     def __post_init__(self) -> None:
         _check_columns(
             self,
             (
                 "v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var",
-                "dict_size", "removed", "flags", "force", "force_var", "force_next",
+                "dict_size", "removed", "flags", "force", "force_var", "force_next", "program_line", "tool",
             ),
         )
 
@@ -429,6 +442,8 @@ UNITS = {
     "position": "m",
     "spindle_rpm": "rpm",
     "spindle_angle": "rad",
+    "program_line": "NC line",
+    "tool": "tool number",
 }
 
 

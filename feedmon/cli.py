@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "run": "feedmon.run_cmd",
     "status": "feedmon.status_cmd",
     "recover": "feedmon.recover_cmd",
+    "bridge": "feedmon.bridge_cmd",
 }
 
 

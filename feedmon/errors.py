@@ -30,6 +30,7 @@ FLAGS: dict[str, dict[str, str]] = {
     "demo": {"rate": "--rate"},
     "run": {"model_paths": "--model", "axes": "--model", "config": "--config", **_ZENOH},
     "status": dict(_ZENOH),
+    "bridge": {"scale": "--scale", "servo_period": "--servo-period", **_ZENOH},
 }
 
 

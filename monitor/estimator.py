@@ -69,7 +69,7 @@ import msgspec
 import numpy as np
 
 from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
-from feedio.schema import REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
+from feedio.schema import CONTEXT_COLUMNS, REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
 from kernels import disturbance_search as ds
 from kernels import health as hl
@@ -107,16 +107,19 @@ class EstimateRows:
     """The estimate rows of one block as the compiled loop wrote them (columns, no per-sample
     Python objects): ``seq`` of the first row, ``t`` (s), ``v_meas`` (m/s), ``rows``
     (:data:`kernels.online.ROWS`, float64), ``irows`` (:data:`kernels.online.IROWS`, int64) and
-    ``force`` (``force``, ``force_var``, ``force_next`` in N, or None when the model cannot scale).
+    ``force`` (``force``, ``force_var``, ``force_next`` in N, or None when the model cannot scale) and
+    ``context`` (the context columns of the rows' samples, :data:`~feedio.schema.CONTEXT_COLUMNS`, as given).
     :meth:`block` makes the :class:`~feedio.schema.EstimateBlock` (once), :meth:`scalar_columns`
     the per-sample columns of :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
 
-    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "_cols", "_block", "_json")
+    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "context", "_cols", "_block",
+                 "_json")
 
     def __init__(self, machine: str, axis: str, seq: int, t: np.ndarray, v_meas: np.ndarray, rows: np.ndarray,
-                 irows: np.ndarray, force: np.ndarray | None) -> None:
+                 irows: np.ndarray, force: np.ndarray | None, context: dict[str, list] | None = None) -> None:
         self.machine, self.axis, self.seq = machine, axis, seq
         self.t, self.v_meas, self.rows, self.irows, self.force = t, v_meas, rows, irows, force
+        self.context = context or {}
         self._cols: list[list] | None = None
         self._block: EstimateBlock | None = None
         self._json: bytes | None = None
@@ -138,7 +141,7 @@ class EstimateRows:
         """The :class:`~feedio.schema.EstimateBlock` (made on the first call; the columns of
         :data:`~kernels.online.ROWS` and :data:`~kernels.online.IROWS` are its fields in that order)."""
         if self._block is None:
-            self._block = EstimateBlock(self.machine, self.axis, self.seq, *self._columns())
+            self._block = EstimateBlock(self.machine, self.axis, self.seq, *self._columns(), **self.context)
         return self._block
 
     def json(self) -> bytes:
@@ -150,6 +153,8 @@ class EstimateRows:
             body = [f'{{"machine":"{self.machine}","axis":"{self.axis}","seq":{self.seq}'.encode()]
             for key, part in zip(_COLUMN_KEYS, parts):
                 body += (key, b"[", part, b"]")
+            for name, col in self.context.items():  # after the force columns, in field order
+                body += (f',"{name}":'.encode(), _json.encode(col))
             body.append(b"}")
             self._json = b"".join(body)
         return self._json
@@ -428,8 +433,10 @@ class AxisEstimator:
         c["estimates_out"] += n - first
         if first:
             t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
+        # the context of row i is that of sample first + i (the dropped samples are a prefix)
+        context = {k: getattr(block, k)[first:] for k in CONTEXT_COLUMNS if getattr(block, k) is not None}
         return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
-                            self._force(rows))
+                            self._force(rows), context)
 
     def _start_fresh(self) -> None:
         """Tracker, online β, health statistics and regressor chain as the model file starts them."""

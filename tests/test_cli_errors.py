@@ -41,7 +41,7 @@ def test_run_without_models(capsys):
 
 
 def test_no_library_error_names_a_flag():
-    """Every ``raise`` in kernels/, feedio/, monitor/, replay/ words its message without a command-line flag
+    """Every ``raise`` in kernels/, feedio/, monitor/, replay/, bridge/ words its message without a command-line flag
     (the CLI's argparse helpers in feedio.transport excepted: they are the CLI's own code)."""
     import ast
     import re
@@ -51,7 +51,7 @@ def test_no_library_error_names_a_flag():
     cli_helpers = {("feedio/transport.py", "config_from_args"), ("feedio/transport.py", "add_zenoh_arguments")}
     flag = re.compile(r"(?<![\w-])--[a-z]")
     found = []
-    for package in ("kernels", "feedio", "monitor", "replay"):
+    for package in ("kernels", "feedio", "monitor", "replay", "bridge"):
         for path in sorted((root / package).rglob("*.py")):
             rel = path.relative_to(root).as_posix()
             tree = ast.parse(path.read_text(encoding="utf-8"))

@@ -11,6 +11,8 @@ placed at, for a value from EstimateBlock row j.
   dynamometer reading of sample j with its sign turned to the disturbance's (the dynamometer
   measures along the axis, the disturbance force opposes motion).
 * ``velocity/reference|measured|predicted`` v_ref, v_meas, v_pred in mm/s, at j.
+* ``context/program_line|tool`` the NC program line and tool number of sample j (when the samples
+  carry them), at j.
 * ``dictionary/size`` KRLS-T dictionary size; ``dictionary/pruned|reduced`` elements pruned and
   REDUCED updates per second over the last ``rate_window`` s, at j.
 * ``residual_psd/residual``, ``disturbance_psd/estimate|actual``: BarCharts, PSD in dB above the
@@ -101,11 +103,15 @@ _COMMON: dict[str, Series] = {
     "dictionary/pruned": Series("pruned per s", _VIOLET, 1.5, "Max"),
     "dictionary/reduced": Series("REDUCED per s (newest pruned at once)", _GREY, 1.0, "Max"),
 }
+_CONTEXT: dict[str, Series] = {
+    "context/program_line": Series("NC program line", _VIOLET, 1.5, "Max"),
+    "context/tool": Series("tool number", _GREY, 1.5, "Max"),
+}
 
 
-def series_styles(force: bool) -> dict[str, Series]:
+def series_styles(force: bool, context: bool = False) -> dict[str, Series]:
     """Every time series of one axis (path relative to ``/<m>/<a>``) and its style."""
-    return {**_disturbance_series(force), **_COMMON}
+    return {**_disturbance_series(force), **_COMMON, **(_CONTEXT if context else {})}
 
 
 # ---- what the dashboard knows of an axis ------------------------------------------------------------
@@ -184,12 +190,14 @@ def _series_view(origin: str, name: str, window: float | None, contents=None, le
 
 @dataclass(frozen=True)
 class AxisView:
-    """One axis on the dashboard: entity root (``/<m>/<a>``, escaped), names, newtons or velocity units."""
+    """One axis on the dashboard: entity root (``/<m>/<a>``, escaped), names, newtons or velocity units,
+    whether its samples carry context columns (NC program line, tool)."""
 
     root: str
     machine: str
     axis: str
     force: bool = True
+    context: bool = False
 
 
 def force_view(ax: AxisView, window: float | None, title_prefix: str = ""):
@@ -236,7 +244,8 @@ def axis_blueprint(ax: AxisView, window: float | None = None, detail: float = 0.
                          window),
             _series_view(f"{o}/sigma", f"σ of the {what} estimate ({u})", window),
             _series_view(f"{o}/dictionary", "KRLS-T dictionary: size, pruning rate (1/s)", window),
-            column_shares=[2, 1, 1],
+            *([_series_view(f"{o}/context", "NC program line, tool number", window)] if ax.context else []),
+            column_shares=[2, 1, 1] + ([1] if ax.context else []),
         ),
         rrb.BarChartView(origin=f"{o}/residual_psd", contents=["$origin/**", markers],
                          name=f"residual PSD (brown), dB above its floor, vs frequency (Hz); {key}",

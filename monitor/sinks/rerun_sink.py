@@ -152,6 +152,7 @@ class _Axis:
     rpm: float | None = None
     markers_said: tuple | None = None
     health: str | None = None
+    context: bool = False  # the estimates carry context columns (NC program line, tool)
     pruned: _Rolling = field(default_factory=_Rolling)
     reduced: _Rolling = field(default_factory=_Rolling)
 
@@ -418,12 +419,12 @@ class RerunSink(QueuedSink):
         """Static styling of every series of an axis (legend names, colours, aggregation)."""
         import rerun as rr
 
-        for ent, s in L.series_styles(bool(ax.force is None or ax.force)).items():
+        for ent, s in L.series_styles(bool(ax.force is None or ax.force), ax.context).items():
             self.rec.log(f"{ax.root}/{ent}", rr.SeriesLines(names=s.label, colors=s.colour, widths=s.width,
                                                             aggregation_policy=s.aggregation), static=True, strict=True)
 
     def _send_layout(self) -> None:
-        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force))
+        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force), ax.context)
                       for (m, a), ax in sorted(self._axes.items()))
         if views == self._layout:
             return
@@ -496,6 +497,8 @@ class RerunSink(QueuedSink):
         if not ax.has_samples:
             self._send(ax, "velocity/measured", seq, t, 1e3 * col("v_meas"))
         self._send(ax, "velocity/predicted", seq, t, 1e3 * col("v_pred"))
+        for name in S.CONTEXT_COLUMNS:  # NC program line, tool number of sample j, at j
+            self._send(ax, f"context/{name}", seq, t, col(name))
         # --- dictionary ---
         size = _column(blocks, "dict_size", n, dtype=np.int64)
         removed = _column(blocks, "removed", n, dtype=np.int64)
@@ -615,9 +618,10 @@ class RerunSink(QueuedSink):
                     self.failures += lost
                 self.count_lost(lost)
             return
-        for ax in self._axes.values():  # the estimates tell whether the axis is in newtons
+        for ax in self._axes.values():  # the estimates tell whether the axis is in newtons, has context
             if ax.estimates:
                 ax.force = ax.estimates[-1].force is not None
+                ax.context |= any(getattr(b, c) is not None for b in ax.estimates for c in S.CONTEXT_COLUMNS)
         self._attempt(self._send_layout)
         for ax in self._axes.values():
             for kind, send in (("samples", self._send_samples), ("truth", self._send_truth),
