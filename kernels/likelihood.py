@@ -32,21 +32,21 @@ Laplace/BIC-style penalty for the ``k`` hyperparameters fitted to the data,
 with ``--no-tune``, count 0; a period found from the data counts 1).
 
 Evaluation (:func:`reml_terms`): by **whitening** with the inverse Cholesky factor of the Toeplitz
-``A`` from one Levinson–Durbin pass (:func:`kernels.toeplitz.levinson_whiten`), which gives
+``A`` from one Levinson–Durbin pass (:func:`kernels.levinson.levinson_whiten`), which gives
 ``L⁻¹[Z̃, y]`` and ``log|A|`` together; then a QR of the whitened ``Z̃`` gives ``b̂``, ``yᵀPy``,
 ``log|Z̃ᵀA⁻¹Z̃|`` and (L3). Exact, ``O(N² (p + 2))`` time, ``O(N p)`` memory, independent of the
-conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson).
+conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson). Long records use the order-m
+approximation of :mod:`kernels.levinson` instead (``max_order``, ``tol``): the Durbin recursion
+stopped at order m, later rows whitened by the order-m predictor (one FFT filter), ``O(m² (p + 2) +
+N (p + 2) log m)`` — the exact likelihood of a nearby stationary process, so (L2) and (L3) keep their
+meaning; m is chosen where the reflection coefficients show the lags beyond it to matter less than
+``tol`` in log|A| (eq. V3), never before the kernel's support.
 
 The spindle-phase kernel (:mod:`kernels.spindle_phase`, kind ``"spindle"``) on ``x = (t, θ)`` is
 evaluated on the stretches of constant spindle speed (``phase``): block-diagonal ``A``, one exact
 Levinson whitening per stretch with its own Toeplitz column (eq. S2), ``log|A| = Σ log|A_s|``.
 
-Tuning (:func:`tune`) maximises the exact REML of the whole record. A block-diagonal (segmented)
-approximation is available (``segment``: consecutive segments treated as independent realisations of
-``f`` with a shared ``b``, ``log|A| = Σ log|A_s|``, one Levinson pass of the segment length for all
-of them, ``O(segment · N · (p+1))``) but not used by default: when γ is large (the kernel explains
-nearly all of the residual, as on smooth real data) it misjudges the long-range correlation σ1 by
-thousands of log-likelihood units — every segment start forgets the periodic pattern.
+Tuning (:func:`tune`) maximises the REML of the whole record, exact or of a given order.
 """
 
 from __future__ import annotations
@@ -61,9 +61,9 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
 from .covariance import Kernel, LocallyPeriodic, SquaredExponential, ZeroMeanLocallyPeriodic
+from .levinson import levinson_whiten
 from .pl_lssvm import _check_gamma, prepare_regression
 from .spindle_phase import PhaseSegments, spindle_phase_kernel
-from .toeplitz import levinson_whiten
 
 __all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "log_evidence", "tune", "TuneResult",
            "default_bounds", "KINDS", "PERIODIC_KINDS", "BOUND_RTOL"]
@@ -75,6 +75,8 @@ KINDS = {"squared_exponential": ("lengthscale",), "locally_periodic": ("sigma1",
 PERIODIC_KINDS = ("locally_periodic", "locally_periodic_zero_mean")
 #: a tuned value within this fraction (in log space, of the bound interval) of a bound "ends on it"
 BOUND_RTOL = 0.01
+#: the order-m approximation is not stopped before the last lag where the kernel exceeds this share of k(0)
+SUPPORT_RTOL = 1e-3
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,8 @@ class REMLTerms:
     cov: np.ndarray  # ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹, (p, p)
     solver: str
     intercept: bool = False  # True when b[0] is the PL-LSSVM bias c (Z has no constant column)
+    order: int = 0  # order m of the approximation (n − 1: exact; 0: least squares)
+    tail_estimate: float = 0.0  # what the lags beyond m would add to log|A| (eq. V3 of kernels.levinson)
 
     @property
     def beta(self) -> np.ndarray:
@@ -108,15 +112,17 @@ def _logdet_scaled_gram(Zs: np.ndarray) -> float:
     return 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
 
 
-def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: int | None = None,
-               phase: PhaseSegments | None = None, _prepared=None) -> REMLTerms:
+def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order: int | None = None,
+               tol: float = 0.0, phase: PhaseSegments | None = None, _prepared=None) -> REMLTerms:
     """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
     ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
-    time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact (Levinson
-    whitening of the whole record) unless ``segment`` is given: then the block-diagonal (segmented)
-    approximation of the module docstring. With ``phase`` (the stretches of constant spindle speed),
-    ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated block-diagonally.
+    time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact by default;
+    ``max_order``/``tol`` select the order-m approximation of :mod:`kernels.levinson` (m at most
+    ``max_order``, stopped earlier when the lags beyond it add less than ``tol`` to log|A| (V3), never
+    before the kernel's support :func:`support_order`). With ``phase`` (the stretches of constant
+    spindle speed), ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated
+    block-diagonally, each stretch the same way.
     """
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
@@ -130,58 +136,59 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: i
     if phase is not None:
         if phase.edges[-1] != n:
             raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
-        white, logdet_A = _whiten_phase(Zt, y, kernel, gamma, float(Ts), phase)
-        b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
-        return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, f"spindle-{phase.count}", intercept)
-    if not kernel.is_stationary_1d:
-        raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
-    Ts = float(Ts)
-    if not (math.isfinite(Ts) and Ts > 0):
-        raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-    if segment is None:
-        segment, label = n, "levinson"
+        white, logdet_A, order, tail = _whiten_phase(Zt, y, kernel, gamma, float(Ts), phase, max_order, tol)
+        solver = f"spindle-{phase.count}"
     else:
-        segment = int(segment)
-        if segment < 4 * p:
-            raise ValueError(f"segment must be at least {4 * p} samples, got {segment}")
-        segment = min(segment, n)
-        label = None
-    white, logdet_A, count = _whiten(Zt, y, kernel, gamma, Ts, segment)
+        if not kernel.is_stationary_1d:
+            raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
+        Ts = float(Ts)
+        if not (math.isfinite(Ts) and Ts > 0):
+            raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
+        white, logdet_A, order, tail = _whiten(np.column_stack([Zt, y]), kernel, gamma, Ts, max_order, tol)
+        solver = "levinson" if order >= n - 1 else f"levinson-ar{order}"
     b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
-    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, label or f"segmented-{count}",
-                     intercept)
+    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, solver, intercept, order, tail)
 
 
-def _whiten(Zt, y, kernel, gamma, Ts, segment):
-    """``L_s⁻¹[Z̃_s, y_s]`` for consecutive segments of ≤ ``segment`` samples (one Levinson–Durbin
-    pass; exact when ``segment = N``) and ``Σ log|A_s|``."""
-    n, p = Zt.shape
-    count = max(1, -(-n // segment))
-    edges = np.linspace(0, n, count + 1).astype(np.int64)
-    lengths = np.diff(edges)
-    lmax = int(lengths.max())
-    column = kernel.lag(np.arange(lmax) * Ts)
+def support_order(column, max_order: int) -> int:
+    """The last lag (≤ ``max_order``) at which ``|column|`` exceeds :data:`SUPPORT_RTOL` of its peak: the
+    order-m approximation is not stopped before it (a kernel that is ~0 between the multiples of a long
+    period has no small reflection coefficient to show that a longer memory would not matter)."""
+    head = np.abs(np.asarray(column[: max_order + 1]))
+    big = np.flatnonzero(head > SUPPORT_RTOL * head[0])
+    return int(big[-1]) if big.size else 0
+
+
+def toeplitz_column(kernel: Kernel, gamma: float, Ts: float, lags: int) -> np.ndarray:
+    """First column of ``A = Ω + γ⁻¹I`` for a time kernel, lags ``0 … lags − 1``."""
+    column = kernel.lag(np.arange(lags) * Ts)
     column[0] += 1.0 / gamma
-    data = np.column_stack([Zt, y])
-    series = np.zeros((count, p + 1, lmax))
-    for i in range(count):
-        series[i, :, :lengths[i]] = data[edges[i]:edges[i + 1]].T
-    W, logdets = levinson_whiten(column, series, lengths)
-    white = np.concatenate([W[i, :, :lengths[i]].T for i in range(count)], axis=0)
-    return white, float(np.sum(logdets)), int(count)
+    return column
 
 
-def _whiten_phase(Zt, y, kernel, gamma, Ts, phase: PhaseSegments):
-    """``L_s⁻¹[Z̃_s, y_s]`` and ``Σ log|A_s|`` over the stretches of constant spindle speed (eq. S2)."""
+def _whiten(data, kernel, gamma, Ts, max_order, tol):
+    """``L̃⁻¹ data`` (whitened rows), ``log|Ã|``, the order used and its tail estimate (eq. V2, V3)."""
+    n = data.shape[0]
+    m_max = n - 1 if max_order is None else min(int(max_order), n - 1)
+    column = toeplitz_column(kernel, gamma, Ts, m_max + 1)
+    res = levinson_whiten(column, data, max_order=m_max, tol=tol, min_order=support_order(column, m_max))
+    return res.white, res.logdet, res.order, res.tail_estimate
+
+
+def _whiten_phase(Zt, y, kernel, gamma, Ts, phase: PhaseSegments, max_order, tol):
+    """``L̃_s⁻¹[Z̃_s, y_s]`` and ``Σ log|Ã_s|`` over the stretches of constant spindle speed (eq. S2), each
+    stretch exact or of order ≤ ``max_order`` (:func:`_whiten`); the highest order and the summed tails."""
     data = np.column_stack([Zt, y])
     white = np.empty_like(data)
-    logdet = 0.0
+    logdet, order, tail = 0.0, 0, 0.0
     edges = phase.edges.tolist()
-    for (a, b), column in zip(zip(edges[:-1], edges[1:]), phase.columns(kernel, Ts, 1.0 / gamma)):
-        W, logdets = levinson_whiten(column, data[a:b].T[None])
-        white[a:b] = W[0].T
-        logdet += float(logdets[0])
-    return white, logdet
+    for (a, b), column in zip(zip(edges[:-1], edges[1:]), phase.columns(kernel, Ts, 1.0 / gamma, max_order)):
+        m_max = b - a - 1 if max_order is None else min(int(max_order), b - a - 1)
+        res = levinson_whiten(column, data[a:b], max_order=m_max, tol=tol, min_order=support_order(column, m_max))
+        white[a:b] = res.white
+        logdet += res.logdet
+        order, tail = max(order, res.order), tail + res.tail_estimate
+    return white, logdet, order, tail
 
 
 def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
@@ -194,7 +201,8 @@ def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
     return bs, float(rw @ rw), logdet, Rinv
 
 
-def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept) -> REMLTerms:
+def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept, order=0,
+              tail=0.0) -> REMLTerms:
     n, p = Zt.shape
     if not quad > 0:
         raise ValueError("yᵀPy is not positive: the data are fitted exactly; the likelihood is undefined")
@@ -206,14 +214,16 @@ def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, inter
     cov = s2 * (Rinv @ Rinv.T) / np.outer(scale, scale)
     return REMLTerms(log_likelihood=ll, s2=s2, logdet_A=logdet_A, logdet_M=logdet_M_scaled - two_log_scale,
                      logdet_ZZ=logdet_ZZ_scaled + two_log_scale, quad=quad, n=n, p=p, b=b,
-                     cov=0.5 * (cov + cov.T), solver=solver, intercept=bool(intercept))
+                     cov=0.5 * (cov + cov.T), solver=solver, intercept=bool(intercept), order=int(order),
+                     tail_estimate=float(tail))
 
 
-def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, segment: int | None = None) -> float:
+def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, max_order: int | None = None,
+                            tol: float = 0.0) -> float:
     """Restricted log marginal likelihood (L2) of the PL-LSSVM model with ``kernel`` and ``gamma``
     on a uniform grid of period ``Ts`` (``kernel=None``: least squares). Exact by default;
-    ``segment`` selects the block-diagonal approximation (module docstring)."""
-    return reml_terms(Z, y, kernel, gamma, Ts, names=names, segment=segment).log_likelihood
+    ``max_order``/``tol``: the order-m approximation (:func:`reml_terms`)."""
+    return reml_terms(Z, y, kernel, gamma, Ts, names=names, max_order=max_order, tol=tol).log_likelihood
 
 
 def log_evidence(log_likelihood: float, k: int, n: int, p: int) -> float:
@@ -263,14 +273,14 @@ class TuneResult:
     kind: str
     hyper: dict  # kernel hyperparameters (sigma1, sigma2 | lengthscale)
     gamma: float
-    log_likelihood: float  # the tuning objective at the optimum (exact REML unless segmented)
+    log_likelihood: float  # the tuning objective at the optimum (the REML at the order used)
     evaluations: int
     period: float | None = None  # ψ (s); for "spindle" the angle period P (rad)
     seconds: float = 0.0
-    segment: int = 0
+    order: int = 0  # the highest order m of the approximation used at the optimum (n − 1: exact)
     bounds: dict = field(default_factory=dict)
     on_bound: dict = field(default_factory=dict)  # name → "lower" | "upper"
-    terms: REMLTerms | None = None  # exact REML terms at the optimum (None with a segmented objective)
+    terms: REMLTerms | None = None  # REML terms at the optimum
 
     def kernel(self) -> Kernel:
         return _make_kernel(self.kind, self.hyper, self.period)
@@ -285,17 +295,16 @@ class TuneResult:
 
 
 def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
-         bounds: dict | None = None, progress=None, names=None, segment: int | None = None,
+         bounds: dict | None = None, progress=None, names=None, max_order: int | None = None, tol: float = 0.0,
          max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
-         phase: PhaseSegments | None = None, _prepared=None) -> TuneResult:
+         step: float = 0.5, phase: PhaseSegments | None = None, _prepared=None) -> TuneResult:
     """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
-    The objective is the exact REML of the whole record (``segment`` selects the block-diagonal
-    approximation instead: faster, but it misjudges long correlation times σ1 when γ is large).
-    Several starts: ``init`` (clipped into the bounds) and, with ``design``, a two-level design at ¼
+    The objective is the REML of the whole record, exact or of order ≤ ``max_order`` (``tol``:
+    :func:`reml_terms`). Several starts: ``init`` (clipped into the bounds) and, with ``design``, a two-level design at ¼
     and ¾ of each log range (the 4 corners in 2-D, a half fraction of the 8 corners in 3-D); bounded
-    Nelder–Mead from the best start (``xatol`` in log units, ``fatol`` in log likelihood) until
-    ``max_evaluations``.
+    Nelder–Mead from the best start (initial simplex ±``step`` in log units, ``xatol`` in log units,
+    ``fatol`` in log likelihood) until ``max_evaluations``.
     ``on_bound`` names the values that end within ``BOUND_RTOL`` of a bound (in log space).
 
     Parameters
@@ -353,8 +362,8 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         theta = np.clip(theta, lo_arr, hi_arr)
         vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
-            terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, segment=segment,
-                               phase=phase if spindle else None, _prepared=prepared)
+            terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, max_order=max_order,
+                               tol=tol, phase=phase if spindle else None, _prepared=prepared)
             ll = terms.log_likelihood
         except ValueError:
             terms, ll = None, -math.inf
@@ -382,7 +391,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
     if remaining >= 4:
         minimize(objective, best, method="Nelder-Mead", bounds=list(zip(lo_arr, hi_arr)),
                  options={"xatol": xatol, "fatol": fatol, "maxfev": remaining,
-                          "initial_simplex": _simplex(best, lo_arr, hi_arr)})
+                          "initial_simplex": _simplex(best, lo_arr, hi_arr, step)})
     if state["best_x"] is None:
         raise ValueError("the likelihood could not be evaluated anywhere inside the bounds; check the data and bounds")
     best_vals = dict(zip(names_all, np.exp(state["best_x"]).tolist()))
@@ -395,9 +404,9 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
     gamma = best_vals.pop("gamma")
     return TuneResult(kind=kind, hyper=best_vals, gamma=gamma, log_likelihood=float(state["best"]),
                       evaluations=state["evaluations"], period=period if periodic or spindle else None,
-                      seconds=time.perf_counter() - start_time, segment=n if segment is None else int(segment),
+                      seconds=time.perf_counter() - start_time, order=state["terms"].order,
                       bounds=dict(zip(names_all, box)), on_bound=on_bound,
-                      terms=state["terms"] if segment is None else None)
+                      terms=state["terms"])
 
 
 def _simplex(x0, lo, hi, step: float = 0.5):

@@ -120,13 +120,13 @@ class PhaseSegments:
         with np.errstate(divide="ignore"):
             return np.where(self.rate != 0.0, P / np.abs(self.rate), np.inf)
 
-    def columns(self, kernel: Kernel, Ts: float, shift: float = 0.0) -> list[np.ndarray]:
+    def columns(self, kernel: Kernel, Ts: float, shift: float = 0.0, max_order: int | None = None) -> list[np.ndarray]:
         """First column of each stretch's Toeplitz block of ``Ω + shift·I``: the kernel itself (S1)
-        evaluated at the lags ``(d, ω_s d)``, ``d = 0, Ts, 2Ts, …`` (S2)."""
+        evaluated at the lags ``(d, ω_s d)``, ``d = 0, Ts, 2Ts, …`` (S2) — at most ``max_order + 1`` lags."""
         out = []
         origin = np.zeros((1, 2))
         for n_s, w in zip(self.lengths.tolist(), self.rate.tolist()):
-            d = np.arange(n_s) * Ts
+            d = np.arange(n_s if max_order is None else min(n_s, int(max_order) + 1)) * Ts
             col = kernel(origin, np.column_stack([d, w * d]))[0]
             col[0] += shift
             out.append(col)

@@ -1,0 +1,320 @@
+"""The candidates of one identification: the regression all of them share (:class:`_Problem`), a candidate
+evaluated on it (:class:`Candidate`), its fit (:class:`MethodResult`) and the constants of the rules
+(docs/method.md §8)."""
+
+from __future__ import annotations
+
+import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kernels.feed_drive import (
+    beta_to_physical,
+    disturbance_to_force,
+    physical_covariance,
+    simulate_free_run,
+    validity_problems,
+)
+from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_terms
+from kernels.likelihood import tune as tune_hyperparameters
+from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
+
+from .. import online_settings as OS
+
+THESIS_DEFAULTS = {"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}
+#: online KRLS-T defaults (one definition: monitor.online_settings)
+TRACKER_DEFAULTS = OS.TRACKER_DEFAULTS
+#: samples needed beyond ±Ω on each side before the Coulomb columns are identifiable
+MIN_REVERSAL_SAMPLES = 20
+#: samples at rest needed before the Coulomb asymmetry is told from the offset
+MIN_REST_SAMPLES = 20
+#: relative standard error above which a physical parameter is "not determined"
+UNDETERMINED_RSE = 0.25
+#: parameters a kernel candidate must determine at least as well as LS (validity rule 2)
+EFFICIENCY_KEYS = ("inertia", "coulomb")
+#: variance inflation above which a parameter is flagged as competing with the disturbance model
+VIF_FLAG = 10.0
+#: log-evidence margin by which another period must beat a given one to be suggested (and by which a
+#: better-explaining candidate must win to test another's parameters for bias, validity rule 3)
+SUGGEST_MARGIN = 10.0
+#: combined standard errors by which a far better-explaining candidate's parameters may differ (rule 3) …
+BIAS_Z = 3.0
+#: … and the share of its value (as the health drift test's 3 %: a statistically clear but small bias,
+#: LS 1493 ± 2 kg against 1501 ± 0.6 kg for a 1500 kg drive, is no reason to refuse a model)
+BIAS_SHARE = 0.03
+#: share of the samples a spindle speed must hold to put its period in play
+SPINDLE_SHARE = 0.1
+#: longest period relative to the record (the kernel needs σ1 ≥ 2ψ)
+MAX_PERIOD_FRACTION = 0.5
+#: most samples one identification takes: the exact REML of a kernel candidate costs O(N²) per
+#: evaluation (Levinson), ~2.5 min for all candidates at 40 000 samples, ~6 min at this limit;
+#: a longer record is refused with the fix (a window: ``--start``/``--end``)
+MAX_SAMPLES = 60_000
+
+_METHOD_LABEL = {"ls": "LS", "pl_lssvm": "PL-LSSVM"}
+
+
+@dataclass
+class Candidate:
+    """One candidate model, evaluated exactly on the whole record."""
+
+    method: str  # "ls" | "pl_lssvm"
+    kernel: str | None  # None | "squared_exponential" | "locally_periodic" | "locally_periodic_zero_mean" | "spindle"
+    period: float | None
+    hyperparameters: dict  # sigma1, sigma2 | lengthscale, gamma (+ tuned, evaluations, on_bound)
+    k: int  # hyperparameters fitted to the data (eq. L4)
+    log_likelihood: float
+    log_evidence: float
+    beta: np.ndarray  # spec β (model-file order)
+    beta_cov: np.ndarray
+    physical: dict
+    physical_se: dict
+    pole: float
+    valid: bool = True
+    why_not: str | None = None
+    notes: list[str] = field(default_factory=list)
+    kernel_object: object = None
+    gamma: float | None = None
+    vif: dict = field(default_factory=dict)  # variance inflation of each physical parameter by the kernel
+    eligible: bool = True  # False: evaluated for the period check only (the period was given)
+    phase: object = None  # kernels.spindle_phase.PhaseSegments of the spindle-phase candidate
+
+    @property
+    def label(self) -> str:
+        if self.method == "ls":
+            return "LS"
+        if self.kernel == "locally_periodic":
+            return f"PL-LSSVM, locally periodic ψ = {self.period:.6g} s"
+        if self.kernel == "locally_periodic_zero_mean":
+            return f"PL-LSSVM, zero-mean locally periodic ψ = {self.period:.6g} s"
+        if self.kernel == "spindle":
+            return f"PL-LSSVM, spindle phase per {self.hyperparameters.get('per', 'revolution')}"
+        return "PL-LSSVM, squared exponential"
+
+    @property
+    def beta_se(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.beta_cov), 0.0))
+
+    def summary(self) -> dict:
+        """The ``candidates`` entry of the JSON document."""
+        return {"method": self.method, "kernel": self.kernel, "period": self.period,
+                "hyperparameters": self.hyperparameters, "log_evidence": self.log_evidence,
+                "valid": self.valid, "why_not": self.why_not}
+
+
+@dataclass
+class MethodResult:
+    """A fitted candidate with its predictions (the ``ls`` / ``pl_lssvm`` sections)."""
+
+    name: str
+    candidate: Candidate
+    rmse_linear: float  # y − Zβ (m/s)
+    rmse: float  # one-step prediction error (m/s), with the disturbance for PL-LSSVM
+    rmse_free_run: float  # free-run simulation error (m/s)
+    prediction: np.ndarray  # one-step velocity prediction aligned with y
+    f: np.ndarray | None = None  # disturbance estimate (m/s) aligned with y
+    f_force: np.ndarray | None = None  # the same in N when scalable
+
+    @property
+    def beta(self) -> np.ndarray:
+        return self.candidate.beta
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return self.candidate.beta_se
+
+    @property
+    def physical(self) -> dict:
+        return self.candidate.physical
+
+    @property
+    def physical_se(self) -> dict:
+        return self.candidate.physical_se
+
+    def undetermined(self) -> list[str]:
+        """Physical parameters whose relative standard error exceeds ``UNDETERMINED_RSE``."""
+        return undetermined(self.physical, self.physical_se)
+
+    def competing(self) -> list[str]:
+        """Physical parameters whose variance the disturbance model inflates by more than ``VIF_FLAG``."""
+        return [k for k, v in self.candidate.vif.items() if v > VIF_FLAG]
+
+    def to_json(self, names, notes) -> dict:
+        c = self.candidate
+        return {"method": c.method, "kernel": c.kernel, "period": c.period, "beta_names": list(names),
+                "beta": c.beta.tolist(), "beta_se": c.beta_se.tolist(), "physical": c.physical,
+                "physical_se": {k: v for k, v in c.physical_se.items() if not k.startswith("_")},
+                "undetermined": self.undetermined(), "competing": self.competing(), "vif": c.vif,
+                "pole": c.pole, "hyperparameters": c.hyperparameters,
+                "log_likelihood": c.log_likelihood, "log_evidence": c.log_evidence, "valid": c.valid,
+                "why_not": c.why_not, "rmse": self.rmse, "rmse_linear": self.rmse_linear,
+                "rmse_free_run": self.rmse_free_run, "notes": list(notes) + c.notes}
+
+
+def undetermined(physical: dict, physical_se: dict) -> list[str]:
+    """Keys of ``physical`` with ``s.e. > UNDETERMINED_RSE · |value|``."""
+    out = []
+    for k, v in physical.items():
+        s = physical_se.get(k)
+        if s is not None and not (s <= UNDETERMINED_RSE * abs(v)):
+            out.append(k)
+    return out
+
+
+
+
+def _rmse(a: np.ndarray) -> float:
+    return float(math.sqrt(np.mean(a * a)))
+
+
+_BOUND_MEANING = {
+    ("sigma1", "lower"): "the periodic pattern changes from one period to the next (barely periodic at this ψ)",
+    ("sigma1", "upper"): "the periodic pattern keeps its shape over the whole tuning window (a stationary "
+                         "periodic disturbance); longer correlation cannot be told apart",
+    ("sigma2", "lower"): "the pattern has sharper features (edges, impacts) than the kernel can follow; "
+                         "finer detail is smoothed",
+    ("sigma2", "upper"): "the pattern is close to a pure sine at 1/ψ",
+    ("lengthscale", "lower"): "the disturbance varies as fast as the kernel allows (it may be modelling "
+                              "coloured noise rather than a disturbance)",
+    ("lengthscale", "upper"): "the disturbance is nearly constant over the tuning window (a slow drift or offset)",
+    ("gamma", "lower"): "the disturbance is weaker than the noise: this model adds next to nothing",
+    ("gamma", "upper"): "the kernel explains nearly all of the residual (noise at its floor); it may be "
+                        "absorbing model error as well as a disturbance",
+}
+
+
+class _Abandoned(Exception):
+    """Raised in a tuning thread whose result is no longer wanted (the identification failed)."""
+
+
+class _TunedBeside:
+    """:meth:`_Problem.tuned` on a second thread while this one tunes other candidates (the likelihood's
+    Levinson pass releases the interpreter lock: ~1.45× on 2 cores for EMPS at 1 kHz). Leaving the
+    ``with`` block by an exception stops it after its current evaluation (its progress callback raises
+    :class:`_Abandoned`); leaving it in any way joins the thread."""
+
+    def __init__(self, prob: _Problem, *args, progress=None, **kwargs) -> None:
+        self._stop = threading.Event()
+        self._progress = progress
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="identify-beside")
+        self._future = self._pool.submit(prob.tuned, *args, progress=self._report, **kwargs)
+
+    def _report(self, *args) -> None:
+        if self._stop.is_set():
+            raise _Abandoned
+        if self._progress is not None:
+            self._progress(*args)
+
+    def result(self) -> Candidate:
+        return self._future.result()
+
+    def __enter__(self) -> _TunedBeside:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:
+            self._stop.set()
+        self._pool.shutdown(wait=True)
+
+
+class _Problem:
+    """The regression of one trial shared by all candidates."""
+
+    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb):
+        self.form, self.Ts, self.gain, self.names, self.T = form, Ts, gain, names, T
+        self.Z, self.id_names, self.y, self.exo, self.v = Z_id, id_names, y, exo, v
+        self.omega, self.coulomb = omega, coulomb
+        self.prepared = prepare_regression(Z_id, y, id_names)
+        self.n, self.p = Z_id.shape
+
+    def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None, phase=None) -> Candidate:
+        if terms is None:
+            terms = reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, _prepared=self.prepared)
+        beta = self.T @ terms.beta
+        cov = self.T @ terms.beta_cov @ self.T.T
+        try:
+            phys, se = physical_covariance(self.form, beta, cov, self.Ts, gain=self.gain, names=self.names)
+            pole = beta_to_physical(self.form, beta, self.Ts, gain=self.gain, names=self.names).pole
+        except ValueError:
+            phys, se = {}, {}
+            pole = float(beta[0] + beta[1]) if self.form == "velocity-loop" else float(beta[1])
+        problems = validity_problems(self.form, beta, self.Ts, names=self.names, gain=self.gain,
+                                     physical_se={k_: v for k_, v in se.items() if not k_.startswith("_")})
+        vif = {}
+        if kernel is not None and phys:
+            Zt = self.prepared[3]
+            white = self.T @ ((terms.s2 / gamma) * np.linalg.pinv(Zt.T @ Zt)) @ self.T.T
+            _, se_white = physical_covariance(self.form, beta, white, self.Ts, gain=self.gain, names=self.names)
+            vif = {k_: (se[k_] / se_white[k_]) ** 2 for k_ in phys if se_white.get(k_, 0.0) > 0.0}
+        cand = Candidate(method=method, kernel=kernel_kind, period=getattr(kernel, "period", None),
+                         hyperparameters=hyper, k=k, log_likelihood=terms.log_likelihood,
+                         log_evidence=log_evidence(terms.log_likelihood, k, self.n, self.p), beta=beta,
+                         beta_cov=cov, physical=phys, physical_se=se, pole=pole, notes=list(notes),
+                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase)
+        if problems:
+            cand.valid, cand.why_not = False, "; ".join(problems)
+        return cand
+
+    def tuned(self, kind, period, init, tune, k_extra, progress, label, refine: bool = False, phase=None) -> Candidate:
+        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated exactly
+        (block-diagonally on the stretches ``phase`` for the spindle-phase kernel).
+        ``refine``: ``init`` is a good start (the optimum of a related family): no start design, fewer
+        evaluations."""
+        notes = []
+        if tune:
+            res = tune_hyperparameters(None, None, self.Ts, period, kind=kind, init=init, _prepared=self.prepared,
+                                       progress=None if progress is None else (lambda *a: progress(label, *a)),
+                                       design=not refine, max_evaluations=20 if refine else 30, phase=phase)
+            hyper = dict(res.hyper, gamma=res.gamma, tuned=True, evaluations=res.evaluations,
+                         tune_seconds=round(res.seconds, 3))
+            if res.on_bound:
+                hyper["on_bound"] = dict(res.on_bound)
+            for name, side in res.on_bound.items():
+                lo, hi = res.bounds[name]
+                notes.append(f"{label}: {name} ended on its {side} bound ({lo if side == 'lower' else hi:.4g}): "
+                             f"{_BOUND_MEANING[(name, side)]}")
+            kernel, gamma, terms = res.kernel(), res.gamma, res.terms
+            k = len(res.hyper) + 1 + k_extra
+        else:
+            if kind in PERIODIC_KINDS or kind == "spindle":
+                values = {"sigma1": init["sigma1"], "sigma2": init["sigma2"]}
+            else:
+                values = {"lengthscale": init["lengthscale"]}
+            kernel = _make_kernel(kind, values, period)
+            hyper = dict(values, gamma=init["gamma"], tuned=False)
+            gamma, terms = init["gamma"], None
+            k = k_extra
+        if kind == "locally_periodic_zero_mean":
+            notes.append(f"{label}: the disturbance is taken to have zero mean, so the offset also holds the "
+                         "disturbance's mean force (the two cannot be told apart)")
+        return self.candidate("pl_lssvm", kind, kernel, gamma, hyper, k, notes, terms, phase)
+
+    def fit(self, cand: Candidate, trial_exo_name) -> MethodResult:
+        """Predictions (and, for PL-LSSVM, the disturbance estimate) of a candidate."""
+        theta = np.linalg.lstsq(self.T, cand.beta, rcond=None)[0]
+        linear = self.Z @ theta
+        f = None
+        if cand.method == "pl_lssvm":
+            solver = "levinson" if self.n <= LEVINSON_LIMIT else "auto"
+            res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
+                           solver=solver, phase=cand.phase)
+            f = res.f
+            linear = self.Z @ res.beta
+        pred = linear + (f if f is not None else 0.0)
+        with np.errstate(over="ignore", invalid="ignore"):  # an invalid (unstable) model diverges
+            sim = simulate_free_run(self.form, cand.beta, self.v[0], self.exo, omega=self.omega,
+                                    coulomb=self.coulomb, disturbance=None if f is None else np.append(f, 0.0),
+                                    intercept=True)
+            err = sim - self.v
+            free = _rmse(err) if np.all(np.isfinite(err)) else math.inf
+        f_force = None
+        scalable = self.form == "force-input" or self.gain is not None
+        if f is not None and scalable and cand.beta[0] > 0:
+            f_force = disturbance_to_force(self.form, cand.beta, f, gain=self.gain)
+        return MethodResult(name=_METHOD_LABEL[cand.method], candidate=cand, rmse_linear=_rmse(self.y - linear),
+                            rmse=_rmse(self.y - pred), rmse_free_run=free, prediction=pred, f=f, f_force=f_force)
+
+

@@ -1,0 +1,308 @@
+"""The identification of one axis, step by step (:func:`identify`; docs/method.md §8)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from feedio.limits import PHYSICAL
+from kernels.errors import ParameterError
+from kernels.feed_drive import (
+    disturbance_to_force,
+    friction_transform,
+    regressors,
+    rest_samples,
+)
+from kernels.likelihood import PERIODIC_KINDS
+from kernels.low_speed import LowSpeedFriction, low_speed_friction
+
+from ..model_file import OMEGA_MAX
+from .candidates import MAX_SAMPLES, MIN_REST_SAMPLES, MIN_REVERSAL_SAMPLES, THESIS_DEFAULTS, MethodResult, _Problem
+from .periods import (
+    _detected_alternative,
+    _kernel_candidates,
+    _periods_to_try,
+    _spindle,
+    _spindle_candidates,
+    _weigh_alternative,
+    periods_in_play,
+)
+from .result import Identification
+from .rules import _bias_check, _choose, _efficiency_check, _invalidate
+from .truth import _attach_truth
+
+
+def dead_band(v_meas: np.ndarray) -> float:
+    """Coulomb dead band Ω (m/s): the larger of 3× the velocity noise and 0.5 % of the peak speed.
+
+    The noise is estimated from second differences, ``σ ≈ 1.4826·MAD(Δ²v)/√6`` (white
+    noise: Var Δ²v = 6σ²). The floor of 0.5 % of max|v| keeps samples at rest inside the
+    band when the velocity is a smooth filtered derivative (EMPS), where the noise
+    estimate is tiny and no sample would otherwise count as standing still.
+    """
+    v = np.asarray(v_meas, dtype=np.float64)
+    d2 = np.diff(v, 2)
+    if d2.size == 0:
+        return 0.0
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    return max(3.0 * 1.4826 * mad / math.sqrt(6.0), 0.005 * float(np.max(np.abs(v))))
+
+
+
+
+def identify(
+    trial,
+    *,
+    form: str | None = None,
+    period: float | None = None,
+    spindle_rpm: float | None = None,
+    sigma1: float | None = None,
+    sigma2: float | None = None,
+    gamma: float | None = None,
+    tune: bool = True,
+    method: str = "auto",
+    coulomb: bool | None = None,
+    omega: float | None = None,
+    loop_gain: float | None = None,
+    progress=None,
+) -> Identification:
+    """Identify one axis: candidates, evidence, validity, choice (module docstring).
+
+    ``coulomb=None`` keeps the Coulomb columns when the trial reverses direction (at least
+    :data:`MIN_REVERSAL_SAMPLES` samples beyond ±Ω each way) and drops them otherwise, with a
+    note; ``coulomb=True`` insists (and fails on a trial without reversal with the kernels' rank
+    error). ``omega=None`` estimates the dead band with :func:`dead_band`. ``method``: "auto",
+    "ls" or "pl-lssvm". ``progress(label, evaluations, values, ll, best)`` is called while tuning.
+    A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
+    the flag, :mod:`feedmon.errors`).
+
+    The steps, in order (each one function below):
+
+    1. the signals, checked (:func:`_signals`), and the periods in play (:func:`periods_in_play`);
+    2. the friction columns: dead band Ω, Coulomb kept or dropped, rest or not (:func:`_friction_columns`);
+    3. the regression shared by all candidates and its LS candidate (:class:`_Problem`);
+    4. the periods to tune at: given, the spindle's, else found in the LS residual (:func:`_periods_to_try`);
+    5. the kernel candidates, tuned by REML (:func:`_kernel_candidates`, :func:`_spindle_candidates`);
+    6. with a given or spindle period, the period found in the data, tuned and weighed against it
+       (:func:`_detected_alternative`, :func:`_weigh_alternative`);
+    7. validity rules 2 and 3 (:func:`_efficiency_check`, :func:`_bias_check`), the choice
+       (:func:`_choose`), the fits and the low-speed check (:func:`_low_speed_check`).
+    """
+    started = time.perf_counter()
+    form, exo, exo_name = _signals(trial, form, method)
+    Ts, v = float(trial.meta.Ts), trial.v_meas
+    psis, psi_source = periods_in_play(trial, period, spindle_rpm)
+    for name, value in (("sigma1", sigma1), ("sigma2", sigma2), ("gamma", gamma)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
+    gain = None if form == "force-input" else (loop_gain if loop_gain is not None else trial.meta.loop_gain)
+    if gain is not None and not (math.isfinite(gain) and gain > 0):
+        if loop_gain is not None:
+            raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {gain!r}; give the velocity-loop "
+                                 "gain K, or leave it out to identify J/K and B/K", "loop_gain")
+        raise ValueError(f"{trial.path}: the trial's loop_gain must be a positive number (N·s/m), got {gain!r}; give "
+                         "the velocity-loop gain K (loop_gain), or leave it out to identify J/K and B/K")
+    notes: list[str] = []
+    _note_unused_spindle(trial, period, spindle_rpm, psi_source, notes)
+    omega_used, coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega, coulomb, notes)
+
+    reg = regressors(form, v, v_ref=trial.v_ref if form == "velocity-loop" else None,
+                     u=trial.u if form == "force-input" else None, omega=omega_used, coulomb=coulomb_used,
+                     intercept=True)
+    T, id_names = friction_transform(reg.names, rest)
+    prob = _Problem(form, Ts, gain, reg.names, T, reg.Z @ T, id_names, reg.y, exo, v, omega_used, coulomb_used)
+    duration = prob.n * Ts
+    ls_c = prob.candidate("ls", None, None, None, {}, 0)
+    init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
+            "gamma": gamma or THESIS_DEFAULTS["gamma"]}
+    se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
+
+    psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z @ ls_c.beta, Ts, duration,
+                                                           psis, psi_source, notes)
+    tuned_kw = dict(tune=tune, progress=progress)
+    kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, duration,
+                                                 notes, **tuned_kw)
+    candidates = [ls_c, *kernel_candidates]
+    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, **tuned_kw)
+    candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
+    off_spindle, suggested, unused = False, None, []
+    if alt is not None:
+        off_spindle, suggested = _weigh_alternative(alt, candidates, trial, psis, psi_source, spindle_rpm, notes)
+        if off_spindle:
+            psi_source, psis = "detected", [alt.period]
+        else:
+            unused.append(alt)
+
+    for c in candidates[1:]:  # validity rule 2: determined at least as well as LS
+        _invalidate(c, _efficiency_check(c, ls_c))
+    if off_spindle:  # checked in _detected_alternative, with its own evidence of being in play
+        candidates.append(alt)
+    eligible = [c for c in candidates if c.eligible]
+    witnesses = [c for c in eligible if c is ls_c or _efficiency_check(c, ls_c) is None]
+    for c, why in [(c, _bias_check(c, witnesses)) for c in eligible]:  # validity rule 3
+        _invalidate(c, why)
+    chosen, refusal, pl_best, written = _choose(candidates, method)
+
+    ls_res = prob.fit(ls_c, exo_name)
+    pl_res = prob.fit(pl_best, exo_name) if pl_best is not None else None
+    model_res = None
+    if written is ls_c:
+        model_res = ls_res
+    elif written is pl_best:
+        model_res = pl_res
+    elif written is not None:
+        model_res = prob.fit(written, exo_name)
+    low_speed = _low_speed_check(prob, model_res, notes)
+
+    periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
+    psi_report = periodic.period if periodic is not None else (psis[0] if psis else None)
+    if gain is None and form == "velocity-loop":
+        notes.append("loop gain K unknown: only J/K, B/K and the friction over K are identifiable "
+                     "(give --loop-gain to get J and B)")
+    ident = Identification(
+        trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts, period=psi_report,
+        period_source=psi_source, period_suggested=suggested, omega=omega_used, coulomb=coulomb_used,
+        coulomb_note=coulomb_note, rest=rest, names=reg.names, loop_gain=gain, candidates=candidates + unused,
+        chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y, t=trial.t[1:], refusal=refusal,
+        notes=notes,
+    )
+    ident.spindle = None if off_spindle else _spindle(trial)
+    ident.periods = [float(p) for p in psis]
+    ident.low_speed = low_speed
+    _attach_truth(ident, trial)
+    ident.seconds = time.perf_counter() - started
+    return ident
+
+
+def too_long(path, count: str, limit: str = "") -> ParameterError:
+    """The refusal of a record longer than :data:`MAX_SAMPLES` (``count``: how long it is, ending in a verb;
+    ``limit``: the limit in this record's terms), naming the window that fixes it (``start``, ``end``)."""
+    return ParameterError(
+        f"{path}: {count} more than one identification takes ({limit}the exact likelihood of the kernel candidates "
+        "costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first sample), e.g. a "
+        "stretch that holds the motion and the disturbance of interest", "start", "end")
+
+
+def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str]:
+    """Step 1: the input form (``form`` or the trial's) and its exogenous signal (``v_ref`` or ``u``)
+    with its name, after checking ``method``, ``form`` and the record: every sample finite, at most
+    :data:`MAX_SAMPLES`, no sequence gap."""
+    if method not in ("auto", "ls", "pl-lssvm"):
+        raise ParameterError(f"method must be 'auto', 'ls' or 'pl-lssvm', got {method!r}", "method")
+    form = form or trial.meta.form
+    if form not in ("velocity-loop", "force-input"):
+        raise ParameterError(f"form must be 'velocity-loop' or 'force-input', got {form!r}", "form")
+    if form == "force-input":
+        if trial.u is None:
+            raise ParameterError(f"{trial.path}: the force-input form needs a force command 'u', which the trial "
+                                 "lacks; use form='velocity-loop'", "form")
+        exo, exo_name = trial.u, "u"
+    else:
+        exo, exo_name = trial.v_ref, "v_ref"
+    v = trial.v_meas
+    bad = ~(np.isfinite(v) & np.isfinite(exo))
+    if bad.any():
+        raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
+                         f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
+    exo_max, exo_unit = (PHYSICAL.u_max, "N") if exo_name == "u" else (PHYSICAL.v_max, "m/s")
+    absurd = (np.abs(v) > PHYSICAL.v_max) | (np.abs(exo) > exo_max)
+    if absurd.any():  # (least squares would call such a column "collinear")
+        k = int(np.argmax(absurd))
+        raise ValueError(f"{trial.path}: {int(absurd.sum())} sample(s) with an absurd magnitude, first at seq "
+                         f"{int(trial.seq[k])} (v_meas = {v[k]:.6g} m/s, {exo_name} = {exo[k]:.6g} {exo_unit}; limits "
+                         f"{PHYSICAL.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
+                         "without it (trial.window(start, end)) or fix the file")
+    Ts = float(trial.meta.Ts)
+    if v.size - 1 > MAX_SAMPLES:
+        raise too_long(trial.path, f"{v.size} samples ({v.size * Ts:.0f} s) are",
+                       f"{MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: ")
+    steps = np.diff(trial.seq)
+    if steps.size and np.any(steps != 1):
+        k = int(np.argmax(steps != 1))
+        raise ValueError(f"{trial.path}: sequence gap after seq {int(trial.seq[k])}; identify a contiguous segment")
+    dt = float(np.median(np.diff(trial.t))) if trial.t.size > 1 else Ts
+    if not math.isclose(dt, Ts, rel_tol=0.01):  # β, J, B are of the metadata's Ts: a wrong one scales them silently
+        raise ValueError(f"{trial.path}: the samples are {dt:.6g} s apart but the trial's metadata give Ts = {Ts:.6g} s; "
+                         "the model is of one sampling time — re-create the trial with the right one (the importer's Ts)")
+    return form, exo, exo_name
+
+
+def _note_unused_spindle(trial, period: float | None, spindle_rpm: float | None, psi_source: str,
+                         notes: list[str]) -> None:
+    """A note when the trial's metadata give a spindle speed whose period the record cannot hold (under two
+    samples, or over half the record): :func:`periods_in_play` then leaves it out."""
+    meta_rpm, Ts, duration = trial.meta.spindle_rpm, float(trial.meta.Ts), len(trial.v_meas) * float(trial.meta.Ts)
+    if period is None and spindle_rpm is None and psi_source != "spindle" and meta_rpm and math.isfinite(meta_rpm):
+        notes.append(f"the spindle period 60/{meta_rpm:g} rpm = {60.0 / meta_rpm:.6g} s (trial metadata) is "
+                     + (f"shorter than two samples (Ts = {Ts:.6g} s): its lines are folded at half the sample rate"
+                        if 60.0 / meta_rpm < 2.0 * Ts else f"longer than half the record ({duration:.6g} s)")
+                     + "; not used as the disturbance period (give a period to insist on one)")
+
+
+def _friction_columns(v: np.ndarray, Ts: float, omega: float | None, coulomb: bool | None,
+                      notes: list[str]) -> tuple[float, bool, str, bool]:
+    """Step 2: the dead band Ω used (``omega`` or :func:`dead_band`), whether the Coulomb columns are kept
+    (``coulomb``, or when the trial reverses direction), the note saying why, and whether the trial rests
+    (the Coulomb asymmetry can then be told from the offset: :func:`kernels.feed_drive.friction_transform`)."""
+    omega_used = dead_band(v) if omega is None else float(omega)
+    if not (math.isfinite(omega_used) and 0 <= omega_used <= OMEGA_MAX):
+        raise ParameterError(f"omega must be a dead band 0 … {OMEGA_MAX:g} m/s, got {omega!r}", "omega")
+    n_pos = int(np.sum(v[:-1] > omega_used))
+    n_neg = int(np.sum(v[:-1] < -omega_used))
+    reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES
+    if coulomb is None:
+        coulomb_used = reversal
+        coulomb_note = ("Coulomb columns kept (trial reverses direction)" if reversal else
+                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω); "
+                        "the constant column holds the friction of the direction of motion")
+        if not reversal:
+            notes.append(coulomb_note)
+    else:
+        coulomb_used = bool(coulomb)
+        coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
+        if coulomb_used and not reversal:
+            empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
+            raise ParameterError(f"coulomb=True: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} "
+                                 f"below −Ω), so the Coulomb column {empty!r} cannot be identified; use coulomb=False "
+                                 "(or None: identify chooses) or record a trial with reversals", "coulomb")
+    rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES
+    if coulomb_used and not rest:
+        notes.append("the trial has no rest (only passes through ±Ω during reversals): the Coulomb asymmetry "
+                     "cannot be told from the force offset — coulomb_pos = coulomb_neg = the symmetric Coulomb "
+                     "friction, and offset holds asymmetry + offset")
+    return omega_used, coulomb_used, coulomb_note, rest
+
+
+
+
+def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str]) -> LowSpeedFriction | None:
+    """The low-speed friction check (:mod:`kernels.low_speed`) on the written model's prediction error;
+    a note when the friction law does not hold near standstill (and whether the monitor then learns
+    β only above ``min_speed``)."""
+    if res is None:
+        return None
+    err = prob.y - res.prediction
+    if not np.all(np.isfinite(err)):
+        return None
+    check = low_speed_friction(prob.Z, err, prob.v[:-1], prob.omega)
+    if check is None or not check.significant:
+        return check
+    if prob.form == "force-input" or prob.gain is not None:  # a·h is a force δ·sign(v) as a disturbance: δ = a/b
+        delta = -float(disturbance_to_force(prob.form, res.beta, check.amplitude, gain=prob.gain))
+        size = f"{abs(delta):.3g} N {'above' if delta > 0 else 'below'}"
+    else:
+        size = f"{'above' if check.amplitude > 0 else 'below'} (by {abs(check.amplitude):.3g} m/s per sample; give " \
+               "--loop-gain for N)"
+    what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {check.speed:.3g} m/s "
+            f"the friction is {size} the law (log-likelihood gain {check.gain:.0f})")
+    if check.local:
+        notes.append(f"{what}; the monitor learns β only above min_speed = {check.min_speed:.3g} m/s "
+                     f"({100 * check.share:.0f} % of the motion is slower)")
+    else:
+        notes.append(f"{what}, but {100 * check.share:.0f} % of the motion is that slow: not a low-speed effect "
+                     "to leave out (min_speed stays 0); it may be a disturbance that follows the feed")
+    return check
+
+
