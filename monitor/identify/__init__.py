@@ -16,7 +16,6 @@ from kernels.feed_drive import COULOMB_Z
 
 from .candidates import (
     EFFICIENCY_KEYS,
-    MAX_SAMPLES,
     SUGGEST_MARGIN,
     THESIS_DEFAULTS,
     TRACKER_DEFAULTS,
@@ -27,8 +26,8 @@ from .candidates import (
 )
 from .periods import periods_in_play
 from .result import Identification
-from .workflow import dead_band, identify, too_long
+from .workflow import dead_band, identify
 
-__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "MAX_SAMPLES", "too_long", "UNDETERMINED_RSE", "EFFICIENCY_KEYS",
+__all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENCY_KEYS",
            "VIF_FLAG", "SUGGEST_MARGIN", "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify",
            "periods_in_play", "dead_band"]

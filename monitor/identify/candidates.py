@@ -20,7 +20,7 @@ from kernels.feed_drive import (
 )
 from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_terms
 from kernels.likelihood import tune as tune_hyperparameters
-from kernels.pl_lssvm import LEVINSON_LIMIT, pl_lssvm, prepare_regression
+from kernels.pl_lssvm import pl_lssvm, prepare_regression
 
 from .. import online_settings as OS
 
@@ -49,10 +49,17 @@ BIAS_SHARE = 0.03
 SPINDLE_SHARE = 0.1
 #: longest period relative to the record (the kernel needs σ1 ≥ 2ψ)
 MAX_PERIOD_FRACTION = 0.5
-#: most samples one identification takes: the exact REML of a kernel candidate costs O(N²) per
-#: evaluation (Levinson), ~2.5 min for all candidates at 40 000 samples, ~6 min at this limit;
-#: a longer record is refused with the fix (a window: ``--start``/``--end``)
-MAX_SAMPLES = 60_000
+#: highest order m of the likelihood while tuning (the order-m approximation, kernels.levinson: exact for
+#: records up to TUNE_ORDER + 1 samples and for kernels whose memory is shorter)
+TUNE_ORDER = 2048
+#: highest order of a candidate's evaluation (its evidence, β and covariance) and of the polish steps
+FINAL_ORDER = 8192
+#: the lags beyond the order used add less than this to log|A| (eq. V3 of kernels.levinson), log-likelihood units
+ORDER_TOL = 0.5
+#: Nelder–Mead evaluations at FINAL_ORDER from the tuned optimum, when the tuning order held the kernel's memory back
+POLISH_EVALUATIONS = 6
+#: Nelder–Mead evaluations of a tuning (from a design of starts) and of a refinement (from a related optimum)
+TUNE_EVALUATIONS, REFINE_EVALUATIONS = 30, 20
 
 _METHOD_LABEL = {"ls": "LS", "pl_lssvm": "PL-LSSVM"}
 
@@ -81,6 +88,7 @@ class Candidate:
     vif: dict = field(default_factory=dict)  # variance inflation of each physical parameter by the kernel
     eligible: bool = True  # False: evaluated for the period check only (the period was given)
     phase: object = None  # kernels.spindle_phase.PhaseSegments of the spindle-phase candidate
+    order: int = 0  # order m of its likelihood (kernels.levinson; N − 1: exact, 0: least squares)
 
     @property
     def label(self) -> str:
@@ -230,9 +238,15 @@ class _Problem:
         self.prepared = prepare_regression(Z_id, y, id_names)
         self.n, self.p = Z_id.shape
 
+    def terms(self, kernel, gamma, phase=None):
+        """The REML terms of a kernel at the final order (:data:`FINAL_ORDER`, :data:`ORDER_TOL`)."""
+        return reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, max_order=FINAL_ORDER, tol=ORDER_TOL,
+                          _prepared=self.prepared)
+
     def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None, phase=None) -> Candidate:
         if terms is None:
-            terms = reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, _prepared=self.prepared)
+            terms = self.terms(kernel, gamma, phase) if kernel is not None else reml_terms(
+                None, None, None, None, self.Ts, _prepared=self.prepared)
         beta = self.T @ terms.beta
         cov = self.T @ terms.beta_cov @ self.T.T
         try:
@@ -253,23 +267,37 @@ class _Problem:
                          hyperparameters=hyper, k=k, log_likelihood=terms.log_likelihood,
                          log_evidence=log_evidence(terms.log_likelihood, k, self.n, self.p), beta=beta,
                          beta_cov=cov, physical=phys, physical_se=se, pole=pole, notes=list(notes),
-                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase)
+                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase, order=terms.order)
         if problems:
             cand.valid, cand.why_not = False, "; ".join(problems)
         return cand
 
+    def _tune(self, kind, period, init, progress, label, refine, phase):
+        """REML tuning at :data:`TUNE_ORDER`, then — when that order held the kernel's memory back (the
+        criterion V3 had not stopped it) and the record is longer — a few Nelder–Mead steps at
+        :data:`FINAL_ORDER` from the optimum (a short-memory kernel's optimum is already final)."""
+        report = None if progress is None else (lambda *a: progress(label, *a))
+        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, tol=ORDER_TOL)
+        res = tune_hyperparameters(None, None, self.Ts, period, init=init, design=not refine, max_order=TUNE_ORDER,
+                                   max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS, **kw)
+        held_back = res.order >= TUNE_ORDER and res.terms.tail_estimate >= ORDER_TOL and self.n - 1 > TUNE_ORDER
+        if not held_back:
+            return res, res.evaluations, res.seconds
+        polished = tune_hyperparameters(None, None, self.Ts, period, init=dict(res.hyper, gamma=res.gamma),
+                                        design=False, max_order=FINAL_ORDER, max_evaluations=POLISH_EVALUATIONS,
+                                        step=0.15, **kw)
+        return polished, res.evaluations + polished.evaluations, res.seconds + polished.seconds
+
     def tuned(self, kind, period, init, tune, k_extra, progress, label, refine: bool = False, phase=None) -> Candidate:
-        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated exactly
+        """A kernel candidate: tuned by REML (or the given/thesis values), then evaluated at the final order
         (block-diagonally on the stretches ``phase`` for the spindle-phase kernel).
         ``refine``: ``init`` is a good start (the optimum of a related family): no start design, fewer
         evaluations."""
         notes = []
         if tune:
-            res = tune_hyperparameters(None, None, self.Ts, period, kind=kind, init=init, _prepared=self.prepared,
-                                       progress=None if progress is None else (lambda *a: progress(label, *a)),
-                                       design=not refine, max_evaluations=20 if refine else 30, phase=phase)
-            hyper = dict(res.hyper, gamma=res.gamma, tuned=True, evaluations=res.evaluations,
-                         tune_seconds=round(res.seconds, 3))
+            res, evaluations, seconds = self._tune(kind, period, init, progress, label, refine, phase)
+            hyper = dict(res.hyper, gamma=res.gamma, tuned=True, evaluations=evaluations,
+                         tune_seconds=round(seconds, 3))
             if res.on_bound:
                 hyper["on_bound"] = dict(res.on_bound)
             for name, side in res.on_bound.items():
@@ -297,10 +325,9 @@ class _Problem:
         theta = np.linalg.lstsq(self.T, cand.beta, rcond=None)[0]
         linear = self.Z @ theta
         f = None
-        if cand.method == "pl_lssvm":
-            solver = "levinson" if self.n <= LEVINSON_LIMIT else "auto"
+        if cand.method == "pl_lssvm":  # the order of its likelihood: the same model
             res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
-                           solver=solver, phase=cand.phase)
+                           solver="levinson", phase=cand.phase, order=cand.order)
             f = res.f
             linear = self.Z @ res.beta
         pred = linear + (f if f is not None else 0.0)

@@ -10,7 +10,7 @@ import numpy as np
 
 from kernels import LocallyPeriodic
 from kernels.errors import ParameterError
-from kernels.likelihood import PERIODIC_KINDS, reml_terms
+from kernels.likelihood import PERIODIC_KINDS
 from kernels.period import MIN_CYCLES, detect_periods, harmonically_related, sampled_harmonic
 from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, spindle_phase
 
@@ -250,8 +250,7 @@ def _harmonic_alternatives(prob: _Problem, cand: Candidate, psi: float, duration
         s1 = max(cand.hyperparameters["sigma1"], 2.0 * q)
         s2 = max(cand.hyperparameters["sigma2"] / m, 1e-3)
         try:
-            ll = reml_terms(None, None, LocallyPeriodic(s1, s2, q), cand.gamma, prob.Ts,
-                            _prepared=prob.prepared).log_likelihood
+            ll = prob.terms(LocallyPeriodic(s1, s2, q), cand.gamma).log_likelihood
         except ValueError:
             continue
         if ll > cand.log_likelihood:

@@ -19,7 +19,7 @@ from kernels.likelihood import PERIODIC_KINDS
 from kernels.low_speed import LowSpeedFriction, low_speed_friction
 
 from ..model_file import OMEGA_MAX
-from .candidates import MAX_SAMPLES, MIN_REST_SAMPLES, MIN_REVERSAL_SAMPLES, THESIS_DEFAULTS, MethodResult, _Problem
+from .candidates import MIN_REST_SAMPLES, MIN_REVERSAL_SAMPLES, THESIS_DEFAULTS, MethodResult, _Problem
 from .periods import (
     _detected_alternative,
     _kernel_candidates,
@@ -176,19 +176,9 @@ def identify(
     return ident
 
 
-def too_long(path, count: str, limit: str = "") -> ParameterError:
-    """The refusal of a record longer than :data:`MAX_SAMPLES` (``count``: how long it is, ending in a verb;
-    ``limit``: the limit in this record's terms), naming the window that fixes it (``start``, ``end``)."""
-    return ParameterError(
-        f"{path}: {count} more than one identification takes ({limit}the exact likelihood of the kernel candidates "
-        "costs O(N²)); identify a window of the trial (trial.window(start, end), s from its first sample), e.g. a "
-        "stretch that holds the motion and the disturbance of interest", "start", "end")
-
-
 def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str]:
     """Step 1: the input form (``form`` or the trial's) and its exogenous signal (``v_ref`` or ``u``)
-    with its name, after checking ``method``, ``form`` and the record: every sample finite, at most
-    :data:`MAX_SAMPLES`, no sequence gap."""
+    with its name, after checking ``method``, ``form`` and the record: every sample finite, no sequence gap."""
     if method not in ("auto", "ls", "pl-lssvm"):
         raise ParameterError(f"method must be 'auto', 'ls' or 'pl-lssvm', got {method!r}", "method")
     form = form or trial.meta.form
@@ -215,9 +205,6 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
                          f"{PHYSICAL.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
                          "without it (trial.window(start, end)) or fix the file")
     Ts = float(trial.meta.Ts)
-    if v.size - 1 > MAX_SAMPLES:
-        raise too_long(trial.path, f"{v.size} samples ({v.size * Ts:.0f} s) are",
-                       f"{MAX_SAMPLES} samples, {MAX_SAMPLES * Ts:.0f} s at this rate: ")
     steps = np.diff(trial.seq)
     if steps.size and np.any(steps != 1):
         k = int(np.argmax(steps != 1))
