@@ -43,6 +43,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from numba import njit
 
 __all__ = [
     "FORMS",
@@ -478,14 +479,23 @@ def simulate_free_run(
     beta = np.asarray(beta, dtype=np.float64)
     e = _finite_1d("exogenous input", exogenous)
     f = np.zeros_like(e) if disturbance is None else _finite_1d("disturbance", disturbance)
+    const = beta[-1] if _intercept(form, intercept) else 0.0
+    cp, cn = (float(beta[2]), float(beta[3])) if coulomb else (0.0, 0.0)
+    return _free_run(float(beta[0]), float(beta[1]), cp, cn, float(const), float(v0), e, f, float(omega))
+
+
+@njit(cache=True, nogil=True)
+def _free_run(b1, b2, cp, cn, const, v0, e, f, omega):
+    """The loop of :func:`simulate_free_run` (compiled: a record of any length)."""
     out = np.empty_like(e)
     out[0] = v0
-    const = beta[-1] if _intercept(form, intercept) else 0.0
     for k in range(e.size - 1):
         v = out[k]
-        nxt = beta[0] * e[k] + beta[1] * v + const
-        if coulomb:
-            nxt -= beta[2] * (v > omega) + beta[3] * (v < -omega)
+        nxt = b1 * e[k] + b2 * v + const
+        if v > omega:
+            nxt -= cp
+        elif v < -omega:
+            nxt -= cn
         out[k + 1] = nxt + f[k]
     return out
 

@@ -60,6 +60,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
+from .blocks import blocks
 from .covariance import Kernel, LocallyPeriodic, SquaredExponential, ZeroMeanLocallyPeriodic
 from .levinson import levinson_whiten
 from .pl_lssvm import _check_gamma, prepare_regression
@@ -113,7 +114,7 @@ def _logdet_scaled_gram(Zs: np.ndarray) -> float:
 
 
 def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order: int | None = None,
-               tol: float = 0.0, phase: PhaseSegments | None = None, _prepared=None) -> REMLTerms:
+               tol: float = 0.0, phase: PhaseSegments | None = None, gate=None, _prepared=None) -> REMLTerms:
     """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
     ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
@@ -122,7 +123,8 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order:
     ``max_order``, stopped earlier when the lags beyond it add less than ``tol`` to log|A| (V3), never
     before the kernel's support :func:`support_order`). With ``phase`` (the stretches of constant
     spindle speed), ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated
-    block-diagonally, each stretch the same way.
+    block-diagonally; with ``gate`` (N,) bool the disturbance acts only where it is True (eq. B1 of
+    :mod:`kernels.blocks`).
     """
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
@@ -133,18 +135,20 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order:
         b, quad, logdet_M_s, Rinv = _qr_terms(Zt / scale, y)
         return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept)
     gamma = _check_gamma(gamma)
+    if phase is not None and phase.edges[-1] != n:
+        raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
+    if phase is None and not kernel.is_stationary_1d:
+        raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
+    Ts = float(Ts)
+    if not (math.isfinite(Ts) and Ts > 0):
+        raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
+    parts = blocks(kernel, gamma, Ts, n, gate=gate, phase=phase, max_order=max_order)
+    white, logdet_A, order, tail = _whiten_blocks(np.column_stack([Zt, y]), parts, gamma, max_order, tol)
     if phase is not None:
-        if phase.edges[-1] != n:
-            raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
-        white, logdet_A, order, tail = _whiten_phase(Zt, y, kernel, gamma, float(Ts), phase, max_order, tol)
         solver = f"spindle-{phase.count}"
+    elif len(parts) > 1:
+        solver = f"gated-{sum(b.column is not None for b in parts)}"
     else:
-        if not kernel.is_stationary_1d:
-            raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
-        Ts = float(Ts)
-        if not (math.isfinite(Ts) and Ts > 0):
-            raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-        white, logdet_A, order, tail = _whiten(np.column_stack([Zt, y]), kernel, gamma, Ts, max_order, tol)
         solver = "levinson" if order >= n - 1 else f"levinson-ar{order}"
     b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
     return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, solver, intercept, order, tail)
@@ -166,25 +170,20 @@ def toeplitz_column(kernel: Kernel, gamma: float, Ts: float, lags: int) -> np.nd
     return column
 
 
-def _whiten(data, kernel, gamma, Ts, max_order, tol):
-    """``L̃⁻¹ data`` (whitened rows), ``log|Ã|``, the order used and its tail estimate (eq. V2, V3)."""
-    n = data.shape[0]
-    m_max = n - 1 if max_order is None else min(int(max_order), n - 1)
-    column = toeplitz_column(kernel, gamma, Ts, m_max + 1)
-    res = levinson_whiten(column, data, max_order=m_max, tol=tol, min_order=support_order(column, m_max))
-    return res.white, res.logdet, res.order, res.tail_estimate
-
-
-def _whiten_phase(Zt, y, kernel, gamma, Ts, phase: PhaseSegments, max_order, tol):
-    """``L̃_s⁻¹[Z̃_s, y_s]`` and ``Σ log|Ã_s|`` over the stretches of constant spindle speed (eq. S2), each
-    stretch exact or of order ≤ ``max_order`` (:func:`_whiten`); the highest order and the summed tails."""
-    data = np.column_stack([Zt, y])
+def _whiten_blocks(data, parts, gamma, max_order, tol):
+    """``L̃⁻¹ data`` block by block (eq. B1, V2), ``Σ log|Ã_s|``, the highest order used and the summed
+    tail estimates (V3)."""
     white = np.empty_like(data)
     logdet, order, tail = 0.0, 0, 0.0
-    edges = phase.edges.tolist()
-    for (a, b), column in zip(zip(edges[:-1], edges[1:]), phase.columns(kernel, Ts, 1.0 / gamma, max_order)):
+    for part in parts:
+        a, b = part.start, part.stop
+        if part.column is None:  # the gate is closed: white noise of variance 1/γ
+            white[a:b] = data[a:b] * math.sqrt(gamma)
+            logdet -= (b - a) * math.log(gamma)
+            continue
         m_max = b - a - 1 if max_order is None else min(int(max_order), b - a - 1)
-        res = levinson_whiten(column, data[a:b], max_order=m_max, tol=tol, min_order=support_order(column, m_max))
+        res = levinson_whiten(part.column, data[a:b], max_order=max(m_max, 1) if b - a > 1 else None, tol=tol,
+                              min_order=support_order(part.column, max(m_max, 0)))
         white[a:b] = res.white
         logdet += res.logdet
         order, tail = max(order, res.order), tail + res.tail_estimate
@@ -297,7 +296,7 @@ class TuneResult:
 def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
          bounds: dict | None = None, progress=None, names=None, max_order: int | None = None, tol: float = 0.0,
          max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
-         step: float = 0.5, phase: PhaseSegments | None = None, _prepared=None) -> TuneResult:
+         step: float = 0.5, phase: PhaseSegments | None = None, gate=None, _prepared=None) -> TuneResult:
     """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
     The objective is the REML of the whole record, exact or of order ≤ ``max_order`` (``tol``:
@@ -313,6 +312,8 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         periodic kernel; for ``"spindle"`` the angle period P (rad, default 2π: per revolution).
     kind : "locally_periodic", "locally_periodic_zero_mean", "squared_exponential" or "spindle"
         (the spindle-phase kernel on the stretches ``phase`` of constant spindle speed)
+    gate : array (N,) of bool, optional
+        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`).
     init : dict, optional
         Starting values by name (e.g. ``{"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}``).
     bounds : dict name → (lo, hi), optional
@@ -363,7 +364,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
             terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, max_order=max_order,
-                               tol=tol, phase=phase if spindle else None, _prepared=prepared)
+                               tol=tol, phase=phase if spindle else None, gate=gate, _prepared=prepared)
             ll = terms.log_likelihood
         except ValueError:
             terms, ll = None, -math.inf

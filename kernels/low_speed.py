@@ -64,6 +64,10 @@ class LowSpeedFriction:
     significant: bool     #: gain ≥ min_gain
     local: bool           #: share ≤ max_share
 
+    def to_json(self) -> dict:
+        return {"v_s": self.v_s, "amplitude": self.amplitude, "se": self.se, "gain": self.gain, "share": self.share,
+                "significant": self.significant, "local": self.local, "min_speed": self.min_speed}
+
     @property
     def speed(self) -> float:
         """``SPAN · v_s`` = 2 v_s (m/s): below it the friction departs from the law."""

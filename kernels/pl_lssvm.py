@@ -20,7 +20,8 @@ are needed:
   (long σ1 with large γ: thousands of iterations).
 * vector inputs ``x`` (N, d): dense Cholesky of ``A``, limited to ``dense_limit`` samples.
 * the spindle-phase kernel on ``(t, θ)`` with the stretches of constant spindle speed ``phase``
-  (:mod:`kernels.spindle_phase`): block-diagonal ``A``, Levinson–Durbin per stretch (eq. S2).
+  (:mod:`kernels.spindle_phase`), and a gate (the disturbance acts only where a process acts,
+  :mod:`kernels.blocks`): block-diagonal ``A``, Levinson–Durbin per stretch (eq. S2, B1).
 
 Uncertainty: in the Gaussian-process reading of :mod:`kernels.likelihood` (eq. L1) ``[c; β]`` is
 the GLS estimate and its covariance is ``ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹`` with ``ŝ² = rᵀA⁻¹r/(N − p)``,
@@ -51,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from .blocks import blocks
 from .covariance import Kernel
 from .least_squares import validate_regression
 from .levinson import levinson_solve
@@ -201,13 +203,14 @@ class _LevinsonSolver:
         return levinson_solve(self.column, B, self.order)
 
 
-class _PhaseSolver:
-    """``A⁻¹B`` for the block-diagonal ``A`` of the spindle-phase kernel: Levinson–Durbin per stretch
-    (of order ≤ ``order`` when given)."""
+class _BlockSolver:
+    """``A⁻¹B`` for a block-diagonal ``A`` (:mod:`kernels.blocks`: stretches of constant spindle speed, a
+    gate): Levinson–Durbin per Toeplitz block (of order ≤ ``order`` when given), ``γB`` where the gate is
+    closed."""
 
-    def __init__(self, kernel: Kernel, gamma: float, Ts: float, phase: PhaseSegments, order: int | None = None):
-        self.blocks = list(zip(phase.edges[:-1].tolist(), phase.edges[1:].tolist(),
-                               phase.columns(kernel, Ts, 1.0 / gamma, order)))
+    def __init__(self, parts, gamma: float, order: int | None = None):
+        self.parts = parts
+        self.gamma = gamma
         self.order = order
         self.iterations = 0
         self.residual = 0.0
@@ -215,8 +218,13 @@ class _PhaseSolver:
     def solve(self, B, tol=None):
         B = np.asarray(B, dtype=np.float64)
         out = np.empty_like(B)
-        for a, b, column in self.blocks:
-            out[a:b] = levinson_solve(column, B[a:b], None if self.order is None else min(self.order, b - a - 1))
+        for part in self.parts:
+            a, b = part.start, part.stop
+            if part.column is None:
+                out[a:b] = self.gamma * B[a:b]
+            else:
+                order = None if self.order is None or b - a <= 1 else min(self.order, b - a - 1)
+                out[a:b] = levinson_solve(part.column, B[a:b], order)
         return out
 
 
@@ -326,7 +334,7 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
              tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
              toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto",
-             phase: PhaseSegments | None = None, order: int | None = None) -> PLLSSVMResult:
+             phase: PhaseSegments | None = None, order: int | None = None, gate=None) -> PLLSSVMResult:
     """PL-LSSVM estimate of β and the disturbance ``f`` (method §4, thesis eq. 2.9–2.12).
 
     Parameters
@@ -357,6 +365,9 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     order : int, optional
         With ``solver="levinson"`` (and the spindle-phase path): the order-m approximation of
         :mod:`kernels.levinson` (exact when None or ``≥ N − 1``), the one the likelihood used.
+    gate : array (N,) of bool, optional
+        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`; time kernels and the spindle-phase
+        path): block-diagonal solves, ``f = 0`` where it is False.
     phase : PhaseSegments, optional
         Stretches of constant spindle speed: ``kernel`` is then a kernel on ``(t, θ)`` (the
         spindle-phase kernel), solved block-diagonally on a grid of period ``Ts``.
@@ -371,11 +382,12 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     Z_arr, y, names, Zt, intercept = prepare_regression(Z, y, names)
     n, p = Zt.shape
     method = solver
-    if phase is not None:
-        if Ts is None or phase.edges[-1] != n:
-            raise ValueError(f"the spindle-phase path needs Ts and stretches covering the {n} samples")
-        solver, solver_name, step = (_PhaseSolver(kernel, gamma, float(Ts), phase, order), f"spindle-{phase.count}",
-                                     float(Ts))
+    if phase is not None or gate is not None:
+        if Ts is None or (phase is not None and phase.edges[-1] != n):
+            raise ValueError(f"the spindle-phase and gated paths need Ts and stretches covering the {n} samples")
+        parts = blocks(kernel, gamma, float(Ts), n, gate=gate, phase=phase, max_order=order)
+        name = f"spindle-{phase.count}" if phase is not None else f"gated-{sum(b.column is not None for b in parts)}"
+        solver, solver_name, step = _BlockSolver(parts, gamma, order), name, float(Ts)
     else:
         solver, solver_name, step = _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit,
                                                   toeplitz_dense_limit, method, order)
@@ -390,7 +402,7 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     c, beta = (float(b[0]), b[1:]) if intercept else (0.0, b)
     linear = y - Z_arr @ beta
     residuals = alpha / gamma
-    f = linear - residuals
+    f = linear - residuals  # where a gate is closed A = I/γ: α/γ is the whole residual, f = c
     s2 = float((y - Zt @ b) @ alpha) / (n - p)
     Minv = cho_solve(cho, np.eye(p), check_finite=False) / np.outer(scale, scale)
     cov = s2 * 0.5 * (Minv + Minv.T)

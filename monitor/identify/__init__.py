@@ -5,6 +5,7 @@
 package, top to bottom (imports point down only):
 
 * :mod:`.workflow` — :func:`identify`, step by step;
+* :mod:`.regression` — the regression all candidates share: dead band, friction and process columns;
 * :mod:`.periods` — the periods in play and the kernel candidates tuned at them;
 * :mod:`.truth` — errors against a simulated or published truth;
 * :mod:`.result` — :class:`Identification`: the JSON document and the model file;
@@ -25,8 +26,9 @@ from .candidates import (
     MethodResult,
 )
 from .periods import periods_in_play
+from .regression import dead_band
 from .result import Identification
-from .workflow import dead_band, identify
+from .workflow import identify
 
 __all__ = ["THESIS_DEFAULTS", "TRACKER_DEFAULTS", "UNDETERMINED_RSE", "EFFICIENCY_KEYS",
            "VIF_FLAG", "SUGGEST_MARGIN", "COULOMB_Z", "Identification", "Candidate", "MethodResult", "identify",

@@ -89,6 +89,7 @@ class Candidate:
     eligible: bool = True  # False: evaluated for the period check only (the period was given)
     phase: object = None  # kernels.spindle_phase.PhaseSegments of the spindle-phase candidate
     order: int = 0  # order m of its likelihood (kernels.levinson; N − 1: exact, 0: least squares)
+    theta: np.ndarray | None = None  # the coefficients of the identifiable columns (β = T θ; nuisance ones too)
 
     @property
     def label(self) -> str:
@@ -231,17 +232,18 @@ class _TunedBeside:
 class _Problem:
     """The regression of one trial shared by all candidates."""
 
-    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb):
+    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb, gate=None):
         self.form, self.Ts, self.gain, self.names, self.T = form, Ts, gain, names, T
         self.Z, self.id_names, self.y, self.exo, self.v = Z_id, id_names, y, exo, v
         self.omega, self.coulomb = omega, coulomb
+        self.gate = gate  # where the disturbance acts (kernels.blocks), None: everywhere
         self.prepared = prepare_regression(Z_id, y, id_names)
         self.n, self.p = Z_id.shape
 
     def terms(self, kernel, gamma, phase=None):
         """The REML terms of a kernel at the final order (:data:`FINAL_ORDER`, :data:`ORDER_TOL`)."""
-        return reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, max_order=FINAL_ORDER, tol=ORDER_TOL,
-                          _prepared=self.prepared)
+        return reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, gate=self.gate, max_order=FINAL_ORDER,
+                          tol=ORDER_TOL, _prepared=self.prepared)
 
     def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None, phase=None) -> Candidate:
         if terms is None:
@@ -267,7 +269,8 @@ class _Problem:
                          hyperparameters=hyper, k=k, log_likelihood=terms.log_likelihood,
                          log_evidence=log_evidence(terms.log_likelihood, k, self.n, self.p), beta=beta,
                          beta_cov=cov, physical=phys, physical_se=se, pole=pole, notes=list(notes),
-                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase, order=terms.order)
+                         kernel_object=kernel, gamma=gamma, vif=vif, phase=phase, order=terms.order,
+                         theta=np.asarray(terms.beta))
         if problems:
             cand.valid, cand.why_not = False, "; ".join(problems)
         return cand
@@ -277,7 +280,7 @@ class _Problem:
         criterion V3 had not stopped it) and the record is longer — a few Nelder–Mead steps at
         :data:`FINAL_ORDER` from the optimum (a short-memory kernel's optimum is already final)."""
         report = None if progress is None else (lambda *a: progress(label, *a))
-        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, tol=ORDER_TOL)
+        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, gate=self.gate, tol=ORDER_TOL)
         res = tune_hyperparameters(None, None, self.Ts, period, init=init, design=not refine, max_order=TUNE_ORDER,
                                    max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS, **kw)
         held_back = res.order >= TUNE_ORDER and res.terms.tail_estimate >= ORDER_TOL and self.n - 1 > TUNE_ORDER
@@ -321,15 +324,21 @@ class _Problem:
         return self.candidate("pl_lssvm", kind, kernel, gamma, hyper, k, notes, terms, phase)
 
     def fit(self, cand: Candidate, trial_exo_name) -> MethodResult:
-        """Predictions (and, for PL-LSSVM, the disturbance estimate) of a candidate."""
-        theta = np.linalg.lstsq(self.T, cand.beta, rcond=None)[0]
-        linear = self.Z @ theta
+        """Predictions (and, for PL-LSSVM, the disturbance estimate) of a candidate. The disturbance holds what
+        the nuisance columns took (a process's mean force): ``f`` = GP part + nuisance part; ``linear`` is
+        ``βᵀz``, what the monitor's residual is taken from."""
+        theta = cand.theta
         f = None
         if cand.method == "pl_lssvm":  # the order of its likelihood: the same model
             res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
-                           solver="levinson", phase=cand.phase, order=cand.order)
-            f = res.f
-            linear = self.Z @ res.beta
+                           solver="levinson", phase=cand.phase, order=cand.order, gate=self.gate)
+            f, theta = res.f, res.beta
+        spec = np.flatnonzero(np.any(self.T != 0.0, axis=0))
+        nuisance = np.setdiff1d(np.arange(theta.size), spec)
+        linear = self.Z[:, spec] @ theta[spec]
+        if nuisance.size:
+            part = self.Z[:, nuisance] @ theta[nuisance]
+            f = part if f is None else f + part
         pred = linear + (f if f is not None else 0.0)
         with np.errstate(over="ignore", invalid="ignore"):  # an invalid (unstable) model diverges
             sim = simulate_free_run(self.form, cand.beta, self.v[0], self.exo, omega=self.omega,
@@ -337,6 +346,8 @@ class _Problem:
                                     intercept=True)
             err = sim - self.v
             free = _rmse(err) if np.all(np.isfinite(err)) else math.inf
+        if cand.method == "ls":
+            f = None  # no disturbance model: a process mean is in the prediction, not shown as a disturbance
         f_force = None
         scalable = self.form == "force-input" or self.gain is not None
         if f is not None and scalable and cand.beta[0] > 0:

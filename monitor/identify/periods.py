@@ -18,6 +18,10 @@ from .. import online_settings as OS
 from .candidates import MAX_PERIOD_FRACTION, SPINDLE_SHARE, SUGGEST_MARGIN, Candidate, _Problem, _TunedBeside
 from .rules import _efficiency_check, _invalidate
 
+#: the most samples the period search reads (its harmonic-sum periodogram costs more than O(N log N)): the
+#: window with the most disturbance, ~200 s at 333 Hz — ample resolution for any period it may find
+PERIOD_WINDOW = 65_536
+
 
 def _check_period(psi: float, what: str, Ts: float, duration: float, parameter: str | None = None) -> float:
     """``psi`` checked against the record; ``parameter``: the argument it comes from (the error is then
@@ -78,6 +82,18 @@ def periods_in_play(trial, period: float | None = None, spindle_rpm: float | Non
 
 
 
+def search_window(resid: np.ndarray, size: int = PERIOD_WINDOW) -> tuple[int, int]:
+    """``(a, b)``: the ``size`` consecutive samples of ``resid`` whose first difference carries the most
+    energy (a disturbance, not a slow drift), the whole record when it is shorter."""
+    n = resid.size
+    if n <= size:
+        return 0, n
+    energy = np.concatenate([[0.0], np.cumsum(np.diff(resid) ** 2)])  # energy[k] = Σ_{j<k} Δr_j²
+    sums = energy[size - 1:] - energy[: energy.size - size + 1]
+    a = int(np.argmax(sums))
+    return a, a + size
+
+
 def _periods_to_try(trial, ls_resid: np.ndarray, Ts: float, duration: float, psis: list[float], psi_source: str,
                     notes: list[str]) -> tuple[list[float], str, int, list]:
     """Step 4: the periods the kernel candidates are tuned at, their source and ``k_period`` (1 when the
@@ -86,8 +102,12 @@ def _periods_to_try(trial, ls_resid: np.ndarray, Ts: float, duration: float, psi
     given or spindle period the strongest one found is used; notes say so, say when none is found, and
     when a given period is locked to the motion."""
     ref = trial.v_ref[:-1] if trial.v_ref is not None and np.all(np.isfinite(trial.v_ref)) else None
+    a, b = search_window(ls_resid)
+    if b - a < ls_resid.size:
+        notes.append(f"periods searched in the {(b - a) * Ts:.0f} s of the record with the most disturbance "
+                     f"({a * Ts:.0f} … {b * Ts:.0f} s)")
     try:
-        detected, motion = detect_periods(ls_resid, Ts, reference=ref)
+        detected, motion = detect_periods(ls_resid[a:b], Ts, reference=None if ref is None else ref[a:b])
     except ValueError:
         detected, motion = [], None
     detected = [d for d in detected if 2.0 * Ts <= d.period <= min(duration / MIN_CYCLES, MAX_PERIOD_FRACTION * duration)]

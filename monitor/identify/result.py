@@ -10,6 +10,7 @@ import numpy as np
 
 from kernels import SquaredExponential
 from kernels.low_speed import LowSpeedFriction
+from kernels.noise import NoiseEstimate
 
 from .. import online_settings as OS
 from ..model_file import AxisModel, TrackerConfig, file_sha256
@@ -68,6 +69,9 @@ class Identification:
     spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
     periods: list[float] = field(default_factory=list)  # every ψ in play (s; several when the spindle speed changes)
     low_speed: LowSpeedFriction | None = None  # the friction law near standstill (kernels.low_speed)
+    checks: dict = field(default_factory=dict)  # what the data say beyond β (the JSON "checks")
+    noise: NoiseEstimate | None = None  # the measurement noise in the written model's residual (kernels.noise)
+    offset_separated: bool | None = None  # a process's mean force kept out of friction and offset
 
     def to_json(self) -> dict:
         """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
@@ -88,6 +92,7 @@ class Identification:
             "pl_lssvm": None if self.pl is None else self.pl.to_json(self.names, self.notes),
             "model": model,
             "truth": self.truth,
+            "checks": self.checks,
         }
 
     def _tracker_kernel(self, chosen, psi) -> tuple[str, dict | None]:
@@ -145,6 +150,10 @@ class Identification:
         ident = {"chosen": c.method, "kernel": c.kernel or "none", "period": c.period,
                  "period_source": self.period_source, "log_evidence": c.log_evidence}
         ident.update({k: v for k, v in c.hyperparameters.items() if isinstance(v, (int, float, bool))})
+        if c.method == "pl_lssvm":
+            ident["order"] = c.order
+        if self.checks.get("offset_note"):
+            ident["offset_note"] = self.checks["offset_note"]
         candidates = [{"method": x.method, "kernel": x.kernel or "none", "period": x.period,
                        "log_evidence": x.log_evidence, "valid": x.valid, "why_not": x.why_not or ""}
                       | ({"per": x.hyperparameters.get("per", "revolution")} if x.kernel == "spindle" else {})
@@ -169,6 +178,8 @@ class Identification:
             identification=ident,
             candidates=candidates,
             validity_warning=warning,
+            noise=None if self.noise is None else float(self.noise.sigma_eps),
+            offset_separated=self.offset_separated,
             # β learns only where the friction law holds (kernels.low_speed); every other setting its default
             online=OS.OnlineSettings(adaptation=OS.Adaptation(
                 min_speed=float(self.low_speed.min_speed) if self.low_speed is not None else 0.0)),

@@ -9,17 +9,12 @@ import numpy as np
 
 from feedio.limits import PHYSICAL
 from kernels.errors import ParameterError
-from kernels.feed_drive import (
-    disturbance_to_force,
-    friction_transform,
-    regressors,
-    rest_samples,
-)
+from kernels.feed_drive import disturbance_to_force
 from kernels.likelihood import PERIODIC_KINDS
 from kernels.low_speed import LowSpeedFriction, low_speed_friction
+from kernels.noise import white_noise
 
-from ..model_file import OMEGA_MAX
-from .candidates import MIN_REST_SAMPLES, MIN_REVERSAL_SAMPLES, THESIS_DEFAULTS, MethodResult, _Problem
+from .candidates import THESIS_DEFAULTS, Candidate, MethodResult, _Problem
 from .periods import (
     _detected_alternative,
     _kernel_candidates,
@@ -29,27 +24,11 @@ from .periods import (
     _weigh_alternative,
     periods_in_play,
 )
+from .progress import WorkPlan, planned_evaluations
+from .regression import build_regression
 from .result import Identification
 from .rules import _bias_check, _choose, _efficiency_check, _invalidate
 from .truth import _attach_truth
-
-
-def dead_band(v_meas: np.ndarray) -> float:
-    """Coulomb dead band Ω (m/s): the larger of 3× the velocity noise and 0.5 % of the peak speed.
-
-    The noise is estimated from second differences, ``σ ≈ 1.4826·MAD(Δ²v)/√6`` (white
-    noise: Var Δ²v = 6σ²). The floor of 0.5 % of max|v| keeps samples at rest inside the
-    band when the velocity is a smooth filtered derivative (EMPS), where the noise
-    estimate is tiny and no sample would otherwise count as standing still.
-    """
-    v = np.asarray(v_meas, dtype=np.float64)
-    d2 = np.diff(v, 2)
-    if d2.size == 0:
-        return 0.0
-    mad = float(np.median(np.abs(d2 - np.median(d2))))
-    return max(3.0 * 1.4826 * mad / math.sqrt(6.0), 0.005 * float(np.max(np.abs(v))))
-
-
 
 
 def identify(
@@ -70,58 +49,51 @@ def identify(
 ) -> Identification:
     """Identify one axis: candidates, evidence, validity, choice (module docstring).
 
+    ``progress(label, done, total)`` is called after each likelihood evaluation of the tuning (the bulk
+    of the work; ``total`` is planned as the stages become known, :mod:`.progress`).
     ``coulomb=None`` keeps the Coulomb columns when the trial reverses direction (at least
-    :data:`MIN_REVERSAL_SAMPLES` samples beyond ±Ω each way) and drops them otherwise, with a
-    note; ``coulomb=True`` insists (and fails on a trial without reversal with the kernels' rank
-    error). ``omega=None`` estimates the dead band with :func:`dead_band`. ``method``: "auto",
-    "ls" or "pl-lssvm". ``progress(label, evaluations, values, ll, best)`` is called while tuning.
-    A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
+    ``MIN_REVERSAL_SAMPLES`` samples beyond ±Ω each way) and drops them otherwise, with a
+    note; ``coulomb=True`` insists (and fails on a trial without reversal). ``omega=None`` takes the
+    dead band from the measurement noise (:mod:`.regression`). ``method``: "auto",
+    "ls" or "pl-lssvm". A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
     the flag, :mod:`feedmon.errors`).
 
     The steps, in order (each one function below):
 
     1. the signals, checked (:func:`_signals`), and the periods in play (:func:`periods_in_play`);
-    2. the friction columns: dead band Ω, Coulomb kept or dropped, rest or not (:func:`_friction_columns`);
-    3. the regression shared by all candidates and its LS candidate (:class:`_Problem`);
+    2. the regression shared by all candidates (:func:`.regression.build_regression`): the dead band from
+       the measurement noise, the friction columns, a process's mean force kept apart; its LS candidate;
     4. the periods to tune at: given, the spindle's, else found in the LS residual (:func:`_periods_to_try`);
     5. the kernel candidates, tuned by REML (:func:`_kernel_candidates`, :func:`_spindle_candidates`);
     6. with a given or spindle period, the period found in the data, tuned and weighed against it
        (:func:`_detected_alternative`, :func:`_weigh_alternative`);
-    7. validity rules 2 and 3 (:func:`_efficiency_check`, :func:`_bias_check`), the choice
-       (:func:`_choose`), the fits and the low-speed check (:func:`_low_speed_check`).
+    7. validity rules 2 and 3 and the choice (:func:`_rules_and_choice`), the fits, the low-speed check
+       (:func:`_low_speed_check`) and what else the data say (:func:`_checks`).
     """
     started = time.perf_counter()
     form, exo, exo_name = _signals(trial, form, method)
     Ts, v = float(trial.meta.Ts), trial.v_meas
     psis, psi_source = periods_in_play(trial, period, spindle_rpm)
-    for name, value in (("sigma1", sigma1), ("sigma2", sigma2), ("gamma", gamma)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
-    gain = None if form == "force-input" else (loop_gain if loop_gain is not None else trial.meta.loop_gain)
-    if gain is not None and not (math.isfinite(gain) and gain > 0):
-        if loop_gain is not None:
-            raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {gain!r}; give the velocity-loop "
-                                 "gain K, or leave it out to identify J/K and B/K", "loop_gain")
-        raise ValueError(f"{trial.path}: the trial's loop_gain must be a positive number (N·s/m), got {gain!r}; give "
-                         "the velocity-loop gain K (loop_gain), or leave it out to identify J/K and B/K")
+    gain = _arguments(trial, form, sigma1, sigma2, gamma, loop_gain)
     notes: list[str] = []
     _note_unused_spindle(trial, period, spindle_rpm, psi_source, notes)
-    omega_used, coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega, coulomb, notes)
-
-    reg = regressors(form, v, v_ref=trial.v_ref if form == "velocity-loop" else None,
-                     u=trial.u if form == "force-input" else None, omega=omega_used, coulomb=coulomb_used,
-                     intercept=True)
-    T, id_names = friction_transform(reg.names, rest)
-    prob = _Problem(form, Ts, gain, reg.names, T, reg.Z @ T, id_names, reg.y, exo, v, omega_used, coulomb_used)
+    reg = build_regression(form, v, exo, Ts, omega=omega, coulomb=coulomb, spindle_rpm=trial.spindle_rpm, notes=notes)
+    prob = _Problem(form, Ts, gain, reg.names, reg.T, reg.Z_id, reg.id_names, reg.y, exo, v, reg.omega, reg.coulomb,
+                    gate=reg.process.active if reg.nuisance else None)
     duration = prob.n * Ts
     ls_c = prob.candidate("ls", None, None, None, {}, 0)
     init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
             "gamma": gamma or THESIS_DEFAULTS["gamma"]}
     se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
 
-    psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z @ ls_c.beta, Ts, duration,
+    psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z_id @ ls_c.theta, Ts, duration,
                                                            psis, psi_source, notes)
-    tuned_kw = dict(tune=tune, progress=progress)
+    plan = None if progress is None else WorkPlan(progress)
+    if plan is not None:
+        spindle_changes = trial.spindle_angle is not None or trial.spindle_rpm is not None
+        plan.plan(planned_evaluations(len(psis), alternative=bool(detected) and psi_source in ("given", "spindle"),
+                                      spindle=2 if spindle_changes else 0, tune=tune))
+    tuned_kw = dict(tune=tune, progress=plan)
     kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, duration,
                                                  notes, **tuned_kw)
     candidates = [ls_c, *kernel_candidates]
@@ -134,25 +106,12 @@ def identify(
             psi_source, psis = "detected", [alt.period]
         else:
             unused.append(alt)
-
-    for c in candidates[1:]:  # validity rule 2: determined at least as well as LS
-        _invalidate(c, _efficiency_check(c, ls_c))
-    if off_spindle:  # checked in _detected_alternative, with its own evidence of being in play
-        candidates.append(alt)
-    eligible = [c for c in candidates if c.eligible]
-    witnesses = [c for c in eligible if c is ls_c or _efficiency_check(c, ls_c) is None]
-    for c, why in [(c, _bias_check(c, witnesses)) for c in eligible]:  # validity rule 3
-        _invalidate(c, why)
-    chosen, refusal, pl_best, written = _choose(candidates, method)
+    chosen, refusal, pl_best, written = _rules_and_choice(candidates, ls_c, alt if off_spindle else None, method)
 
     ls_res = prob.fit(ls_c, exo_name)
     pl_res = prob.fit(pl_best, exo_name) if pl_best is not None else None
-    model_res = None
-    if written is ls_c:
-        model_res = ls_res
-    elif written is pl_best:
-        model_res = pl_res
-    elif written is not None:
+    model_res = {id(ls_c): ls_res, id(pl_best): pl_res}.get(id(written)) if written is not None else None
+    if written is not None and model_res is None:
         model_res = prob.fit(written, exo_name)
     low_speed = _low_speed_check(prob, model_res, notes)
 
@@ -163,16 +122,19 @@ def identify(
                      "(give --loop-gain to get J and B)")
     ident = Identification(
         trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts, period=psi_report,
-        period_source=psi_source, period_suggested=suggested, omega=omega_used, coulomb=coulomb_used,
-        coulomb_note=coulomb_note, rest=rest, names=reg.names, loop_gain=gain, candidates=candidates + unused,
-        chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y, t=trial.t[1:], refusal=refusal,
-        notes=notes,
+        period_source=psi_source, period_suggested=suggested, omega=reg.omega, coulomb=reg.coulomb,
+        coulomb_note=reg.coulomb_note, rest=reg.rest, names=reg.names, loop_gain=gain,
+        candidates=candidates + unused, chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y,
+        t=trial.t[1:], refusal=refusal, notes=notes,
     )
     ident.spindle = None if off_spindle else _spindle(trial)
     ident.periods = [float(p) for p in psis]
     ident.low_speed = low_speed
+    _checks(ident, reg, model_res)
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
+    if plan is not None:
+        plan.finish()
     return ident
 
 
@@ -228,40 +190,56 @@ def _note_unused_spindle(trial, period: float | None, spindle_rpm: float | None,
                      + "; not used as the disturbance period (give a period to insist on one)")
 
 
-def _friction_columns(v: np.ndarray, Ts: float, omega: float | None, coulomb: bool | None,
-                      notes: list[str]) -> tuple[float, bool, str, bool]:
-    """Step 2: the dead band Ω used (``omega`` or :func:`dead_band`), whether the Coulomb columns are kept
-    (``coulomb``, or when the trial reverses direction), the note saying why, and whether the trial rests
-    (the Coulomb asymmetry can then be told from the offset: :func:`kernels.feed_drive.friction_transform`)."""
-    omega_used = dead_band(v) if omega is None else float(omega)
-    if not (math.isfinite(omega_used) and 0 <= omega_used <= OMEGA_MAX):
-        raise ParameterError(f"omega must be a dead band 0 … {OMEGA_MAX:g} m/s, got {omega!r}", "omega")
-    n_pos = int(np.sum(v[:-1] > omega_used))
-    n_neg = int(np.sum(v[:-1] < -omega_used))
-    reversal = n_pos >= MIN_REVERSAL_SAMPLES and n_neg >= MIN_REVERSAL_SAMPLES
-    if coulomb is None:
-        coulomb_used = reversal
-        coulomb_note = ("Coulomb columns kept (trial reverses direction)" if reversal else
-                        f"Coulomb columns dropped: no speed reversal ({n_pos} samples above +Ω, {n_neg} below −Ω); "
-                        "the constant column holds the friction of the direction of motion")
-        if not reversal:
-            notes.append(coulomb_note)
-    else:
-        coulomb_used = bool(coulomb)
-        coulomb_note = "Coulomb columns " + ("kept" if coulomb_used else "dropped") + " as requested"
-        if coulomb_used and not reversal:
-            empty = "-sigma_n" if n_neg < MIN_REVERSAL_SAMPLES else "-sigma_p"
-            raise ParameterError(f"coulomb=True: the trial has no speed reversal ({n_pos} samples above +Ω, {n_neg} "
-                                 f"below −Ω), so the Coulomb column {empty!r} cannot be identified; use coulomb=False "
-                                 "(or None: identify chooses) or record a trial with reversals", "coulomb")
-    rest = coulomb_used and rest_samples(v[:-1], omega_used, Ts) >= MIN_REST_SAMPLES
-    if coulomb_used and not rest:
-        notes.append("the trial has no rest (only passes through ±Ω during reversals): the Coulomb asymmetry "
-                     "cannot be told from the force offset — coulomb_pos = coulomb_neg = the symmetric Coulomb "
-                     "friction, and offset holds asymmetry + offset")
-    return omega_used, coulomb_used, coulomb_note, rest
+def _arguments(trial, form, sigma1, sigma2, gamma, loop_gain) -> float | None:
+    """The hyperparameters given checked; the loop gain K (N·s/m) of the velocity-loop form (None: unknown)."""
+    for name, value in (("sigma1", sigma1), ("sigma2", sigma2), ("gamma", gamma)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ParameterError(f"{name} must be a positive number, got {value!r}", name)
+    gain = None if form == "force-input" else (loop_gain if loop_gain is not None else trial.meta.loop_gain)
+    if gain is not None and not (math.isfinite(gain) and gain > 0):
+        if loop_gain is not None:
+            raise ParameterError(f"loop_gain must be a positive number (N·s/m), got {gain!r}; give the velocity-loop "
+                                 "gain K, or leave it out to identify J/K and B/K", "loop_gain")
+        raise ValueError(f"{trial.path}: the trial's loop_gain must be a positive number (N·s/m), got {gain!r}; give "
+                         "the velocity-loop gain K (loop_gain), or leave it out to identify J/K and B/K")
+    return gain
 
 
+def _rules_and_choice(candidates: list[Candidate], ls_c: Candidate, off_spindle: Candidate | None, method: str):
+    """Validity rules 2 and 3, then the choice (:func:`_choose`); ``off_spindle``: the period found in the data
+    that competes like any other (checked in :func:`_detected_alternative`)."""
+    for c in candidates[1:]:  # validity rule 2: determined at least as well as LS
+        _invalidate(c, _efficiency_check(c, ls_c))
+    if off_spindle is not None:
+        candidates.append(off_spindle)
+    eligible = [c for c in candidates if c.eligible]
+    witnesses = [c for c in eligible if c is ls_c or _efficiency_check(c, ls_c) is None]
+    for c, why in [(c, _bias_check(c, witnesses)) for c in eligible]:  # validity rule 3
+        _invalidate(c, why)
+    return _choose(candidates, method)
+
+
+def _checks(ident: Identification, reg, model_res: MethodResult | None) -> None:
+    """What the data say beyond β: the measurement noise (of the written model's residual), where a process
+    acts and whether its mean force is kept out of friction and offset (the JSON ``checks``)."""
+    noise = reg.noise
+    if model_res is not None:
+        c = model_res.candidate
+        resid = reg.y - reg.Z_spec @ c.beta  # the monitor's residual v(k) = v_m(k+1) − βᵀz(k)
+        try:
+            noise = white_noise(resid, pole=min(max(c.pole, -0.999), 1.0))
+        except ParameterError:
+            pass
+    ident.noise = noise
+    ident.offset_separated = reg.offset_separated
+    if model_res is not None and not reg.nuisance and model_res.candidate.kernel == "locally_periodic_zero_mean":
+        ident.offset_separated = False  # the zero-mean kernel leaves the disturbance's mean to the offset
+    process = None
+    if reg.process is not None:
+        process = {"share": float(np.mean(reg.process.active)), "nuisance": list(reg.nuisance)}
+    ident.checks = {"noise": None if noise is None else noise.to_json(), "omega": reg.omega, "process": process,
+                    "offset_separated": ident.offset_separated, "offset_note": reg.offset_note,
+                    "low_speed": None if ident.low_speed is None else ident.low_speed.to_json()}
 
 
 def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str]) -> LowSpeedFriction | None:
