@@ -9,7 +9,8 @@ mean square of ``Δr`` against its noise floor:
     Δε(k) = n(k+2) − (1 + p) n(k+1) + p n(k),     E[Δε²] = (1 + (1 + p)² + p²) σ_n²            (P1)
 
 (ε of :mod:`kernels.noise`, eq. N1). A sample is *active* when the mean of ``Δr²`` over the
-``window`` samples centred on it exceeds ``factor`` times (P1); the active stretches are widened by
+``window`` samples centred on it exceeds ``factor`` times (P1) in a stretch at least ``min_run`` long
+(a shorter one is the model's own error at a reversal or an acceleration); the active stretches are widened by
 ``dilate`` samples on both sides (the tails of a cut's entry and exit, where the process is weaker
 than the test's threshold) and gaps shorter than ``2·dilate`` between them are filled (hysteresis:
 one quiet moment is no end of the process). ``idle`` marks samples known to be free of the process
@@ -24,9 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import binary_closing, binary_dilation, uniform_filter1d
 
+from .blocks import gate_runs
 from .errors import ParameterError
 
-__all__ = ["ProcessMask", "process_mask", "FACTOR", "WINDOW_SECONDS", "DILATE_SECONDS"]
+__all__ = ["ProcessMask", "process_mask", "FACTOR", "WINDOW_SECONDS", "DILATE_SECONDS", "MIN_RUN_SECONDS"]
 
 #: local mean square of Δr above this many times its noise floor (P1) is a process
 FACTOR = 4.0
@@ -34,6 +36,9 @@ FACTOR = 4.0
 WINDOW_SECONDS = 0.05
 #: active stretches are widened by this long (s) on each side, at least 4 samples
 DILATE_SECONDS = 0.1
+#: a process acts at least this long at a time (s): shorter excursions are the model's own error at a
+#: transient (a reversal, an acceleration), not a process
+MIN_RUN_SECONDS = 0.25
 
 
 @dataclass(frozen=True)
@@ -50,7 +55,8 @@ class ProcessMask:
 
 
 def process_mask(residual, sigma_n: float, pole: float, Ts: float, *, idle=None, factor: float = FACTOR,
-                 window_s: float = WINDOW_SECONDS, dilate_s: float = DILATE_SECONDS) -> ProcessMask:
+                 window_s: float = WINDOW_SECONDS, dilate_s: float = DILATE_SECONDS,
+                 min_run_s: float = MIN_RUN_SECONDS) -> ProcessMask:
     """The samples where a process acts (module docstring): ``residual`` (N,) the one-step residual (m/s),
     ``sigma_n`` the measurement noise (m/s) and ``pole`` the drive's discrete pole (:func:`kernels.noise.white_noise`),
     ``Ts`` the sample period (s), ``idle`` (N,) bool or None: samples free of the process whatever their
@@ -70,6 +76,10 @@ def process_mask(residual, sigma_n: float, pole: float, Ts: float, *, idle=None,
     window = max(16, int(round(window_s / Ts)))
     level = uniform_filter1d(d2, size=min(window, n), mode="nearest") / floor
     active = level > factor
+    shortest = max(1, int(round(min_run_s / Ts)))
+    for a, b, open_ in gate_runs(active):
+        if open_ and b - a < shortest:
+            active[a:b] = False
     dilate = max(4, int(round(dilate_s / Ts)))
     if active.any():
         active = binary_dilation(active, iterations=dilate)

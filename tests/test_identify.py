@@ -13,24 +13,25 @@ from trial_edit import rewrite_samples
 from feedio.mcapio import TrialTooLong, iter_blocks, read_trial
 from feedmon.cli import main
 from kernels.errors import ParameterError
-from monitor.identify import MAX_SAMPLES, identify
+from monitor.identify import identify
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
 SHAKER_PERIOD = 1 / 55
-JSON_KEYS = {"form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth", "self_check"}
+JSON_KEYS = {"form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth", "checks", "self_check",
+             "error"}
 PHYSICAL_KEYS = {"inertia", "damping", "coulomb", "coulomb_pos", "coulomb_neg", "offset"}
 
 _RUNS: dict = {}
 
 
 def run_identify(trial, *args, output=None) -> tuple[int, dict | None, str]:
-    """``feedmon identify TRIAL ARGS --json [-o output]`` → (exit code, JSON document, stderr); cached."""
+    """``feedmon identify TRIAL ARGS --json [-o output | --dry-run]`` → (exit code, JSON document, stderr); cached."""
     key = (str(trial), args, str(output))
     if key not in _RUNS:
-        argv = ["identify", str(trial), *map(str, args), "--json"] + (["-o", str(output)] if output else [])
+        argv = ["identify", str(trial), *map(str, args), "--json"] + (["-o", str(output)] if output else ["--dry-run"])
         out, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(argv)
@@ -288,23 +289,14 @@ def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simu
     assert doc["period"]["suggested"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
 
 
-def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identified(simulated):
-    """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix —
-    the command before the trial is all in memory (a 3 M-sample trial once took 663 MB first), the
-    library function with the count; --start/--end identify a window (the self-check runs over the
-    same window)."""
+def test_a_long_record_is_identified_whole_and_a_window_still_can_be(simulated):
+    """A record of any length is identified (61 605 samples at 333 Hz were refused: the exact likelihood
+    cost O(N²)); --start/--end identify a window (the self-check runs over the same window)."""
     path = simulated("shaker-control", seed=3, duration=185.0)  # 61 605 samples at 333 Hz
-    code, doc, err = run_identify(path)
-    assert code == 2 and doc is None
-    assert f"more than {MAX_SAMPLES} samples, more than one identification takes" in err
-    assert err.rstrip().endswith("(command line: --start, --end)")
-    with pytest.raises(TrialTooLong, match=r"holds more than 1,000 samples, the most read into memory") as exc:
-        read_trial(path, max_samples=1000)
-    assert exc.value.limit == 1000
-    with pytest.raises(ParameterError, match=rf"61605 samples \(185 s\) are more than one identification takes "
-                                             rf"\({MAX_SAMPLES} samples") as exc:
-        identify(read_trial(path))
-    assert exc.value.parameters == ("start", "end")
+    code, doc, err = run_identify(path, "--method", "ls", "--no-tune")
+    assert code == 0, err
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(doc["truth"]["physical"]["inertia"], rel=0.01)
+    assert doc["self_check"]["state"] == "ok" and doc["self_check"]["reports"] in (119, 120)  # its first 120 s
     code, _, err = run_identify(path, "--start", 40, "--end", 30)
     assert code == 2 and "window start (40 s) must come before its end (30 s) (command line: --start, --end)" in err
     code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
@@ -322,6 +314,32 @@ def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identi
         with pytest.raises(ValueError, match=match):
             whole.window(start, end)
     assert whole.window() is whole
+    with pytest.raises(TrialTooLong, match=r"holds more than 1,000 samples, the most read into memory") as exc:
+        read_trial(path, max_samples=1000)
+    assert exc.value.limit == 1000
+
+
+def test_without_o_the_model_goes_next_to_the_trial_and_is_never_overwritten(simulated, tmp_path, capsys):
+    """``identify`` without -o did all the work and wrote nothing (exit 0). The model file now goes next to the
+    trial (TRIAL.model.toml); when that file exists the command refuses at once, naming -o, before any work;
+    --dry-run writes none."""
+    import shutil
+
+    trial = tmp_path / "axis.mcap"
+    shutil.copy(simulated("shaker-control", duration=6.0), trial)
+    default = tmp_path / "axis.model.toml"
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune"]) == 0
+    assert f"wrote {default}" in capsys.readouterr().err.replace("\n", "")
+    assert load_model(default).method == "ls"
+    before = default.read_bytes()
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune"]) == 2
+    err = capsys.readouterr().err
+    assert "exists" in err and "give -o to replace it" in err and "--dry-run" in err
+    assert default.read_bytes() == before
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune", "--dry-run"]) == 0
+    assert "wrote" not in capsys.readouterr().err and default.read_bytes() == before
+    assert main(["identify", str(trial), "--dry-run", "-o", str(tmp_path / "x.toml")]) == 2
+    assert "--dry-run and -o contradict" in capsys.readouterr().err
 
 
 def test_json_document_has_exactly_the_documented_shape(simulated):
@@ -429,8 +447,11 @@ def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp
     write_arrays(bad, msgspec.structs.replace(src.meta, Ts=0.001), dict(t=src.t, v_ref=src.v_ref, v_meas=src.v_meas),
                  start=0)
     code, doc, err = run_identify(bad, "--method", "ls")
-    assert code == 2 and doc is None and "Traceback" not in err
+    assert code == 2 and "Traceback" not in err
     assert "the samples are 0.003003 s apart but the trial's metadata give Ts = 0.001 s" in err
+    # --json: one document on stdout all the same, every key there, the error in it (it printed nothing)
+    assert set(doc) == JSON_KEYS and "the samples are 0.003003 s apart" in doc["error"]
+    assert all(doc[k] is None for k in JSON_KEYS - {"error"})
 
 
 def test_without_loop_gain_only_ratios(simulated):
@@ -548,9 +569,10 @@ def test_a_failing_periodic_tune_stops_the_squared_exponential_one(simulated):
     class Stop(Exception):
         pass
 
-    def progress(label, evaluations, values, ll, best):
-        seen[label] = evaluations
-        if label.startswith("locally periodic") and evaluations == 2:
+    def progress(label, done, total):
+        assert 0 < done <= total
+        seen[label] = seen.get(label, 0) + 1
+        if label.startswith("locally periodic") and seen[label] == 2:
             raise Stop(label)
 
     with pytest.raises(Stop):
