@@ -13,6 +13,10 @@ stretches where the gate is open, the correlation of ``f`` across the closed str
 that carries only the process-free motion then says nothing about the disturbance, and the
 regression's friction and offset come from it. Every block is Toeplitz: one Levinson pass each
 (exact or of order m, :mod:`kernels.levinson`); a closed block is diagonal.
+
+Samples left out of the fit (``keep`` False: the friction law does not describe them) are a block of
+their own that carries nothing (infinite variance: weight 0), and the disturbance's correlation across
+them is left out as across a closed gate.
 """
 
 from __future__ import annotations
@@ -30,35 +34,49 @@ __all__ = ["Block", "blocks", "gate_runs"]
 @dataclass(frozen=True)
 class Block:
     """Samples ``start:stop``; ``column``: the first column of their Toeplitz block of ``A`` (at most the
-    lags asked for), or None for a closed gate (``A = γ⁻¹I`` there)."""
+    lags asked for), or None for a closed gate (``A = γ⁻¹I`` there); ``kept`` False: left out of the fit."""
 
     start: int
     stop: int
     column: np.ndarray | None
+    kept: bool = True
 
     @property
     def size(self) -> int:
         return self.stop - self.start
 
 
+def gate_runs_of(code: np.ndarray) -> list[tuple[int, int, int]]:
+    """``(start, stop, value)`` of the runs of equal value of the integer array ``code``."""
+    c = np.asarray(code)
+    edges = np.flatnonzero(np.diff(c)) + 1
+    bounds = np.concatenate([[0], edges, [c.size]]).astype(int)
+    return [(int(a), int(b), int(c[a])) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def gate_runs(gate: np.ndarray) -> list[tuple[int, int, bool]]:
     """``(start, stop, open)`` of the runs of equal value of the boolean ``gate``."""
-    g = np.asarray(gate, dtype=bool)
-    edges = np.flatnonzero(np.diff(g.astype(np.int8))) + 1
-    bounds = np.concatenate([[0], edges, [g.size]]).astype(int)
-    return [(int(a), int(b), bool(g[a])) for a, b in zip(bounds[:-1], bounds[1:])]
+    return [(a, b, bool(v)) for a, b, v in gate_runs_of(np.asarray(gate, dtype=np.int8))]
 
 
 def blocks(kernel: Kernel, gamma: float, Ts: float, n: int, *, gate=None, phase: PhaseSegments | None = None,
-           max_order: int | None = None) -> list[Block]:
+           max_order: int | None = None, keep=None) -> list[Block]:
     """The blocks of (B1) for ``n`` samples of period ``Ts``: one per run of an open ``gate`` (None: open
     everywhere) within each stretch of ``phase`` (None: one time kernel over the record), columns of at most
-    ``max_order + 1`` lags; one closed block per run of a closed gate."""
-    if gate is not None:
-        gate = np.asarray(gate, dtype=bool)
-        if gate.shape != (n,):
-            raise ValueError(f"the gate has {gate.size} samples, the regression {n}")
-    runs = gate_runs(gate) if gate is not None else [(0, n, True)]
+    ``max_order + 1`` lags; one closed block per run of a closed gate; one left-out block per run of
+    ``keep`` False."""
+    flags = []
+    for name, mask in (("gate", gate), ("keep", keep)):
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            if mask.shape != (n,):
+                raise ValueError(f"the {name} mask has {mask.size} samples, the regression {n}")
+        flags.append(mask)
+    gate, keep = flags
+    code = np.ones(n, dtype=np.int8) if gate is None else gate.astype(np.int8)  # 1 open, 0 closed, 2 left out
+    if keep is not None:
+        code[~keep] = 2
+    runs = [(a, b, int(code[a])) for a, b, _ in gate_runs_of(code)]
     stretches = [(0, n, None)] if phase is None else [
         (int(a), int(b), float(w)) for a, b, w in zip(phase.edges[:-1], phase.edges[1:], phase.rate)]
     shift = 1.0 / float(gamma)
@@ -68,8 +86,8 @@ def blocks(kernel: Kernel, gamma: float, Ts: float, n: int, *, gate=None, phase:
             a, b = max(a0, a1), min(b0, b1)
             if a >= b:
                 continue
-            if not open_:
-                out.append(Block(a, b, None))
+            if open_ != 1:
+                out.append(Block(a, b, None, kept=open_ == 0))
                 continue
             lags = b - a if max_order is None else min(b - a, int(max_order) + 1)
             d = np.arange(lags) * Ts

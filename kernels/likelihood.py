@@ -114,7 +114,8 @@ def _logdet_scaled_gram(Zs: np.ndarray) -> float:
 
 
 def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order: int | None = None,
-               tol: float = 0.0, phase: PhaseSegments | None = None, gate=None, _prepared=None) -> REMLTerms:
+               tol: float = 0.0, phase: PhaseSegments | None = None, gate=None, keep=None,
+               _prepared=None) -> REMLTerms:
     """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
     ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
@@ -124,16 +125,18 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order:
     before the kernel's support :func:`support_order`). With ``phase`` (the stretches of constant
     spindle speed), ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated
     block-diagonally; with ``gate`` (N,) bool the disturbance acts only where it is True (eq. B1 of
-    :mod:`kernels.blocks`).
+    :mod:`kernels.blocks`); with ``keep`` (N,) bool the samples where it is False are left out.
     """
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
     Z_arr, y, names, Zt, intercept = _prepared
     n, p = Zt.shape
     scale = np.sqrt(np.sum(Zt * Zt, axis=0))
+    kept = None if keep is None else np.asarray(keep, dtype=bool)
     if kernel is None:
-        b, quad, logdet_M_s, Rinv = _qr_terms(Zt / scale, y)
-        return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept)
+        w = 1.0 if kept is None else kept[:, None]
+        b, quad, logdet_M_s, Rinv = _qr_terms(Zt * w / scale, y * (1.0 if kept is None else kept))
+        return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept, kept=kept)
     gamma = _check_gamma(gamma)
     if phase is not None and phase.edges[-1] != n:
         raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
@@ -142,7 +145,7 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order:
     Ts = float(Ts)
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-    parts = blocks(kernel, gamma, Ts, n, gate=gate, phase=phase, max_order=max_order)
+    parts = blocks(kernel, gamma, Ts, n, gate=gate, phase=phase, max_order=max_order, keep=kept)
     white, logdet_A, order, tail = _whiten_blocks(np.column_stack([Zt, y]), parts, gamma, max_order, tol)
     if phase is not None:
         solver = f"spindle-{phase.count}"
@@ -151,7 +154,7 @@ def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order:
     else:
         solver = "levinson" if order >= n - 1 else f"levinson-ar{order}"
     b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
-    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, solver, intercept, order, tail)
+    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, solver, intercept, order, tail, kept)
 
 
 def support_order(column, max_order: int) -> int:
@@ -177,6 +180,9 @@ def _whiten_blocks(data, parts, gamma, max_order, tol):
     logdet, order, tail = 0.0, 0, 0.0
     for part in parts:
         a, b = part.start, part.stop
+        if not part.kept:  # left out of the fit: carries nothing
+            white[a:b] = 0.0
+            continue
         if part.column is None:  # the gate is closed: white noise of variance 1/γ
             white[a:b] = data[a:b] * math.sqrt(gamma)
             logdet -= (b - a) * math.log(gamma)
@@ -201,7 +207,9 @@ def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
 
 
 def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept, order=0,
-              tail=0.0) -> REMLTerms:
+              tail=0.0, kept=None) -> REMLTerms:
+    if kept is not None:
+        Zt = Zt[kept]
     n, p = Zt.shape
     if not quad > 0:
         raise ValueError("yᵀPy is not positive: the data are fitted exactly; the likelihood is undefined")
@@ -296,7 +304,8 @@ class TuneResult:
 def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
          bounds: dict | None = None, progress=None, names=None, max_order: int | None = None, tol: float = 0.0,
          max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
-         step: float = 0.5, phase: PhaseSegments | None = None, gate=None, _prepared=None) -> TuneResult:
+         step: float = 0.5, phase: PhaseSegments | None = None, gate=None, keep=None,
+         _prepared=None) -> TuneResult:
     """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
     The objective is the REML of the whole record, exact or of order ≤ ``max_order`` (``tol``:
@@ -312,8 +321,8 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         periodic kernel; for ``"spindle"`` the angle period P (rad, default 2π: per revolution).
     kind : "locally_periodic", "locally_periodic_zero_mean", "squared_exponential" or "spindle"
         (the spindle-phase kernel on the stretches ``phase`` of constant spindle speed)
-    gate : array (N,) of bool, optional
-        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`).
+    gate, keep : arrays (N,) of bool, optional
+        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`); the samples in the fit.
     init : dict, optional
         Starting values by name (e.g. ``{"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}``).
     bounds : dict name → (lo, hi), optional
@@ -364,7 +373,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
             terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, max_order=max_order,
-                               tol=tol, phase=phase if spindle else None, gate=gate, _prepared=prepared)
+                               tol=tol, phase=phase if spindle else None, gate=gate, keep=keep, _prepared=prepared)
             ll = terms.log_likelihood
         except ValueError:
             terms, ll = None, -math.inf

@@ -220,7 +220,9 @@ class _BlockSolver:
         out = np.empty_like(B)
         for part in self.parts:
             a, b = part.start, part.stop
-            if part.column is None:
+            if not part.kept:  # left out of the fit: infinite variance
+                out[a:b] = 0.0
+            elif part.column is None:
                 out[a:b] = self.gamma * B[a:b]
             else:
                 order = None if self.order is None or b - a <= 1 else min(self.order, b - a - 1)
@@ -334,7 +336,8 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
              tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
              toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto",
-             phase: PhaseSegments | None = None, order: int | None = None, gate=None) -> PLLSSVMResult:
+             phase: PhaseSegments | None = None, order: int | None = None, gate=None,
+             keep=None) -> PLLSSVMResult:
     """PL-LSSVM estimate of β and the disturbance ``f`` (method §4, thesis eq. 2.9–2.12).
 
     Parameters
@@ -368,6 +371,8 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     gate : array (N,) of bool, optional
         Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`; time kernels and the spindle-phase
         path): block-diagonal solves, ``f = 0`` where it is False.
+    keep : array (N,) of bool, optional
+        The samples in the fit; where it is False ``α = 0`` and ``f`` is NaN (not estimated).
     phase : PhaseSegments, optional
         Stretches of constant spindle speed: ``kernel`` is then a kernel on ``(t, θ)`` (the
         spindle-phase kernel), solved block-diagonally on a grid of period ``Ts``.
@@ -382,10 +387,10 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     Z_arr, y, names, Zt, intercept = prepare_regression(Z, y, names)
     n, p = Zt.shape
     method = solver
-    if phase is not None or gate is not None:
+    if phase is not None or gate is not None or keep is not None:
         if Ts is None or (phase is not None and phase.edges[-1] != n):
             raise ValueError(f"the spindle-phase and gated paths need Ts and stretches covering the {n} samples")
-        parts = blocks(kernel, gamma, float(Ts), n, gate=gate, phase=phase, max_order=order)
+        parts = blocks(kernel, gamma, float(Ts), n, gate=gate, phase=phase, max_order=order, keep=keep)
         name = f"spindle-{phase.count}" if phase is not None else f"gated-{sum(b.column is not None for b in parts)}"
         solver, solver_name, step = _BlockSolver(parts, gamma, order), name, float(Ts)
     else:
@@ -403,7 +408,10 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     linear = y - Z_arr @ beta
     residuals = alpha / gamma
     f = linear - residuals  # where a gate is closed A = I/γ: α/γ is the whole residual, f = c
-    s2 = float((y - Zt @ b) @ alpha) / (n - p)
+    if keep is not None:
+        f = np.where(np.asarray(keep, dtype=bool), f, np.nan)
+    n_fit = n if keep is None else int(np.sum(keep))
+    s2 = float((y - Zt @ b) @ alpha) / (n_fit - p)
     Minv = cho_solve(cho, np.eye(p), check_finite=False) / np.outer(scale, scale)
     cov = s2 * 0.5 * (Minv + Minv.T)
     return PLLSSVMResult(beta=beta, c=c, alpha=alpha, f=f, residuals=residuals, linear_residuals=linear,

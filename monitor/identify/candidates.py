@@ -232,23 +232,24 @@ class _TunedBeside:
 class _Problem:
     """The regression of one trial shared by all candidates."""
 
-    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb, gate=None):
+    def __init__(self, form, Ts, gain, names, T, Z_id, id_names, y, exo, v, omega, coulomb, gate=None, keep=None):
         self.form, self.Ts, self.gain, self.names, self.T = form, Ts, gain, names, T
         self.Z, self.id_names, self.y, self.exo, self.v = Z_id, id_names, y, exo, v
         self.omega, self.coulomb = omega, coulomb
         self.gate = gate  # where the disturbance acts (kernels.blocks), None: everywhere
+        self.keep = keep  # the samples in the fit (the friction law holds there), None: all
         self.prepared = prepare_regression(Z_id, y, id_names)
         self.n, self.p = Z_id.shape
 
     def terms(self, kernel, gamma, phase=None):
         """The REML terms of a kernel at the final order (:data:`FINAL_ORDER`, :data:`ORDER_TOL`)."""
-        return reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, gate=self.gate, max_order=FINAL_ORDER,
-                          tol=ORDER_TOL, _prepared=self.prepared)
+        return reml_terms(None, None, kernel, gamma, self.Ts, phase=phase, gate=self.gate, keep=self.keep,
+                          max_order=FINAL_ORDER, tol=ORDER_TOL, _prepared=self.prepared)
 
     def candidate(self, method, kernel_kind, kernel, gamma, hyper, k, notes=(), terms=None, phase=None) -> Candidate:
         if terms is None:
             terms = self.terms(kernel, gamma, phase) if kernel is not None else reml_terms(
-                None, None, None, None, self.Ts, _prepared=self.prepared)
+                None, None, None, None, self.Ts, keep=self.keep, _prepared=self.prepared)
         beta = self.T @ terms.beta
         cov = self.T @ terms.beta_cov @ self.T.T
         try:
@@ -280,7 +281,8 @@ class _Problem:
         criterion V3 had not stopped it) and the record is longer — a few Nelder–Mead steps at
         :data:`FINAL_ORDER` from the optimum (a short-memory kernel's optimum is already final)."""
         report = None if progress is None else (lambda *a: progress(label, *a))
-        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, gate=self.gate, tol=ORDER_TOL)
+        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, gate=self.gate, keep=self.keep,
+                  tol=ORDER_TOL)
         res = tune_hyperparameters(None, None, self.Ts, period, init=init, design=not refine, max_order=TUNE_ORDER,
                                    max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS, **kw)
         held_back = res.order >= TUNE_ORDER and res.terms.tail_estimate >= ORDER_TOL and self.n - 1 > TUNE_ORDER
@@ -331,7 +333,7 @@ class _Problem:
         f = None
         if cand.method == "pl_lssvm":  # the order of its likelihood: the same model
             res = pl_lssvm(self.Z, self.y, cand.kernel_object, cand.gamma, Ts=self.Ts, names=self.id_names,
-                           solver="levinson", phase=cand.phase, order=cand.order, gate=self.gate)
+                           solver="levinson", phase=cand.phase, order=cand.order, gate=self.gate, keep=self.keep)
             f, theta = res.f, res.beta
         spec = np.flatnonzero(np.any(self.T != 0.0, axis=0))
         nuisance = np.setdiff1d(np.arange(theta.size), spec)
@@ -340,10 +342,11 @@ class _Problem:
             part = self.Z[:, nuisance] @ theta[nuisance]
             f = part if f is None else f + part
         pred = linear + (f if f is not None else 0.0)
+        kept = slice(None) if self.keep is None else self.keep  # the samples left out are not predicted
         with np.errstate(over="ignore", invalid="ignore"):  # an invalid (unstable) model diverges
             sim = simulate_free_run(self.form, cand.beta, self.v[0], self.exo, omega=self.omega,
-                                    coulomb=self.coulomb, disturbance=None if f is None else np.append(f, 0.0),
-                                    intercept=True)
+                                    coulomb=self.coulomb, intercept=True,
+                                    disturbance=None if f is None else np.nan_to_num(np.append(f, 0.0)))
             err = sim - self.v
             free = _rmse(err) if np.all(np.isfinite(err)) else math.inf
         if cand.method == "ls":
@@ -352,7 +355,7 @@ class _Problem:
         scalable = self.form == "force-input" or self.gain is not None
         if f is not None and scalable and cand.beta[0] > 0:
             f_force = disturbance_to_force(self.form, cand.beta, f, gain=self.gain)
-        return MethodResult(name=_METHOD_LABEL[cand.method], candidate=cand, rmse_linear=_rmse(self.y - linear),
-                            rmse=_rmse(self.y - pred), rmse_free_run=free, prediction=pred, f=f, f_force=f_force)
+        return MethodResult(name=_METHOD_LABEL[cand.method], candidate=cand, rmse_linear=_rmse((self.y - linear)[kept]),
+                            rmse=_rmse((self.y - pred)[kept]), rmse_free_run=free, prediction=pred, f=f, f_force=f_force)
 
 

@@ -15,7 +15,14 @@ Steps (:func:`build_regression`):
    and the part of it that follows the feed or the direction of motion; friction, damping and offset
    are then those of the process-free motion. They are nuisance parameters: not part of β.
    Without enough process-free motion the mean force cannot be told from friction and offset: said
-   so, and the model file records ``offset_separated = false``.
+   so, and the model file records ``offset_separated = false``;
+4. the friction near standstill (:mod:`kernels.low_speed`): the speed above which the friction law
+   holds, chosen from the data (eq. LS3). When the friction *rises* above the law below it (a Stribeck
+   rise), the samples below it are left out of the batch fit — the hump meets the peak acceleration of
+   every slow reversal and bends J, B and Fc (simulated Stribeck drive: damping −16 %). A departure
+   *below* the law (a gradual onset, presliding: the real EMPS drive) bends them little, and the
+   published EMPS values are fitted on those samples: they stay in, and the departure is reported.
+   Either way the monitor learns β only above ``min_speed``.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import numpy as np
 
 from kernels.errors import ParameterError
 from kernels.feed_drive import friction_transform, regressors, rest_samples
+from kernels.low_speed import LowSpeedCut, LowSpeedFriction, law_holds_above, low_speed_friction
 from kernels.noise import NoiseEstimate, white_noise
 from kernels.process import ProcessMask, process_mask
 
@@ -82,6 +90,15 @@ class Regression:
     offset_separated: bool | None = None
     offset_note: str = ""
     ls_theta: np.ndarray | None = None
+    low_speed: LowSpeedFriction | None = None  # the strongest departure from the law near standstill (LS1, LS2)
+    cut: LowSpeedCut | None = None  # the speed above which the law holds (LS3), None: down to the dead band
+    keep: np.ndarray | None = None  # the samples in the batch fit (None: all); a Stribeck rise is left out
+
+    @property
+    def min_speed(self) -> float:
+        """The speed (m/s) below which the friction departs from the law: the monitor learns β above it."""
+        speed = self.low_speed.min_speed if self.low_speed is not None else 0.0
+        return max(speed, self.cut.speed if self.keep is not None else 0.0)
 
     @property
     def pole(self) -> float:
@@ -155,7 +172,28 @@ def build_regression(form: str, v: np.ndarray, exo: np.ndarray, Ts: float, *, om
                      ls_theta=theta)
     if noise is not None:
         _separate_process(out, v, resid, Ts, spindle_rpm, notes)
+    _low_speed(out, v)
     return out
+
+
+def _add_nuisance(reg: Regression, cols: list[np.ndarray], names: list[str]) -> None:
+    reg.Z_id = np.column_stack([reg.Z_id, *cols])
+    reg.id_names = reg.id_names + tuple(names)
+    reg.T = np.column_stack([reg.T, np.zeros((reg.T.shape[0], len(cols)))])
+    reg.nuisance = reg.nuisance + tuple(names)
+
+
+def _low_speed(reg: Regression, v: np.ndarray) -> None:
+    """Step 4: the low-speed check on the LS residual (process columns in) and the speed above which the law
+    holds; the samples of a Stribeck rise below it left out of the fit."""
+    theta = np.linalg.lstsq(reg.Z_id, reg.y, rcond=None)[0]
+    err = reg.y - reg.Z_id @ theta
+    reg.low_speed = low_speed_friction(reg.Z_id, err, v[:-1], reg.omega)
+    if reg.low_speed is None or not reg.low_speed.significant:
+        return
+    reg.cut = law_holds_above(reg.Z_id, reg.y, v[:-1], reg.omega)
+    if reg.cut is not None and reg.cut.rise:
+        reg.keep = ~((np.abs(v[:-1]) > reg.omega) & (np.abs(v[:-1]) < reg.cut.speed))
 
 
 def _separate_process(reg: Regression, v: np.ndarray, resid: np.ndarray, Ts: float, spindle_rpm, notes) -> None:
@@ -190,10 +228,7 @@ def _separate_process(reg: Regression, v: np.ndarray, resid: np.ndarray, Ts: flo
     if reg.coulomb:
         cols.append(p * reg.Z_id[:, reg.id_names.index("-tau")])
         names.append(NUISANCE[2])
-    reg.Z_id = np.column_stack([reg.Z_id, *cols])
-    reg.id_names = reg.id_names + tuple(names)
-    reg.T = np.column_stack([reg.T, np.zeros((reg.T.shape[0], len(cols)))])
-    reg.nuisance = tuple(names)
+    _add_nuisance(reg, cols, names)
     reg.offset_separated = True
     reg.offset_note = (f"{share}; its mean force (and the part that follows the feed"
                        + (" and the direction" if reg.coulomb else "") + f") is kept apart: friction, damping and "

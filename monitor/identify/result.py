@@ -69,6 +69,7 @@ class Identification:
     spindle: dict | None = None  # {"teeth", "spindle_rpm"} when the trial's samples carry spindle data
     periods: list[float] = field(default_factory=list)  # every ψ in play (s; several when the spindle speed changes)
     low_speed: LowSpeedFriction | None = None  # the friction law near standstill (kernels.low_speed)
+    min_speed: float = 0.0  # m/s: below it the friction departs from the law (the monitor learns β above it)
     checks: dict = field(default_factory=dict)  # what the data say beyond β (the JSON "checks")
     noise: NoiseEstimate | None = None  # the measurement noise in the written model's residual (kernels.noise)
     offset_separated: bool | None = None  # a process's mean force kept out of friction and offset
@@ -182,7 +183,7 @@ class Identification:
             offset_separated=self.offset_separated,
             # β learns only where the friction law holds (kernels.low_speed); every other setting its default
             online=OS.OnlineSettings(adaptation=OS.Adaptation(
-                min_speed=float(self.low_speed.min_speed) if self.low_speed is not None else 0.0)),
+                min_speed=float(self.min_speed))),
             provenance={
                 "source": self.trial_path,
                 "sha256": file_sha256(self.trial_path),

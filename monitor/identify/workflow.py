@@ -11,7 +11,6 @@ from feedio.limits import PHYSICAL
 from kernels.errors import ParameterError
 from kernels.feed_drive import disturbance_to_force
 from kernels.likelihood import PERIODIC_KINDS
-from kernels.low_speed import LowSpeedFriction, low_speed_friction
 from kernels.noise import white_noise
 
 from .candidates import THESIS_DEFAULTS, Candidate, MethodResult, _Problem
@@ -68,7 +67,7 @@ def identify(
     6. with a given or spindle period, the period found in the data, tuned and weighed against it
        (:func:`_detected_alternative`, :func:`_weigh_alternative`);
     7. validity rules 2 and 3 and the choice (:func:`_rules_and_choice`), the fits, the low-speed check
-       (:func:`_low_speed_check`) and what else the data say (:func:`_checks`).
+       (:func:`_low_speed_note`) and what else the data say (:func:`_checks`).
     """
     started = time.perf_counter()
     form, exo, exo_name = _signals(trial, form, method)
@@ -79,7 +78,7 @@ def identify(
     _note_unused_spindle(trial, period, spindle_rpm, psi_source, notes)
     reg = build_regression(form, v, exo, Ts, omega=omega, coulomb=coulomb, spindle_rpm=trial.spindle_rpm, notes=notes)
     prob = _Problem(form, Ts, gain, reg.names, reg.T, reg.Z_id, reg.id_names, reg.y, exo, v, reg.omega, reg.coulomb,
-                    gate=reg.process.active if reg.nuisance else None)
+                    gate=reg.process.active if reg.nuisance else None, keep=reg.keep)
     duration = prob.n * Ts
     ls_c = prob.candidate("ls", None, None, None, {}, 0)
     init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
@@ -113,7 +112,8 @@ def identify(
     model_res = {id(ls_c): ls_res, id(pl_best): pl_res}.get(id(written)) if written is not None else None
     if written is not None and model_res is None:
         model_res = prob.fit(written, exo_name)
-    low_speed = _low_speed_check(prob, model_res, notes)
+    low_speed = reg.low_speed
+    _low_speed_note(reg, prob, model_res, notes)
 
     periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
     psi_report = periodic.period if periodic is not None else (psis[0] if psis else None)
@@ -130,6 +130,7 @@ def identify(
     ident.spindle = None if off_spindle else _spindle(trial)
     ident.periods = [float(p) for p in psis]
     ident.low_speed = low_speed
+    ident.min_speed = reg.min_speed
     _checks(ident, reg, model_res)
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
@@ -239,35 +240,43 @@ def _checks(ident: Identification, reg, model_res: MethodResult | None) -> None:
         process = {"share": float(np.mean(reg.process.active)), "nuisance": list(reg.nuisance)}
     ident.checks = {"noise": None if noise is None else noise.to_json(), "omega": reg.omega, "process": process,
                     "offset_separated": ident.offset_separated, "offset_note": reg.offset_note,
-                    "low_speed": None if ident.low_speed is None else ident.low_speed.to_json()}
+                    "low_speed": None if ident.low_speed is None else ident.low_speed.to_json(),
+                    "law_holds_above": None if reg.cut is None else reg.cut.to_json(),
+                    "left_out": 0 if reg.keep is None else int(np.sum(~reg.keep)), "min_speed": reg.min_speed}
 
 
-def _low_speed_check(prob: _Problem, res: MethodResult | None, notes: list[str]) -> LowSpeedFriction | None:
-    """The low-speed friction check (:mod:`kernels.low_speed`) on the written model's prediction error;
-    a note when the friction law does not hold near standstill (and whether the monitor then learns
-    β only above ``min_speed``)."""
-    if res is None:
-        return None
-    err = prob.y - res.prediction
-    if not np.all(np.isfinite(err)):
-        return None
-    check = low_speed_friction(prob.Z, err, prob.v[:-1], prob.omega)
-    if check is None or not check.significant:
-        return check
-    if prob.form == "force-input" or prob.gain is not None:  # a·h is a force δ·sign(v) as a disturbance: δ = a/b
-        delta = -float(disturbance_to_force(prob.form, res.beta, check.amplitude, gain=prob.gain))
-        size = f"{abs(delta):.3g} N {'above' if delta > 0 else 'below'}"
-    else:
-        size = f"{'above' if check.amplitude > 0 else 'below'} (by {abs(check.amplitude):.3g} m/s per sample; give " \
-               "--loop-gain for N)"
+def _low_speed_note(reg, prob: _Problem, res: MethodResult | None, notes: list[str]) -> None:
+    """A note when the friction law does not hold near standstill (:mod:`kernels.low_speed`, found in the
+    shared regression): its size in N (with the written model's force gain), the speed, the samples left
+    out of the fit (a Stribeck rise) and the speed above which the monitor learns β."""
+    check = reg.low_speed
+    if check is None or not check.significant or res is None:
+        return
+    scalable = prob.form == "force-input" or prob.gain is not None
+
+    def force(departure: float) -> str:  # a departure of the residual, in velocity per sample, as a friction
+        if not scalable:
+            return f"{'above' if departure < 0 else 'below'} (by {abs(departure):.3g} m/s per sample; give " \
+                   "--loop-gain for N)"
+        delta = float(disturbance_to_force(prob.form, res.beta, departure, gain=prob.gain))
+        return f"{abs(delta):.3g} N {'above' if delta > 0 else 'below'}"
+
+    if reg.cut is not None:
+        what = (f"the friction law (Coulomb + viscous) holds above {reg.cut.speed:.3g} m/s (found in the data); "
+                f"below it the friction is on average {force(reg.cut.departure)} the law "
+                f"({100 * reg.cut.share:.0f} % of the motion)")
+        if reg.keep is not None:
+            notes.append(f"{what}: a Stribeck rise — those samples are left out of the batch fit, and the monitor "
+                         f"learns β only above min_speed = {reg.min_speed:.3g} m/s")
+        else:
+            notes.append(f"{what}: a gradual onset, kept in the batch fit (it bends β little); the monitor learns β "
+                         f"only above min_speed = {reg.min_speed:.3g} m/s")
+        return
     what = (f"the friction law (Coulomb + viscous) does not hold near standstill: below about {check.speed:.3g} m/s "
-            f"the friction is {size} the law (log-likelihood gain {check.gain:.0f})")
+            f"the friction is {force(-check.amplitude)} the law (log-likelihood gain {check.gain:.0f})")
     if check.local:
-        notes.append(f"{what}; the monitor learns β only above min_speed = {check.min_speed:.3g} m/s "
+        notes.append(f"{what}; the monitor learns β only above min_speed = {reg.min_speed:.3g} m/s "
                      f"({100 * check.share:.0f} % of the motion is slower)")
     else:
         notes.append(f"{what}, but {100 * check.share:.0f} % of the motion is that slow: not a low-speed effect "
                      "to leave out (min_speed stays 0); it may be a disturbance that follows the feed")
-    return check
-
-
