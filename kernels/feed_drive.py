@@ -155,8 +155,14 @@ def regressors(
     omega: float = 0.0,
     coulomb: bool = True,
     intercept: bool | None = None,
+    delay: int = 0,
 ) -> Regression:
     """Build ``Z`` and ``y`` of eq. 2.5–2.6 (method §2) from one trial.
+
+    With ``delay`` d ≥ 1 (the force acts d samples after it is commanded) the first column carries the
+    command d samples back: ``u(k−d)`` (force-input), ``v_r(k−d) − v_m(k−d) + v_m(k)`` (velocity-loop:
+    ``β1·z1 + β2·v_m = K_d·(v_r − v_m)(k−d) + p_d·v_m(k)``, the same β); its first d rows have no such
+    past and hold the undelayed command.
 
     Parameters
     ----------
@@ -193,7 +199,16 @@ def regressors(
     if v.size < 3:
         raise ValueError(f"a trial needs at least 3 samples, got {v.size}")
     vk = v[:-1]
-    cols = [first[:-1], vk]
+    d = int(delay)
+    if not 0 <= d <= 16:
+        raise ValueError(f"delay must be a whole number of samples 0 … 16, got {delay!r}")
+    first = first[:-1].copy()
+    if d:
+        command = first - vk if form == "velocity-loop" else first  # v_r − v_m, or u
+        late = command.copy()
+        late[d:] = command[:-d]
+        first = late + vk if form == "velocity-loop" else late
+    cols = [first, vk]
     if coulomb:
         sp, sn = coulomb_indicators(vk, omega)
         cols += [-sp, -sn]

@@ -9,7 +9,9 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [model]           form, Ts (s), beta, beta_se, beta_names, omega (m/s), coulomb,
                       loop_gain (N·s/m, optional), method, noise (m/s, optional: the measurement
                       part of the one-step residual), offset_separated (optional: whether a
-                      process's mean force is kept out of offset and friction; absent: unknown)
+                      process's mean force is kept out of offset and friction; absent: unknown),
+                      delay (samples, optional: the force acts this late; the first regressor
+                      holds the command that far back, kernels.feed_drive.regressors)
     [physical]        inertia (kg), damping (N·s/m), coulomb (symmetric), coulomb_pos/neg (N),
                       offset (N) — or the ``…_over_gain`` ratios when K is unknown
     [physical_se]     their standard errors (same keys)
@@ -20,8 +22,9 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
     [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
-                      hyperparameters of the chosen model; self_check: what the monitor over the
-                      identification trial said of this model (:mod:`monitor.self_check`)
+                      hyperparameters of the chosen model; order (lags of its likelihood);
+                      offset_note, adequacy (what identify found, in words); self_check: what the
+                      monitor over the identification trial said of this model (:mod:`monitor.self_check`)
     [[identification.candidates]]   method, kernel, period (s; ``per`` for a spindle-phase one),
                       log_evidence, valid, why_not — every candidate ``feedmon identify`` weighed
     [validity]        warning — only in a file written with ``identify --force`` although the model
@@ -124,6 +127,7 @@ class _ModelT(msgspec.Struct, **_Opts):
     method: _Short = "pl-lssvm"
     noise: _num(0.0, 1e3, "m/s, std of the measurement part of the one-step residual", open_low=True) | None = None
     offset_separated: bool | None = None
+    delay: _int(0, 16, "samples from a force command to the force") | None = None
 
 
 class _PhysicalT(msgspec.Struct, **_Opts):
@@ -343,6 +347,7 @@ class AxisModel:
     online: OS.OnlineSettings = field(default_factory=OS.OnlineSettings)  # [adaptation], [health]
     noise: float | None = None  # m/s: std of the measurement part ε of v(k) = v_m(k+1) − βᵀz(k)
     offset_separated: bool | None = None  # a process's mean force kept out of friction/offset (None: unknown)
+    delay: int = 0  # samples from a command to its force: z1(k) holds the command delay samples back
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
@@ -504,7 +509,7 @@ def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
             candidates=[msgspec.structs.asdict(c) for c in f.identification.candidates],
             validity_warning=None if f.validity is None else f.validity.warning,
             online=OS.OnlineSettings(adaptation=f.adaptation, health=f.health),
-            noise=m.noise, offset_separated=m.offset_separated,
+            noise=m.noise, offset_separated=m.offset_separated, delay=m.delay or 0,
         )
     except ValueError as exc:
         key = "model.beta_names" if str(exc).startswith("beta_names") else "model.beta"
@@ -578,6 +583,7 @@ _UNITS = {
     "per": "revolution (2π: runout) | tooth (2π/teeth)",
     "noise": "m/s, std of the measurement part ε of the one-step residual (not of a disturbance)",
     "offset_separated": "true: a process's mean force is kept out of offset and friction; false: they hold it",
+    "delay": "samples: the force acts this late; z1 = u(k−d), velocity-loop v_r(k−d) − v_m(k−d) + v_m(k)",
 }
 
 _IDENT_KEYS = [k for k in _IdentificationT.__struct_fields__ if k != "candidates"]
@@ -613,6 +619,7 @@ def save_model(model: AxisModel, path) -> Path:
                 "method": model.method,
                 "noise": None if model.noise is None else float(model.noise),
                 "offset_separated": model.offset_separated,
+                "delay": model.delay or None,
             },
             {k: v for k, v in _UNITS.items() if k != "coulomb"} | {"coulomb": "Coulomb friction columns in β"},
         ),

@@ -93,12 +93,13 @@ class Regression:
     low_speed: LowSpeedFriction | None = None  # the strongest departure from the law near standstill (LS1, LS2)
     cut: LowSpeedCut | None = None  # the speed above which the law holds (LS3), None: down to the dead band
     keep: np.ndarray | None = None  # the samples in the batch fit (None: all); a Stribeck rise is left out
+    delay: int = 0  # samples from a command to its force (kernels.feed_drive.regressors)
 
     @property
     def min_speed(self) -> float:
         """The speed (m/s) below which the friction departs from the law: the monitor learns β above it."""
         speed = self.low_speed.min_speed if self.low_speed is not None else 0.0
-        return max(speed, self.cut.speed if self.keep is not None else 0.0)
+        return max(speed, self.cut.speed if self.cut is not None and self.cut.rise else 0.0)
 
     @property
     def pole(self) -> float:
@@ -129,10 +130,10 @@ def _friction_columns(v: np.ndarray, Ts: float, omega_used: float, coulomb: bool
     return coulomb_used, coulomb_note, rest
 
 
-def _least_squares(form, v, exo, omega, coulomb, rest, Ts):
+def _least_squares(form, v, exo, omega, coulomb, rest, Ts, delay):
     """The spec regression, its identifiable form and the LS residual, pole and noise (steps 1–2)."""
     kw = {"v_ref": exo} if form == "velocity-loop" else {"u": exo}
-    reg = regressors(form, v, omega=omega, coulomb=coulomb, intercept=True, **kw)
+    reg = regressors(form, v, omega=omega, coulomb=coulomb, intercept=True, delay=delay, **kw)
     T, id_names = friction_transform(reg.names, rest)
     Z_id = reg.Z @ T
     theta = np.linalg.lstsq(Z_id, reg.y, rcond=None)[0]
@@ -147,20 +148,23 @@ def _least_squares(form, v, exo, omega, coulomb, rest, Ts):
 
 
 def build_regression(form: str, v: np.ndarray, exo: np.ndarray, Ts: float, *, omega: float | None,
-                     coulomb: bool | None, spindle_rpm: np.ndarray | None, notes: list[str]) -> Regression:
-    """Steps 1–3 of the module docstring. ``omega``/``coulomb`` given by the user are kept."""
+                     coulomb: bool | None, spindle_rpm: np.ndarray | None, notes: list[str],
+                     delay: int = 0) -> Regression:
+    """Steps 1–4 of the module docstring. ``omega``/``coulomb`` given by the user are kept; ``delay``: the
+    command acts that many samples late (:func:`kernels.feed_drive.regressors`; the first ``delay`` samples,
+    which have no such past, are left out of the fit)."""
     omega_used = dead_band(v) if omega is None else float(omega)
     if not (math.isfinite(omega_used) and 0 <= omega_used <= OMEGA_MAX):
         raise ParameterError(f"omega must be a dead band 0 … {OMEGA_MAX:g} m/s, got {omega!r}", "omega")
     coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega_used, coulomb)
-    reg, T, Z_id, id_names, theta, resid, noise = _least_squares(form, v, exo, omega_used, coulomb_used, rest, Ts)
+    reg, T, Z_id, id_names, theta, resid, noise = _least_squares(form, v, exo, omega_used, coulomb_used, rest, Ts, delay)
     if omega is None and noise is not None:
         better = max(NOISE_FACTOR * noise.sigma_n, FLOOR_SHARE * float(np.max(np.abs(v))))
         if better <= OMEGA_MAX and not math.isclose(better, omega_used, rel_tol=1e-9):
             omega_used = better
             coulomb_used, coulomb_note, rest = _friction_columns(v, Ts, omega_used, coulomb)
             reg, T, Z_id, id_names, theta, resid, noise = _least_squares(form, v, exo, omega_used, coulomb_used,
-                                                                         rest, Ts)
+                                                                         rest, Ts, delay)
     if not coulomb_used and coulomb is None:
         notes.append(coulomb_note)
     if coulomb_used and not rest:
@@ -170,9 +174,14 @@ def build_regression(form: str, v: np.ndarray, exo: np.ndarray, Ts: float, *, om
     out = Regression(names=reg.names, T=T, Z_id=Z_id, id_names=id_names, y=reg.y, Z_spec=reg.Z, omega=omega_used,
                      coulomb=coulomb_used, coulomb_note=coulomb_note, rest=rest, noise=noise, process=None,
                      ls_theta=theta)
+    out.delay = int(delay)
     if noise is not None:
         _separate_process(out, v, resid, Ts, spindle_rpm, notes)
     _low_speed(out, v)
+    if delay:
+        keep = np.ones(out.y.size, dtype=bool) if out.keep is None else out.keep
+        keep[:delay] = False
+        out.keep = keep
     return out
 
 

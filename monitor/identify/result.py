@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels import SquaredExponential
+from kernels.adequacy import Adequacy
 from kernels.low_speed import LowSpeedFriction
 from kernels.noise import NoiseEstimate
 
@@ -73,6 +74,8 @@ class Identification:
     checks: dict = field(default_factory=dict)  # what the data say beyond β (the JSON "checks")
     noise: NoiseEstimate | None = None  # the measurement noise in the written model's residual (kernels.noise)
     offset_separated: bool | None = None  # a process's mean force kept out of friction and offset
+    adequacy: Adequacy | None = None  # does the rigid model explain the data (kernels.adequacy)
+    delay: int = 0  # samples from a command to its force, modelled
 
     def to_json(self) -> dict:
         """The ``--json`` document (issue 10): exactly the keys form, Ts, chosen, period, candidates,
@@ -155,6 +158,8 @@ class Identification:
             ident["order"] = c.order
         if self.checks.get("offset_note"):
             ident["offset_note"] = self.checks["offset_note"]
+        if self.adequacy is not None and not self.adequacy.adequate:
+            ident["adequacy"] = f"the rigid model does not fit this drive: {self.adequacy.message}"
         candidates = [{"method": x.method, "kernel": x.kernel or "none", "period": x.period,
                        "log_evidence": x.log_evidence, "valid": x.valid, "why_not": x.why_not or ""}
                       | ({"per": x.hyperparameters.get("per", "revolution")} if x.kernel == "spindle" else {})
@@ -181,6 +186,7 @@ class Identification:
             validity_warning=warning,
             noise=None if self.noise is None else float(self.noise.sigma_eps),
             offset_separated=self.offset_separated,
+            delay=int(self.delay),
             # β learns only where the friction law holds (kernels.low_speed); every other setting its default
             online=OS.OnlineSettings(adaptation=OS.Adaptation(
                 min_speed=float(self.min_speed))),

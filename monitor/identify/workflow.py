@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from feedio.limits import PHYSICAL
+from kernels.adequacy import adequacy
 from kernels.errors import ParameterError
 from kernels.feed_drive import disturbance_to_force
 from kernels.likelihood import PERIODIC_KINDS
@@ -28,6 +29,9 @@ from .regression import build_regression
 from .result import Identification
 from .rules import _bias_check, _choose, _efficiency_check, _invalidate
 from .truth import _attach_truth
+
+#: the longest command delay (samples) identify models when the adequacy test finds it
+MAX_DELAY = 4
 
 
 def identify(
@@ -71,72 +75,104 @@ def identify(
     """
     started = time.perf_counter()
     form, exo, exo_name = _signals(trial, form, method)
-    Ts, v = float(trial.meta.Ts), trial.v_meas
-    psis, psi_source = periods_in_play(trial, period, spindle_rpm)
     gain = _arguments(trial, form, sigma1, sigma2, gamma, loop_gain)
-    notes: list[str] = []
-    _note_unused_spindle(trial, period, spindle_rpm, psi_source, notes)
-    reg = build_regression(form, v, exo, Ts, omega=omega, coulomb=coulomb, spindle_rpm=trial.spindle_rpm, notes=notes)
-    prob = _Problem(form, Ts, gain, reg.names, reg.T, reg.Z_id, reg.id_names, reg.y, exo, v, reg.omega, reg.coulomb,
-                    gate=reg.process.active if reg.nuisance else None, keep=reg.keep)
-    duration = prob.n * Ts
-    ls_c = prob.candidate("ls", None, None, None, {}, 0)
-    init = {"sigma1": sigma1 or THESIS_DEFAULTS["sigma1"], "sigma2": sigma2 or THESIS_DEFAULTS["sigma2"],
-            "gamma": gamma or THESIS_DEFAULTS["gamma"]}
-    se_init = {"lengthscale": sigma1, "gamma": gamma} if sigma1 or gamma else None
-
-    psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z_id @ ls_c.theta, Ts, duration,
-                                                           psis, psi_source, notes)
     plan = None if progress is None else WorkPlan(progress)
-    if plan is not None:
-        spindle_changes = trial.spindle_angle is not None or trial.spindle_rpm is not None
-        plan.plan(planned_evaluations(len(psis), alternative=bool(detected) and psi_source in ("given", "spindle"),
-                                      spindle=2 if spindle_changes else 0, tune=tune))
-    tuned_kw = dict(tune=tune, progress=plan)
-    kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, duration,
-                                                 notes, **tuned_kw)
-    candidates = [ls_c, *kernel_candidates]
-    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, **tuned_kw)
-    candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
-    off_spindle, suggested, unused = False, None, []
-    if alt is not None:
-        off_spindle, suggested = _weigh_alternative(alt, candidates, trial, psis, psi_source, spindle_rpm, notes)
-        if off_spindle:
-            psi_source, psis = "detected", [alt.period]
-        else:
-            unused.append(alt)
-    chosen, refusal, pl_best, written = _rules_and_choice(candidates, ls_c, alt if off_spindle else None, method)
-
-    ls_res = prob.fit(ls_c, exo_name)
-    pl_res = prob.fit(pl_best, exo_name) if pl_best is not None else None
-    model_res = {id(ls_c): ls_res, id(pl_best): pl_res}.get(id(written)) if written is not None else None
-    if written is not None and model_res is None:
-        model_res = prob.fit(written, exo_name)
-    low_speed = reg.low_speed
-    _low_speed_note(reg, prob, model_res, notes)
-
-    periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
-    psi_report = periodic.period if periodic is not None else (psis[0] if psis else None)
-    if gain is None and form == "velocity-loop":
-        notes.append("loop gain K unknown: only J/K, B/K and the friction over K are identifiable "
-                     "(give --loop-gain to get J and B)")
-    ident = Identification(
-        trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts, period=psi_report,
-        period_source=psi_source, period_suggested=suggested, omega=reg.omega, coulomb=reg.coulomb,
-        coulomb_note=reg.coulomb_note, rest=reg.rest, names=reg.names, loop_gain=gain,
-        candidates=candidates + unused, chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y,
-        t=trial.t[1:], refusal=refusal, notes=notes,
-    )
-    ident.spindle = None if off_spindle else _spindle(trial)
-    ident.periods = [float(p) for p in psis]
-    ident.low_speed = low_speed
-    ident.min_speed = reg.min_speed
-    _checks(ident, reg, model_res)
+    run = _Run(trial, form, exo, exo_name, gain, dict(period=period, spindle_rpm=spindle_rpm, sigma1=sigma1,
+                                                       sigma2=sigma2, gamma=gamma, tune=tune, method=method,
+                                                       coulomb=coulomb, omega=omega), plan)
+    ident = run.once(delay=0)
+    found = ident.adequacy
+    if found is not None and found.kind == "delay" and found.delay is not None \
+            and 1 <= round(found.delay) <= MAX_DELAY and abs(found.delay - round(found.delay)) <= 0.3:
+        delayed = run.once(delay=int(round(found.delay)))  # a delay it can estimate is modelled
+        if delayed.model_result is not None and (delayed.adequacy is None or delayed.adequacy.adequate
+                                                 or delayed.adequacy.explained < found.explained):
+            delayed.notes.append(f"the model without the delay did not fit: {found.message}; modelled: the force "
+                                 f"acts {delayed.delay} sample(s) after the command ([model] delay)")
+            ident = delayed
     _attach_truth(ident, trial)
     ident.seconds = time.perf_counter() - started
     if plan is not None:
         plan.finish()
     return ident
+
+
+class _Run:
+    """One trial's identification at a given delay of the command (steps 2–7 of :func:`identify`)."""
+
+    def __init__(self, trial, form, exo, exo_name, gain, options: dict, plan) -> None:
+        self.trial, self.form, self.exo, self.exo_name, self.gain = trial, form, exo, exo_name, gain
+        self.o, self.plan = options, plan
+
+    def once(self, delay: int) -> Identification:
+        trial, form, exo, gain, o = self.trial, self.form, self.exo, self.gain, self.o
+        Ts, v = float(trial.meta.Ts), trial.v_meas
+        psis, psi_source = periods_in_play(trial, o["period"], o["spindle_rpm"])
+        notes: list[str] = []
+        _note_unused_spindle(trial, o["period"], o["spindle_rpm"], psi_source, notes)
+        reg = build_regression(form, v, exo, Ts, omega=o["omega"], coulomb=o["coulomb"],
+                               spindle_rpm=trial.spindle_rpm, notes=notes, delay=delay)
+        prob = _Problem(form, Ts, gain, reg.names, reg.T, reg.Z_id, reg.id_names, reg.y, exo, v, reg.omega,
+                        reg.coulomb, gate=reg.process.active if reg.nuisance else None, keep=reg.keep)
+        ls_c = prob.candidate("ls", None, None, None, {}, 0)
+        psis, psi_source, k_period, detected = _periods_to_try(trial, reg.y - reg.Z_id @ ls_c.theta, Ts, prob.n * Ts,
+                                                               psis, psi_source, notes)
+        if self.plan is not None:
+            spindle_changes = trial.spindle_angle is not None or trial.spindle_rpm is not None
+            self.plan.plan(planned_evaluations(len(psis), spindle=2 if spindle_changes else 0, tune=o["tune"],
+                                               alternative=bool(detected) and psi_source in ("given", "spindle")))
+        found = _candidates(prob, trial, psis, psi_source, k_period, detected, o, self.plan, notes)
+        candidates, unused, alt_off, suggested, psis, psi_source = found
+        chosen, refusal, pl_best, written = _rules_and_choice(candidates, ls_c, alt_off, o["method"])
+        ls_res = prob.fit(ls_c, self.exo_name)
+        pl_res = prob.fit(pl_best, self.exo_name) if pl_best is not None else None
+        model_res = {id(ls_c): ls_res, id(pl_best): pl_res}.get(id(written)) if written is not None else None
+        if written is not None and model_res is None:
+            model_res = prob.fit(written, self.exo_name)
+        _low_speed_note(reg, prob, model_res, notes)
+        periodic = written if written is not None and written.kernel in PERIODIC_KINDS else None
+        if gain is None and form == "velocity-loop":
+            notes.append("loop gain K unknown: only J/K, B/K and the friction over K are identifiable "
+                         "(give --loop-gain to get J and B)")
+        ident = Identification(
+            trial_path=str(trial.path), machine=trial.machine, axis=trial.axis, form=form, Ts=Ts,
+            period=periodic.period if periodic is not None else (psis[0] if psis else None),
+            period_source=psi_source, period_suggested=suggested, omega=reg.omega, coulomb=reg.coulomb,
+            coulomb_note=reg.coulomb_note, rest=reg.rest, names=reg.names, loop_gain=gain,
+            candidates=candidates + unused, chosen=chosen, ls=ls_res, pl=pl_res, model_result=model_res, y=reg.y,
+            t=trial.t[1:], refusal=refusal, notes=notes,
+        )
+        ident.spindle = None if alt_off is not None else _spindle(trial)
+        ident.periods = [float(p) for p in psis]
+        ident.low_speed = reg.low_speed
+        ident.min_speed = reg.min_speed
+        ident.delay = reg.delay
+        _checks(ident, reg, model_res, self.exo, v)
+        return ident
+
+
+def _candidates(prob: _Problem, trial, psis, psi_source, k_period, detected, o: dict, plan, notes):
+    """Steps 5–6: the kernel candidates beside LS, the spindle-phase ones, the period found in the data
+    weighed against a given one. Returns ``(candidates, unused, off_spindle, suggested, psis, psi_source)``,
+    ``off_spindle`` the detected-period candidate that competes like any other (else None)."""
+    init = {"sigma1": o["sigma1"] or THESIS_DEFAULTS["sigma1"], "sigma2": o["sigma2"] or THESIS_DEFAULTS["sigma2"],
+            "gamma": o["gamma"] or THESIS_DEFAULTS["gamma"]}
+    se_init = {"lengthscale": o["sigma1"], "gamma": o["gamma"]} if o["sigma1"] or o["gamma"] else None
+    tuned_kw = dict(tune=o["tune"], progress=plan)
+    ls_c = prob.candidate("ls", None, None, None, {}, 0)
+    kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, prob.n * prob.Ts,
+                                                 notes, **tuned_kw)
+    candidates = [ls_c, *kernel_candidates]
+    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, **tuned_kw)
+    candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
+    suggested, unused, off = None, [], None
+    if alt is not None:
+        off_spindle, suggested = _weigh_alternative(alt, candidates, trial, psis, psi_source, o["spindle_rpm"], notes)
+        if off_spindle:
+            psi_source, psis, off = "detected", [alt.period], alt
+        else:
+            unused.append(alt)
+    return candidates, unused, off, suggested, psis, psi_source
 
 
 def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str]:
@@ -220,9 +256,10 @@ def _rules_and_choice(candidates: list[Candidate], ls_c: Candidate, off_spindle:
     return _choose(candidates, method)
 
 
-def _checks(ident: Identification, reg, model_res: MethodResult | None) -> None:
+def _checks(ident: Identification, reg, model_res: MethodResult | None, exo: np.ndarray, v: np.ndarray) -> None:
     """What the data say beyond β: the measurement noise (of the written model's residual), where a process
-    acts and whether its mean force is kept out of friction and offset (the JSON ``checks``)."""
+    acts and whether its mean force is kept out of friction and offset, whether the rigid model explains
+    the data at all (:mod:`kernels.adequacy`; the JSON ``checks``)."""
     noise = reg.noise
     if model_res is not None:
         c = model_res.candidate
@@ -235,6 +272,7 @@ def _checks(ident: Identification, reg, model_res: MethodResult | None) -> None:
     ident.offset_separated = reg.offset_separated
     if model_res is not None and not reg.nuisance and model_res.candidate.kernel == "locally_periodic_zero_mean":
         ident.offset_separated = False  # the zero-mean kernel leaves the disturbance's mean to the offset
+    ident.adequacy = _adequacy(ident, reg, model_res, exo, v)
     process = None
     if reg.process is not None:
         process = {"share": float(np.mean(reg.process.active)), "nuisance": list(reg.nuisance)}
@@ -242,7 +280,26 @@ def _checks(ident: Identification, reg, model_res: MethodResult | None) -> None:
                     "offset_separated": ident.offset_separated, "offset_note": reg.offset_note,
                     "low_speed": None if ident.low_speed is None else ident.low_speed.to_json(),
                     "law_holds_above": None if reg.cut is None else reg.cut.to_json(),
-                    "left_out": 0 if reg.keep is None else int(np.sum(~reg.keep)), "min_speed": reg.min_speed}
+                    "left_out": 0 if reg.keep is None else int(np.sum(~reg.keep)), "min_speed": reg.min_speed,
+                    "adequacy": None if ident.adequacy is None else ident.adequacy.to_json(), "delay": reg.delay}
+
+
+def _adequacy(ident: Identification, reg, model_res: MethodResult | None, exo: np.ndarray, v: np.ndarray):
+    """The model-adequacy test (:func:`kernels.adequacy.adequacy`) on the written model's residual after its
+    disturbance model; a note naming what the rigid model leaves."""
+    if model_res is None:
+        return None
+    c = model_res.candidate
+    e = reg.y - np.where(np.isfinite(model_res.prediction), model_res.prediction, reg.Z_spec @ c.beta)
+    vm = v[:-1]
+    command = exo[:-1] - vm if ident.form == "velocity-loop" else exo[:-1]
+    try:
+        found = adequacy(e, command, vm, ident.Ts, gain=float(c.beta[0]))
+    except ParameterError:
+        return None
+    if not found.adequate:
+        ident.notes.append(f"the rigid model does not fit this drive: {found.message}")
+    return found
 
 
 def _low_speed_note(reg, prob: _Problem, res: MethodResult | None, notes: list[str]) -> None:
