@@ -54,6 +54,8 @@ def register(sub) -> None:
     p.add_argument("--coulomb", action="store_true", help="keep the Coulomb columns even without speed reversal")
     p.add_argument("--omega", type=float, help="Coulomb dead band Ω in m/s (default: 3× the velocity noise)")
     p.add_argument("--loop-gain", type=float, help="velocity-loop gain K (N·s/m) to get J and B instead of J/K, B/K")
+    p.add_argument("--delay", type=int, metavar="N", help="the force acts N samples (0 … 16) after it is commanded "
+                   "(default: 0, or the delay the model-adequacy test finds, modelled)")
     p.add_argument("--start", type=float, metavar="S",
                    help="identify from S seconds after the trial's first sample (default: its start)")
     p.add_argument("--end", type=float, metavar="S",
@@ -97,6 +99,8 @@ def _run(args) -> int:
         raise ValueError("--period and --spindle-rpm both give the disturbance period; give one of them")
     if args.tune and args.no_tune:
         raise ValueError("--tune and --no-tune contradict each other; tuning is the default")
+    if args.delay is not None and not 0 <= args.delay <= 16:
+        raise ValueError(f"--delay must be a whole number of samples 0 … 16, got {args.delay}")
     if args.dry_run and args.output:
         raise ValueError("--dry-run and -o contradict each other: -o writes the model file, --dry-run writes none")
     coulomb = False if args.no_coulomb else (True if args.coulomb else None)
@@ -114,7 +118,7 @@ def _run(args) -> int:
         ident = identify(
             trial, form=args.form, period=args.period, spindle_rpm=args.spindle_rpm, sigma1=args.sigma1,
             sigma2=args.sigma2, gamma=args.gamma, tune=not args.no_tune, method=args.method, coulomb=coulomb,
-            omega=args.omega, loop_gain=args.loop_gain, progress=progress_cb,
+            omega=args.omega, loop_gain=args.loop_gain, delay=args.delay, progress=progress_cb,
         )
     if args.start is not None or args.end is not None:
         ident.notes.append(f"identified on the window {trial.t[0] - t0:.6g} … {trial.t[-1] - t0:.6g} s of the trial "

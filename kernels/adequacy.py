@@ -21,10 +21,13 @@ What it is, in words an engineer acts on:
 * **delay** — the command's effect put back, ``r(k) = e(k) + g·c(k)`` (``g``: the model's gain from
   command to velocity per sample), regressed on ``c(k − j)``, ``v(k − j)`` (j = 0…2) and a constant gives
   the timing of the command's effect, ``a_j/g``; when it is one-signed (``Σ|a_j| ≤`` :data:`SPREAD` ``Σa_j``)
-  its centroid ``φ = Σ j a_j / Σ a_j`` is how late the command acts: ``φ ≈ 1`` a force one sample late,
+  its centroid ``φ = Σ j a_j / Σ a_j`` (≥ :data:`MIN_LATE`) is how late the command acts: ``φ ≈ 1`` (within
+  0.3) a force one sample late,
   ``φ ≈ ½`` a velocity half a sample late (the backward difference of an encoder's position);
-* **resonance** — otherwise, the frequency where the residual's spectrum (Welch) stands highest above
-  its median level: a lightly damped mode the rigid model leaves;
+* **resonance** — otherwise, the model's own prediction put back, ``w(k) = e(k) + g·c(k) + p·v(k)``
+  (``p`` the model's pole: ``w`` is the next velocity less the disturbance), fitted by an ARX(4, 4) on
+  ``v`` and ``c`` (and a constant, ``sign v``): its least damped complex pole pair is the mode the rigid
+  model leaves (the rigid drive has one real pole); its frequency is reported;
 * else **dynamics** the first-order model does not have.
 
 The command ``c`` is the force command ``u`` (force-input form) or the velocity controller's error
@@ -37,7 +40,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.signal as ss
 
 from .errors import ParameterError
 
@@ -49,8 +51,10 @@ LAGS = 3
 EXPLAINED = 0.5
 #: … with at least this log-likelihood gain (a likelihood ratio of e²⁵)
 MIN_GAIN = 25.0
-#: the command's effect is one-signed (a delay, not a resonance) when Σ|a_j| is at most this times Σa_j
+#: the command's effect is one-signed (a delay, not a resonance) when Σ|a_j| is at most this times Σa_j …
 SPREAD = 1.5
+#: … and late when its centroid is at least this many samples
+MIN_LATE = 0.2
 #: the fewest samples a window needs
 MIN_SAMPLES = 64
 
@@ -86,10 +90,11 @@ def _fit(e: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, float]:
     return coef, float(r @ r)
 
 
-def adequacy(residual, command, v_meas, Ts: float, *, gain: float) -> Adequacy:
+def adequacy(residual, command, v_meas, Ts: float, *, gain: float, pole: float) -> Adequacy:
     """Test (A1) on one window: ``residual`` e(k) (m/s) after the disturbance model, ``command`` c(k) and
     ``v_meas`` v(k) of the same samples, sample period ``Ts`` (s), ``gain`` g: the model's β1 (the command's
-    effect on the next velocity). Pure; online it runs on a few seconds of the monitor's innovations."""
+    effect on the next velocity), ``pole`` p: its discrete pole (β2 force-input, β1 + β2 velocity-loop).
+    Pure; online it runs on a few seconds of the monitor's innovations."""
     e = np.asarray(residual, dtype=np.float64)
     c = np.asarray(command, dtype=np.float64)
     v = np.asarray(v_meas, dtype=np.float64)
@@ -103,6 +108,8 @@ def adequacy(residual, command, v_meas, Ts: float, *, gain: float) -> Adequacy:
         raise ParameterError("residual, command and v_meas must be finite (a window without gaps)", "residual")
     if not (math.isfinite(gain) and gain != 0.0):
         raise ParameterError(f"gain must be the model's β1 (non-zero), got {gain!r}", "gain")
+    if not math.isfinite(pole):
+        raise ParameterError(f"pole must be the model's discrete pole, got {pole!r}", "pole")
     if not (math.isfinite(Ts) and Ts > 0.0):
         raise ParameterError(f"Ts must be a positive sample period in s, got {Ts!r}", "Ts")
     y = e[LAGS:] - e[LAGS:].mean()
@@ -127,18 +134,18 @@ def adequacy(residual, command, v_meas, Ts: float, *, gain: float) -> Adequacy:
     if total > 0.0 and float(np.abs(a).sum()) <= SPREAD * total:
         late = float(np.arange(3) @ a) / total
         detail["centroid"] = late
-        if late >= 0.3 and abs(late - round(late)) <= 0.3:
+        if late >= 0.6 and abs(late - round(late)) <= 0.3:
             what = (f"the velocity lags the command by {round(late)} sample(s) (the force acts {late:.2f} samples after "
                     "it is asked for): identify with the delay modelled, or remove it from the drive's signal path")
             return Adequacy(adequate=False, explained=explained, gain=gain_ll, kind="delay", delay=late,
                             message=what, detail=detail)
-        if late >= 0.3:
+        if late >= MIN_LATE:
             what = (f"the velocity lags the command by {late:.2f} samples: a velocity that is the backward difference "
                     "of positions (an average over the last sample interval) — record the drive's own velocity "
                     "estimate, or a centred difference")
             return Adequacy(adequate=False, explained=explained, gain=gain_ll, kind="delay", delay=late,
                             message=what, detail=detail)
-    freq = _peak(e, Ts)
+    freq = _mode(y + gain * _lagged(c, 0) + pole * _lagged(v, 0), _lagged(c, 0), _lagged(v, 0), Ts)
     if freq is not None:
         what = (f"a resonance near {freq:.0f} Hz that the rigid model leaves ({100 * explained:.0f} % of the residual "
                 "follows the drive's own past): identify at a lower bandwidth (a slower velocity loop or a "
@@ -150,18 +157,23 @@ def adequacy(residual, command, v_meas, Ts: float, *, gain: float) -> Adequacy:
                             "first-order model does not have (a flexible mode, a filter or a delay in the loop)")
 
 
-#: a resonance stands this many times above the residual spectrum's median level
-PEAK_FACTOR = 5.0
+#: the least damped complex pole of the ARX is a mode when its radius is at least this
+MODE_RADIUS = 0.3
+#: AR order of the mode fit
+MODE_ORDER = 4
 
 
-def _peak(e: np.ndarray, Ts: float) -> float | None:
-    """The frequency (Hz) where the residual's Welch spectrum stands highest above its median (above a tenth of
-    the band), when it stands at least :data:`PEAK_FACTOR` times higher; None otherwise."""
-    nper = int(min(e.size, max(64, 2 ** int(math.log2(max(e.size // 8, 64))))))
-    f, P = ss.welch(e - e.mean(), fs=1.0 / Ts, nperseg=nper)
-    band = f > 0.1 * f[-1]
-    if band.sum() < 4:
+def _mode(w: np.ndarray, c: np.ndarray, v: np.ndarray, Ts: float) -> float | None:
+    """The frequency (Hz) of the least damped complex pole pair of an ARX(MODE_ORDER, MODE_ORDER) fit of ``w``
+    on ``v`` and ``c`` (with a constant and ``sign v``); None when it has none of radius ≥ MODE_RADIUS."""
+    L = MODE_ORDER
+    n = w.size
+    X = np.column_stack([v[L - j: n - j] for j in range(L + 1)] + [c[L - j: n - j] for j in range(L + 1)]
+                        + [np.ones(n - L), np.sign(v[L:])])
+    coef, _ = _fit(w[L:], X)
+    roots = np.roots(np.r_[1.0, -coef[: L + 1]])
+    pairs = [r for r in roots if r.imag > 1e-9 and abs(r) >= MODE_RADIUS]
+    if not pairs:
         return None
-    level = float(np.median(P[band]))
-    k = int(np.argmax(np.where(band, P, -np.inf)))
-    return float(f[k]) if level > 0 and P[k] >= PEAK_FACTOR * level else None
+    best = max(pairs, key=abs)
+    return float(abs(np.angle(best)) / (2.0 * math.pi * Ts))

@@ -81,9 +81,9 @@ def test_emps_clean_data_chooses_ls_and_writes_the_published_model(emps_trials, 
     assert model.beta_names[-1] == "one" and model.beta_se is not None
     assert set(model.physical) == PHYSICAL_KEYS and set(model.physical_se) == PHYSICAL_KEYS
     kernels = [c for c in doc["candidates"] if c["method"] == "pl_lssvm"]
-    assert kernels and all(not c["valid"] and "competes" in c["why_not"] for c in kernels)
-    assert any(c["kernel"] == "squared_exponential" and c["log_evidence"] > doc["candidates"][0]["log_evidence"]
-               for c in kernels)  # the kernel "explains" more, yet is no valid choice
+    assert kernels and all(not c["valid"] for c in kernels)
+    best = max(kernels, key=lambda c: c["log_evidence"])  # the kernel "explains" more, yet is no valid choice
+    assert best["log_evidence"] > doc["candidates"][0]["log_evidence"] and "competes" in best["why_not"]
     assert any("no rest" in n for n in doc["ls"]["notes"])  # asymmetry and offset not separable: said so
     # the friction near standstill departs from the law (~6 N below it under ~3.5 cm/s, at 333 Hz and 1 kHz
     # alike): found, said, and the online β learns only above it (kernels/low_speed.py)
@@ -170,7 +170,7 @@ def test_shaker_pl_lssvm_unbiased_ls_biased(simulated, scenario):
     assert errs["inertia"] < 0.01 and errs["damping"] < 0.02 and errs["coulomb"] < 0.05
 
 
-def test_milling_incdec_period_from_spindle_and_damping_flagged(simulated):
+def test_milling_incdec_period_from_spindle_and_the_cutting_force_kept_out_of_damping_and_offset(simulated):
     code, doc, _ = run_identify(simulated("milling-incdec", duration=20.0))
     assert code == 0
     assert doc["period"] == {"value": pytest.approx(0.02), "source": "spindle", "suggested": None}
@@ -179,8 +179,16 @@ def test_milling_incdec_period_from_spindle_and_damping_flagged(simulated):
     truth = doc["truth"]["beta"]
     assert np.all(_rel(doc["pl_lssvm"]["beta"], truth) < 0.02)
     assert _rel(doc["ls"]["beta"], truth)[0] > 0.2  # LS badly biased by the cutting force
-    # the mean cutting force follows the feed: damping competes with the disturbance model, and is flagged
-    assert "damping" in doc["pl_lssvm"]["competing"] and doc["pl_lssvm"]["vif"]["damping"] > 10
+    # the mean cutting force (~23 N + 1950 N·s/m × feed) once went into offset (+22 N) and damping (2213 for
+    # 375 N·s/m): the cut is found in the residual and its mean kept apart (nuisance columns, the disturbance
+    # model gated to it); damping and offset come from the half second of motion before the cut — honestly
+    # imprecise there ("undetermined"), but right
+    checks = doc["checks"]
+    assert checks["offset_separated"] is True and checks["process"]["nuisance"] == ["process", "process*v_meas"]
+    assert 0.9 < checks["process"]["share"] < 0.99
+    phys, se = doc["model"]["physical"], doc["model"]["physical_se"]
+    assert abs(phys["offset"]) < max(3 * se["offset"], 1.0)
+    assert abs(phys["damping"] - 375.0) < 3 * se["damping"] and "damping" in doc["pl_lssvm"]["undetermined"]
 
 
 @pytest.fixture(scope="module")
@@ -385,7 +393,7 @@ def test_an_absurd_sample_is_named_not_called_collinear(simulated, tmp_path):
 
     bad = rewrite_samples(simulated("shaker-control", duration=6.0), tmp_path / "spike.mcap", spike)
     code, doc, err = run_identify(bad, "--method", "ls")
-    assert code == 2 and doc is None
+    assert code == 2 and "absurd magnitude" in doc["error"]
     assert "1 sample(s) with an absurd magnitude, first at seq 250" in err and "v_ref = 1e+300 m/s" in err
     assert "collinear" not in err and "Traceback" not in err
 
@@ -395,7 +403,7 @@ def test_a_loop_gain_that_is_not_a_gain_is_refused(simulated, gain):
     # --loop-gain 0 once ended in a ZeroDivisionError traceback, -5 in "Coulomb friction negative",
     # nan in a model-file error after the whole identification
     code, doc, err = run_identify(simulated("shaker-control", duration=6.0), "--method", "ls", "--loop-gain", gain)
-    assert code == 2 and doc is None and "Traceback" not in err
+    assert code == 2 and "Traceback" not in err and "loop_gain must be a positive number" in doc["error"]
     assert f"loop_gain must be a positive number (N·s/m), got {float(gain)!r}" in err
     assert err.rstrip().endswith("(command line: --loop-gain)")
 

@@ -48,6 +48,7 @@ def identify(
     coulomb: bool | None = None,
     omega: float | None = None,
     loop_gain: float | None = None,
+    delay: int | None = None,
     progress=None,
 ) -> Identification:
     """Identify one axis: candidates, evidence, validity, choice (module docstring).
@@ -57,7 +58,8 @@ def identify(
     ``coulomb=None`` keeps the Coulomb columns when the trial reverses direction (at least
     ``MIN_REVERSAL_SAMPLES`` samples beyond ±Ω each way) and drops them otherwise, with a
     note; ``coulomb=True`` insists (and fails on a trial without reversal). ``omega=None`` takes the
-    dead band from the measurement noise (:mod:`.regression`). ``method``: "auto",
+    dead band from the measurement noise (:mod:`.regression`). ``delay``: samples from a command to its force
+    (None: 0, or the delay the adequacy test finds, modelled). ``method``: "auto",
     "ls" or "pl-lssvm". A bad argument raises :class:`~kernels.errors.ParameterError` naming it (``feedmon identify`` adds
     the flag, :mod:`feedmon.errors`).
 
@@ -80,9 +82,11 @@ def identify(
     run = _Run(trial, form, exo, exo_name, gain, dict(period=period, spindle_rpm=spindle_rpm, sigma1=sigma1,
                                                        sigma2=sigma2, gamma=gamma, tune=tune, method=method,
                                                        coulomb=coulomb, omega=omega), plan)
-    ident = run.once(delay=0)
+    if delay is not None and not (isinstance(delay, int) and not isinstance(delay, bool) and 0 <= delay <= 16):
+        raise ParameterError(f"delay must be a whole number of samples 0 … 16, got {delay!r}", "delay")
+    ident = run.once(delay=delay or 0)
     found = ident.adequacy
-    if found is not None and found.kind == "delay" and found.delay is not None \
+    if delay is None and found is not None and found.kind == "delay" and found.delay is not None \
             and 1 <= round(found.delay) <= MAX_DELAY and abs(found.delay - round(found.delay)) <= 0.3:
         delayed = run.once(delay=int(round(found.delay)))  # a delay it can estimate is modelled
         if delayed.model_result is not None and (delayed.adequacy is None or delayed.adequacy.adequate
@@ -294,7 +298,7 @@ def _adequacy(ident: Identification, reg, model_res: MethodResult | None, exo: n
     vm = v[:-1]
     command = exo[:-1] - vm if ident.form == "velocity-loop" else exo[:-1]
     try:
-        found = adequacy(e, command, vm, ident.Ts, gain=float(c.beta[0]))
+        found = adequacy(e, command, vm, ident.Ts, gain=float(c.beta[0]), pole=float(c.pole))
     except ParameterError:
         return None
     if not found.adequate:
@@ -319,9 +323,9 @@ def _low_speed_note(reg, prob: _Problem, res: MethodResult | None, notes: list[s
         return f"{abs(delta):.3g} N {'above' if delta > 0 else 'below'}"
 
     if reg.cut is not None:
-        what = (f"the friction law (Coulomb + viscous) holds above {reg.cut.speed:.3g} m/s (found in the data); "
-                f"below it the friction is on average {force(reg.cut.departure)} the law "
-                f"({100 * reg.cut.share:.0f} % of the motion)")
+        what = (f"the friction law (Coulomb + viscous) does not hold near standstill: it holds above "
+                f"{reg.cut.speed:.3g} m/s (found in the data), below it the friction is on average "
+                f"{force(reg.cut.departure)} the law ({100 * reg.cut.share:.0f} % of the motion)")
         if reg.keep is not None:
             notes.append(f"{what}: a Stribeck rise — those samples are left out of the batch fit, and the monitor "
                          f"learns β only above min_speed = {reg.min_speed:.3g} m/s")
