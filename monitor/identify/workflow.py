@@ -125,7 +125,7 @@ class _Run:
             spindle_changes = trial.spindle_angle is not None or trial.spindle_rpm is not None
             self.plan.plan(planned_evaluations(len(psis), spindle=2 if spindle_changes else 0, tune=o["tune"],
                                                alternative=bool(detected) and psi_source in ("given", "spindle")))
-        found = _candidates(prob, trial, psis, psi_source, k_period, detected, o, self.plan, notes)
+        found = _candidates(prob, ls_c, trial, psis, psi_source, k_period, detected, o, self.plan, notes)
         candidates, unused, alt_off, suggested, psis, psi_source = found
         chosen, refusal, pl_best, written = _rules_and_choice(candidates, ls_c, alt_off, o["method"])
         ls_res = prob.fit(ls_c, self.exo_name)
@@ -155,7 +155,7 @@ class _Run:
         return ident
 
 
-def _candidates(prob: _Problem, trial, psis, psi_source, k_period, detected, o: dict, plan, notes):
+def _candidates(prob: _Problem, ls_c: Candidate, trial, psis, psi_source, k_period, detected, o: dict, plan, notes):
     """Steps 5–6: the kernel candidates beside LS, the spindle-phase ones, the period found in the data
     weighed against a given one. Returns ``(candidates, unused, off_spindle, suggested, psis, psi_source)``,
     ``off_spindle`` the detected-period candidate that competes like any other (else None)."""
@@ -163,7 +163,6 @@ def _candidates(prob: _Problem, trial, psis, psi_source, k_period, detected, o: 
             "gamma": o["gamma"] or THESIS_DEFAULTS["gamma"]}
     se_init = {"lengthscale": o["sigma1"], "gamma": o["gamma"]} if o["sigma1"] or o["gamma"] else None
     tuned_kw = dict(tune=o["tune"], progress=plan)
-    ls_c = prob.candidate("ls", None, None, None, {}, 0)
     kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, prob.n * prob.Ts,
                                                  notes, **tuned_kw)
     candidates = [ls_c, *kernel_candidates]
