@@ -115,6 +115,13 @@ class PhaseSegments:
     def lengths(self) -> np.ndarray:
         return np.diff(self.edges)
 
+    def window(self, a: int, b: int) -> PhaseSegments:
+        """The stretches of samples ``a … b − 1``, numbered from ``a`` (the speed of each unchanged)."""
+        edges = np.clip(self.edges, a, b) - a
+        keep = np.flatnonzero(np.diff(edges) > 0)
+        return PhaseSegments(edges=np.concatenate([edges[keep], [b - a]]).astype(np.int64), rate=self.rate[keep],
+                             tol=self.tol)
+
     def periods(self, P: float = 2.0 * math.pi) -> np.ndarray:
         """``ψ_s = P/|ω_s|`` (s) of each stretch (S2); ``inf`` at rest."""
         with np.errstate(divide="ignore"):

@@ -10,6 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import qr
 
 from kernels.feed_drive import (
     beta_to_physical,
@@ -18,7 +19,7 @@ from kernels.feed_drive import (
     simulate_free_run,
     validity_problems,
 )
-from kernels.likelihood import PERIODIC_KINDS, _make_kernel, log_evidence, reml_terms
+from kernels.likelihood import PERIODIC_KINDS, _make_kernel, default_bounds, log_evidence, reml_terms
 from kernels.likelihood import tune as tune_hyperparameters
 from kernels.pl_lssvm import pl_lssvm, prepare_regression
 
@@ -60,6 +61,13 @@ ORDER_TOL = 0.5
 POLISH_EVALUATIONS = 6
 #: Nelder–Mead evaluations of a tuning (from a design of starts) and of a refinement (from a related optimum)
 TUNE_EVALUATIONS, REFINE_EVALUATIONS = 30, 20
+#: a longer record is tuned on the window of this many samples with the most disturbance (the first
+#: difference of the LS residual), and the tuned values polished and evaluated on the whole record
+TUNE_WINDOW = 65_536
+#: the kernel's memory (σ1, the squared exponential's length) is bounded so that its support — where it
+#: exceeds 10⁻³ of k(0), √(2 ln 1000) ≈ 3.7 σ1 — fits in FINAL_ORDER lags, when the record is longer: a longer
+#: memory is beyond what the order-m likelihood resolves (tuning would wander there)
+SUPPORT_SIGMAS = 3.7
 
 _METHOD_LABEL = {"ls": "LS", "pl_lssvm": "PL-LSSVM"}
 
@@ -229,6 +237,29 @@ class _TunedBeside:
         self._pool.shutdown(wait=True)
 
 
+def busiest_window(resid: np.ndarray, size: int) -> tuple[int, int]:
+    """``(a, b)``: the ``size`` consecutive samples of ``resid`` whose first difference carries the most
+    energy (a disturbance, not a slow drift), the whole record when it is shorter."""
+    n = resid.size
+    if n <= size:
+        return 0, n
+    energy = np.concatenate([[0.0], np.cumsum(np.diff(resid) ** 2)])  # energy[k] = Σ_{j<k} Δr_j²
+    sums = energy[size - 1:] - energy[: energy.size - size + 1]
+    a = int(np.argmax(sums))
+    return a, a + size
+
+
+def _independent_columns(Z: np.ndarray) -> np.ndarray:
+    """Indices of a set of numerically independent columns of ``Z`` (pivoted QR on unit-norm columns): a window
+    may hold a column that is constant there (a process acting all through it) or empty (no reversal)."""
+    norms = np.sqrt(np.sum(Z * Z, axis=0))
+    live = np.flatnonzero(norms > 0)
+    _, R, piv = qr(Z[:, live] / norms[live], mode="economic", pivoting=True, check_finite=False)
+    diag = np.abs(np.diag(R))
+    rank = int(np.sum(diag > 1e-9 * diag[0]))
+    return np.sort(live[piv[:rank]])
+
+
 class _Problem:
     """The regression of one trial shared by all candidates."""
 
@@ -238,6 +269,7 @@ class _Problem:
         self.omega, self.coulomb = omega, coulomb
         self.gate = gate  # where the disturbance acts (kernels.blocks), None: everywhere
         self.keep = keep  # the samples in the fit (the friction law holds there), None: all
+        self._window = None
         self.prepared = prepare_regression(Z_id, y, id_names)
         self.n, self.p = Z_id.shape
 
@@ -276,17 +308,58 @@ class _Problem:
             cand.valid, cand.why_not = False, "; ".join(problems)
         return cand
 
+    def tuning_window(self) -> tuple[_Problem, int, int]:
+        """``(problem, a, b)``: this one, or for a record longer than :data:`TUNE_WINDOW` the window of its
+        samples ``a … b − 1`` with the most disturbance (:func:`busiest_window` of the LS residual), with the
+        columns that are independent there."""
+        if self.n <= TUNE_WINDOW:
+            return self, 0, self.n
+        if self._window is None:
+            kept = slice(None) if self.keep is None else self.keep
+            theta = np.linalg.lstsq(self.Z[kept], self.y[kept], rcond=None)[0]
+            a, b = busiest_window(self.y - self.Z @ theta, TUNE_WINDOW)
+            cols = _independent_columns(self.Z[a:b] if self.keep is None else self.Z[a:b][self.keep[a:b]])
+            sub = _Problem(self.form, self.Ts, self.gain, self.names, self.T[:, cols], self.Z[a:b, cols],
+                           tuple(self.id_names[c] for c in cols), self.y[a:b], self.exo[a:b + 1], self.v[a:b + 1],
+                           self.omega, self.coulomb, gate=None if self.gate is None else self.gate[a:b],
+                           keep=None if self.keep is None else self.keep[a:b])
+            self._window = (sub, a, b)
+        return self._window
+
+    def bounds(self, kind, period, phase, order: int = FINAL_ORDER) -> dict:
+        """:func:`kernels.likelihood.default_bounds` of the record, the memory's upper bound held within
+        what ``order`` lags resolve (:data:`SUPPORT_SIGMAS`) when the record is longer."""
+        span = None
+        if kind == "spindle":
+            psi = phase.periods(period)
+            psi = psi[np.isfinite(psi) & (phase.lengths > 1)]
+            span = (float(psi.max()), float(psi.min())) if psi.size else (1.0, 1.0)
+        bounds = default_bounds(kind, self.n, self.Ts, span if kind == "spindle" else period)
+        if self.n - 1 > order:
+            name = "lengthscale" if kind == "squared_exponential" else "sigma1"
+            lo, hi = bounds[name]
+            bounds[name] = (lo, min(hi, max(2.0 * lo, order * self.Ts / SUPPORT_SIGMAS)))
+        return bounds
+
     def _tune(self, kind, period, init, progress, label, refine, phase):
-        """REML tuning at :data:`TUNE_ORDER`, then — when that order held the kernel's memory back (the
-        criterion V3 had not stopped it) and the record is longer — a few Nelder–Mead steps at
-        :data:`FINAL_ORDER` from the optimum (a short-memory kernel's optimum is already final)."""
+        """REML tuning at :data:`TUNE_ORDER` — on the busiest window of a long record (:meth:`tuning_window`) —
+        then, when that order held the kernel's memory back (the criterion V3 had not stopped it) or the
+        tuning saw a window only, a few Nelder–Mead steps at :data:`FINAL_ORDER` on the whole record from the
+        optimum (a short record's short-memory kernel's optimum is already final)."""
         report = None if progress is None else (lambda *a: progress(label, *a))
-        kw = dict(kind=kind, _prepared=self.prepared, progress=report, phase=phase, gate=self.gate, keep=self.keep,
-                  tol=ORDER_TOL)
+        sub, a, b = self.tuning_window()
+        kw = dict(kind=kind, progress=report, tol=ORDER_TOL)
+        # a window: the memory within what its tuning order resolves (its approximate likelihood would favour a
+        # longer one that the whole record, at the final order, does not)
+        bounds = self.bounds(kind, period, phase, FINAL_ORDER if sub is self else TUNE_ORDER)
         res = tune_hyperparameters(None, None, self.Ts, period, init=init, design=not refine, max_order=TUNE_ORDER,
-                                   max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS, **kw)
+                                   max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS,
+                                   _prepared=sub.prepared, gate=sub.gate, keep=sub.keep, bounds=bounds,
+                                   phase=None if phase is None else phase.window(a, b), **kw)
+        kw.update(_prepared=self.prepared, gate=self.gate, keep=self.keep, phase=phase,
+                  bounds=self.bounds(kind, period, phase))
         held_back = res.order >= TUNE_ORDER and res.terms.tail_estimate >= ORDER_TOL and self.n - 1 > TUNE_ORDER
-        if not held_back:
+        if not held_back and sub is self:
             return res, res.evaluations, res.seconds
         polished = tune_hyperparameters(None, None, self.Ts, period, init=dict(res.hyper, gamma=res.gamma),
                                         design=False, max_order=FINAL_ORDER, max_evaluations=POLISH_EVALUATIONS,

@@ -15,7 +15,15 @@ from kernels.period import MIN_CYCLES, detect_periods, harmonically_related, sam
 from kernels.spindle_phase import MAX_HOLE, phase_segments, segment_tolerance, spindle_phase
 
 from .. import online_settings as OS
-from .candidates import MAX_PERIOD_FRACTION, SPINDLE_SHARE, SUGGEST_MARGIN, Candidate, _Problem, _TunedBeside
+from .candidates import (
+    MAX_PERIOD_FRACTION,
+    SPINDLE_SHARE,
+    SUGGEST_MARGIN,
+    Candidate,
+    _Problem,
+    _TunedBeside,
+    busiest_window,
+)
 from .rules import _efficiency_check, _invalidate
 
 #: the most samples the period search reads (its harmonic-sum periodogram costs more than O(N log N)): the
@@ -82,18 +90,6 @@ def periods_in_play(trial, period: float | None = None, spindle_rpm: float | Non
 
 
 
-def search_window(resid: np.ndarray, size: int = PERIOD_WINDOW) -> tuple[int, int]:
-    """``(a, b)``: the ``size`` consecutive samples of ``resid`` whose first difference carries the most
-    energy (a disturbance, not a slow drift), the whole record when it is shorter."""
-    n = resid.size
-    if n <= size:
-        return 0, n
-    energy = np.concatenate([[0.0], np.cumsum(np.diff(resid) ** 2)])  # energy[k] = Σ_{j<k} Δr_j²
-    sums = energy[size - 1:] - energy[: energy.size - size + 1]
-    a = int(np.argmax(sums))
-    return a, a + size
-
-
 def _periods_to_try(trial, ls_resid: np.ndarray, Ts: float, duration: float, psis: list[float], psi_source: str,
                     notes: list[str]) -> tuple[list[float], str, int, list]:
     """Step 4: the periods the kernel candidates are tuned at, their source and ``k_period`` (1 when the
@@ -102,7 +98,7 @@ def _periods_to_try(trial, ls_resid: np.ndarray, Ts: float, duration: float, psi
     given or spindle period the strongest one found is used; notes say so, say when none is found, and
     when a given period is locked to the motion."""
     ref = trial.v_ref[:-1] if trial.v_ref is not None and np.all(np.isfinite(trial.v_ref)) else None
-    a, b = search_window(ls_resid)
+    a, b = busiest_window(ls_resid, PERIOD_WINDOW)
     if b - a < ls_resid.size:
         notes.append(f"periods searched in the {(b - a) * Ts:.0f} s of the record with the most disturbance "
                      f"({a * Ts:.0f} … {b * Ts:.0f} s)")
