@@ -14,7 +14,7 @@ Within a stretch where the spindle turns at a constant rate ω (``θ = θ₀ + �
 is the time kernel ``LocallyPeriodic(σ1, σ2, ψ = P/|ω|)`` (``SquaredExponential(σ1)`` at rest).
 Identification therefore splits the record into such stretches (:func:`phase_segments`: θ linear
 in t within ± ``tol`` rad) and treats them as independent realisations of the disturbance with a
-shared β — ``A ≈ diag(A₁, …, A_S)``, one exact Levinson pass per stretch. The approximation leaves
+shared β — ``A ≈ diag(A₁, …, A_S)``, one Levinson pass per stretch (:mod:`kernels.blocks`). The approximation leaves
 out only the correlation across a change of speed (the pattern is learned afresh after each one),
 which can only make this candidate look *worse* than the exact kernel: its evidence is conservative
 against the exact time-kernel candidates it competes with.
