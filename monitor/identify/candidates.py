@@ -55,8 +55,9 @@ MAX_PERIOD_FRACTION = 0.5
 TUNE_ORDER = 2048
 #: highest order of a candidate's evaluation (its evidence, β and covariance) and of the polish steps
 FINAL_ORDER = 8192
-#: the lags beyond the order used add less than this to log|A| (eq. V3 of kernels.levinson), log-likelihood units
-ORDER_TOL = 0.5
+#: the lags beyond the order used add less than this to log|A| (eq. V3 of kernels.levinson), log-likelihood
+#: units: while tuning (the optimum moves less than the objective's error) and for the evidence
+TUNE_TOL, ORDER_TOL = 2.0, 0.5
 #: Nelder–Mead evaluations at FINAL_ORDER from the tuned optimum, when the tuning order held the kernel's memory back
 POLISH_EVALUATIONS = 6
 #: Nelder–Mead evaluations of a tuning (from a design of starts) and of a refinement (from a related optimum)
@@ -348,7 +349,7 @@ class _Problem:
         optimum (a short record's short-memory kernel's optimum is already final)."""
         report = None if progress is None else (lambda *a: progress(label, *a))
         sub, a, b = self.tuning_window()
-        kw = dict(kind=kind, progress=report, tol=ORDER_TOL)
+        kw = dict(kind=kind, progress=report, tol=TUNE_TOL)
         # a window: the memory within what its tuning order resolves (its approximate likelihood would favour a
         # longer one that the whole record, at the final order, does not)
         bounds = self.bounds(kind, period, phase, FINAL_ORDER if sub is self else TUNE_ORDER)
@@ -356,10 +357,9 @@ class _Problem:
                                    max_evaluations=REFINE_EVALUATIONS if refine else TUNE_EVALUATIONS,
                                    _prepared=sub.prepared, gate=sub.gate, keep=sub.keep, bounds=bounds,
                                    phase=None if phase is None else phase.window(a, b), **kw)
-        kw.update(_prepared=self.prepared, gate=self.gate, keep=self.keep, phase=phase,
+        kw.update(_prepared=self.prepared, gate=self.gate, keep=self.keep, phase=phase, tol=ORDER_TOL,
                   bounds=self.bounds(kind, period, phase))
-        held_back = res.order >= TUNE_ORDER and res.terms.tail_estimate >= ORDER_TOL and self.n - 1 > TUNE_ORDER
-        if not held_back and sub is self:
+        if sub is self:  # the whole record tuned: the evidence is evaluated at the final order (Problem.terms)
             return res, res.evaluations, res.seconds
         polished = tune_hyperparameters(None, None, self.Ts, period, init=dict(res.hyper, gamma=res.gamma),
                                         design=False, max_order=FINAL_ORDER, max_evaluations=POLISH_EVALUATIONS,
@@ -382,7 +382,8 @@ class _Problem:
                 lo, hi = res.bounds[name]
                 notes.append(f"{label}: {name} ended on its {side} bound ({lo if side == 'lower' else hi:.4g}): "
                              f"{_BOUND_MEANING[(name, side)]}")
-            kernel, gamma, terms = res.kernel(), res.gamma, res.terms
+            kernel, gamma = res.kernel(), res.gamma
+            terms = res.terms if res.order < TUNE_ORDER or res.terms.tail_estimate < ORDER_TOL else None
             k = len(res.hyper) + 1 + k_extra
         else:
             if kind in PERIODIC_KINDS or kind == "spindle":

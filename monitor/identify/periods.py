@@ -159,13 +159,19 @@ def _kernel_candidates(prob: _Problem, psis: list[float], psi_source: str, k_per
 
 
 def _detected_alternative(prob: _Problem, psis: list[float], psi_source: str, detected: list, init: dict,
-                          ls: Candidate, *, tune: bool, progress) -> Candidate | None:
+                          ls: Candidate, trial, notes: list[str], *, tune: bool, progress) -> Candidate | None:
     """Step 6a: with a given or spindle period, the locally periodic candidate at the period found in the
-    data when it is more than 2 % from every period tuned (validity rule 2 applied), else None."""
+    data when it is more than 2 % from every period tuned (validity rule 2 applied), else None — also when
+    it is a (folded) harmonic of the spindle's line, which the kernel at the spindle period has (a note says
+    so; tuning it would show nothing the choice could use)."""
     if psi_source not in ("given", "spindle") or not detected:
         return None
     found = detected[0]
     if any(abs(psi - found.period) <= 0.02 * found.period for psi in psis):
+        return None
+    if _spindle_harmonic(found.period, trial, psis, psi_source):
+        notes.append(f"the line found at {1 / found.period:.5g} Hz is a harmonic of the spindle's (as sampled, "
+                     "folded at half the sample rate): the spindle period explains it")
         return None
     alt = prob.tuned("locally_periodic", found.period, init, tune=tune, k_extra=1, progress=progress,
                      label=f"locally periodic ψ = {found.period:.6g} s")
@@ -173,34 +179,34 @@ def _detected_alternative(prob: _Problem, psis: list[float], psi_source: str, de
     return alt
 
 
-def _weigh_alternative(alt: Candidate, candidates: list[Candidate], trial, psis: list[float], psi_source: str,
-                       spindle_rpm: float | None, notes: list[str]) -> tuple[bool, float | None]:
+def _spindle_harmonic(period: float, trial, psis: list[float], psi_source: str) -> bool:
+    """A (folded) harmonic of the spindle's line follows the spindle: the periodic kernel at ψ has it."""
+    teeth = int(trial.meta.teeth or 1)
+    return psi_source == "spindle" and any(
+        sampled_harmonic(period, psi, float(trial.meta.Ts), max_harmonic=max(8, 2 * teeth)) for psi in psis)
+
+
+def _weigh_alternative(alt: Candidate, candidates: list[Candidate], psi_source: str, spindle_rpm: float | None,
+                       notes: list[str]) -> tuple[bool, float | None]:
     """Step 6b: ``(off_spindle, suggested)`` for the candidate at the period found in the data.
 
     A speed read from the samples or the trial's metadata is a presumption about the disturbance, not the
     user's word: when the data clearly prefer another period (by :data:`SUGGEST_MARGIN` over every
-    candidate locked to the spindle) that is not a (folded) harmonic of the spindle line, the disturbance
+    candidate locked to the spindle; a harmonic of the spindle's line never gets here), the disturbance
     does not follow the spindle (a shaker, a pump, a neighbouring machine) and that period competes like
     any other (``off_spindle``). Otherwise ``alt`` is listed but not eligible, and a period the user gave
     is kept, with the better one named (``suggested``) when it is valid and wins by the margin."""
     locked = max((c for c in candidates if c.kernel in PERIODIC_KINDS or c.kernel == "spindle"),
                  key=lambda c: c.log_evidence)
     margin = alt.log_evidence - locked.log_evidence
-    teeth = int(trial.meta.teeth or 1)
-    # a (folded) harmonic of the spindle line follows the spindle: the periodic kernel at ψ has it
-    related = psi_source == "spindle" and any(
-        sampled_harmonic(alt.period, psi, float(trial.meta.Ts), max_harmonic=max(8, 2 * teeth)) for psi in psis)
-    if psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN and not related:
+    if psi_source == "spindle" and spindle_rpm is None and margin > SUGGEST_MARGIN:
         notes.append(f"the disturbance does not follow the spindle: ψ = {alt.period:.6g} s, found in the data, "
                      f"explains it better than every model locked to the spindle's speed (log evidence "
                      f"{margin:+.1f} over the {locked.label}); that period competes like any other, and the "
                      "tracker runs on time, not on the spindle's angle")
         return True, None
     suggested = None
-    if related:
-        notes.append(f"the line found at {1 / alt.period:.5g} Hz is a harmonic of the spindle's (as sampled, "
-                     "folded at half the sample rate): the spindle period explains it")
-    elif alt.valid and margin > SUGGEST_MARGIN:
+    if alt.valid and margin > SUGGEST_MARGIN:
         suggested = alt.period
         notes.append(f"the data prefer ψ = {alt.period:.6g} s to the {psi_source} period (log evidence "
                      f"{margin:+.1f} over the {locked.label}); check the period (--period {alt.period:.6g})")

@@ -166,11 +166,11 @@ def _candidates(prob: _Problem, ls_c: Candidate, trial, psis, psi_source, k_peri
     kernel_candidates, psis = _kernel_candidates(prob, psis, psi_source, k_period, init, se_init, prob.n * prob.Ts,
                                                  notes, **tuned_kw)
     candidates = [ls_c, *kernel_candidates]
-    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, **tuned_kw)
+    alt = _detected_alternative(prob, psis, psi_source, detected, init, ls_c, trial, notes, **tuned_kw)
     candidates += _spindle_candidates(prob, trial, candidates, init, notes, **tuned_kw)
     suggested, unused, off = None, [], None
     if alt is not None:
-        off_spindle, suggested = _weigh_alternative(alt, candidates, trial, psis, psi_source, o["spindle_rpm"], notes)
+        off_spindle, suggested = _weigh_alternative(alt, candidates, psi_source, o["spindle_rpm"], notes)
         if off_spindle:
             psi_source, psis, off = "detected", [alt.period], alt
         else:
