@@ -33,7 +33,8 @@ import numpy as np
 from numba import njit
 from scipy.linalg import expm
 
-__all__ = ["Structure", "structure_of", "discretise", "closed_loop_radius", "structured_loop", "KINDS", "VELOCITY"]
+__all__ = ["Structure", "structure_of", "discretise", "closed_loop_radius", "structured_loop", "friction", "KINDS",
+           "VELOCITY"]
 
 KINDS = ("rigid", "two-mass")
 VELOCITY = ("sensor", "encoder")
@@ -137,6 +138,18 @@ def closed_loop_radius(st: Structure, Ts: float, J: float, B: float, K: float) -
     return float(np.max(np.abs(np.linalg.eigvals(M))))
 
 
+@njit(cache=True)
+def friction(v, omega, dp, dn, fs, vs):
+    """The friction force (N, opposing motion) at velocity ``v``: Coulomb ``dp``/``dn`` beyond the dead band
+    ``omega``, plus the Stribeck rise ``fs·exp(−(v/vs)²)`` (``fs = 0``: none); 0 inside the band. The one
+    friction law of the simulated plants (:mod:`replay.simulator`)."""
+    if v > omega:
+        return dp + fs * math.exp(-(v / vs) ** 2) if fs != 0.0 else dp
+    if v < -omega:
+        return -(dn + fs * math.exp(-(v / vs) ** 2)) if fs != 0.0 else -dn
+    return 0.0
+
+
 def structured_loop(st: Structure, v_ref, tc, noise, Ts: float, J: float, B: float, K: float, dp: float, dn: float,
                     omega: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``v_true, v_meas, u, x`` per sample of the closed loop of a structured plant (module docstring): the
@@ -178,12 +191,7 @@ def _loop_ts(v_ref, tc, noise, Phi, Gm, Gl, K, dp, dn, fs, vs, omega, delay, enc
             queue[delay - 1] = uk
         else:
             applied = uk
-        if v > omega:
-            tf = dp + fs * math.exp(-(v / vs) ** 2)
-        elif v < -omega:
-            tf = -(dn + fs * math.exp(-(v / vs) ** 2))
-        else:
-            tf = 0.0
+        tf = friction(v, omega, dp, dn, fs, vs)
         v_true[k] = v
         v_meas[k] = vm
         u_out[k] = uk

@@ -53,7 +53,7 @@ from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_bet
 
 from . import scenarios as SC
 from .cutting import MillingTool, SpindleProfile, feed_force
-from .plant import closed_loop_radius, structure_of, structured_loop
+from .plant import closed_loop_radius, friction, structure_of, structured_loop
 
 __all__ = [
     "SimResult",
@@ -275,12 +275,7 @@ def _zoh_loop(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega, v0, pos0):
             gx = (pd - 1.0) / p  # ∫0^Ts e^{pτ} dτ
         vm = v + noise[k]
         uk = K * (v_ref[k] - vm)
-        if v > omega:
-            tf = dp[k]
-        elif v < -omega:
-            tf = -dn[k]
-        else:
-            tf = 0.0
+        tf = friction(v, omega, dp[k], dn[k], 0.0, 1.0)
         v_true[k] = v
         v_ctrl[k] = vm
         u[k] = uk
@@ -352,12 +347,7 @@ def _loop_fine(v_ref, tc_fine, noise, noise_fine, Ts, n_sub, J, B, K, dp, dn, om
             i = k * n_sub + m
             v_fine[i] = v + noise_fine[i]
             x_fine[i] = pos
-            if v > omega:
-                tf = dp[k]
-            elif v < -omega:
-                tf = -dn[k]
-            else:
-                tf = 0.0
+            tf = friction(v, omega, dp[k], dn[k], 0.0, 1.0)
             force = uk - tf - tc_fine[i]
             vss = force / Bc
             pos += vss * h + (v - vss) * gx
