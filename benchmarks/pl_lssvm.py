@@ -3,7 +3,7 @@
 Run: ``python benchmarks/pl_lssvm.py [--sizes 2000 10000 20000 100000] [--dense-max 10000]``
 
 Every case runs in its own subprocess on a simulated thesis case-1-like stream
-(``tests/streams.py``: velocity loop, reversals, 55 Hz + 110 Hz shaker). Inside it, after the
+(``replay/streams.py``: velocity loop, reversals, 55 Hz + 110 Hz shaker). Inside it, after the
 data are built and Numba/FFT warmed up on a small case, we record
 
 * ``time``: wall time of one call;
@@ -25,9 +25,6 @@ import subprocess
 import sys
 import time
 import tracemalloc
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
 
 SIGMA1, SIGMA2, GAMMA, PSI = 0.59, 0.42, 50.3, 1 / 55
 
@@ -77,11 +74,11 @@ def _case(kind: str, n: int) -> dict:
 
         def call():
             return log_marginal_likelihood(Z, y, kernel, GAMMA, s.Ts)
-    elif kind == "loglik-seg":
-        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts, segment=1500)
+    elif kind == "loglik-ar":
+        log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts, max_order=2048, tol=0.5)
 
         def call():
-            return log_marginal_likelihood(Z, y, kernel, GAMMA, s.Ts, segment=1500)
+            return log_marginal_likelihood(Z, y, kernel, GAMMA, s.Ts, max_order=2048, tol=0.5)
     elif kind == "tune":
         log_marginal_likelihood(warm.Z, warm.y, kernel, GAMMA, s.Ts)
 
@@ -96,7 +93,7 @@ def _case(kind: str, n: int) -> dict:
     elapsed = time.perf_counter() - t0
     rss1 = _maxrss_mb()
     info = {"kind": kind, "n": n, "seconds": elapsed, "rss_delta_mb": rss1 - rss0}
-    if kind in ("toeplitz", "levinson", "loglik", "loglik-seg"):
+    if kind in ("toeplitz", "levinson", "loglik", "loglik-ar"):
         tracemalloc.start()
         call()
         info["tracemalloc_mb"] = tracemalloc.get_traced_memory()[1] / 2**20
@@ -159,7 +156,7 @@ def main(argv=None) -> int:
     n = args.tune_n
     print(f"\nREML likelihood and tuning at N = {n}")
     for kind, label in (("loglik", "log_marginal_likelihood, exact (Levinson whitening)"),
-                        ("loglik-seg", "log_marginal_likelihood, segment=1500 (block-diagonal)"),
+                        ("loglik-ar", "log_marginal_likelihood, order ≤ 2048 (kernels.levinson)"),
                         ("tune", "tune (5 starts + Nelder–Mead, exact REML, 30 evaluations)")):
         r = _run(kind, n)
         if "error" in r:
@@ -195,7 +192,7 @@ def _emps(mat: str, rate: int) -> str:
         subprocess.run([*feedmon, "import", "emps", mat, "-o", trial, "--rate", str(rate)], check=True,
                        capture_output=True)
         t0 = time.perf_counter()
-        proc = subprocess.run([*feedmon, "identify", trial, "--json"], capture_output=True, text=True)
+        proc = subprocess.run([*feedmon, "identify", trial, "--json", "--dry-run"], capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if proc.returncode not in (0, 1):
             return f"error: {proc.stderr.strip().splitlines()[-1]}"

@@ -15,7 +15,7 @@ _EXPORTS = {
     "LSResult": "least_squares", "least_squares": "least_squares",
     "TuneResult": "likelihood", "log_marginal_likelihood": "likelihood", "tune": "likelihood",
     "PLLSSVMResult": "pl_lssvm", "pl_lssvm": "pl_lssvm",
-    "SymmetricToeplitz": "toeplitz", "ToeplitzSolver": "toeplitz", "toeplitz_logdet": "toeplitz",
+    "SymmetricToeplitz": "toeplitz", "ToeplitzSolver": "toeplitz", "toeplitz_logdet": "levinson",
     "KRLST": "krlst", "Step": "krlst",
     "Kernel": "covariance", "LocallyPeriodic": "covariance", "Periodic": "covariance", "Product": "covariance",
     "SquaredExponential": "covariance",

@@ -43,6 +43,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from numba import njit
 
 __all__ = [
     "FORMS",
@@ -154,8 +155,14 @@ def regressors(
     omega: float = 0.0,
     coulomb: bool = True,
     intercept: bool | None = None,
+    delay: int = 0,
 ) -> Regression:
     """Build ``Z`` and ``y`` of eq. 2.5–2.6 (method §2) from one trial.
+
+    With ``delay`` d ≥ 1 (the force acts d samples after it is commanded) the first column carries the
+    command d samples back: ``u(k−d)`` (force-input), ``v_r(k−d) − v_m(k−d) + v_m(k)`` (velocity-loop:
+    ``β1·z1 + β2·v_m = K_d·(v_r − v_m)(k−d) + p_d·v_m(k)``, the same β); its first d rows have no such
+    past and hold the undelayed command.
 
     Parameters
     ----------
@@ -192,7 +199,16 @@ def regressors(
     if v.size < 3:
         raise ValueError(f"a trial needs at least 3 samples, got {v.size}")
     vk = v[:-1]
-    cols = [first[:-1], vk]
+    d = int(delay)
+    if not 0 <= d <= 16:
+        raise ValueError(f"delay must be a whole number of samples 0 … 16, got {delay!r}")
+    first = first[:-1].copy()
+    if d:
+        command = first - vk if form == "velocity-loop" else first  # v_r − v_m, or u
+        late = command.copy()
+        late[d:] = command[:-d]
+        first = late + vk if form == "velocity-loop" else late
+    cols = [first, vk]
     if coulomb:
         sp, sn = coulomb_indicators(vk, omega)
         cols += [-sp, -sn]
@@ -478,14 +494,23 @@ def simulate_free_run(
     beta = np.asarray(beta, dtype=np.float64)
     e = _finite_1d("exogenous input", exogenous)
     f = np.zeros_like(e) if disturbance is None else _finite_1d("disturbance", disturbance)
+    const = beta[-1] if _intercept(form, intercept) else 0.0
+    cp, cn = (float(beta[2]), float(beta[3])) if coulomb else (0.0, 0.0)
+    return _free_run(float(beta[0]), float(beta[1]), cp, cn, float(const), float(v0), e, f, float(omega))
+
+
+@njit(cache=True, nogil=True)
+def _free_run(b1, b2, cp, cn, const, v0, e, f, omega):
+    """The loop of :func:`simulate_free_run` (compiled: a record of any length)."""
     out = np.empty_like(e)
     out[0] = v0
-    const = beta[-1] if _intercept(form, intercept) else 0.0
     for k in range(e.size - 1):
         v = out[k]
-        nxt = beta[0] * e[k] + beta[1] * v + const
-        if coulomb:
-            nxt -= beta[2] * (v > omega) + beta[3] * (v < -omega)
+        nxt = b1 * e[k] + b2 * v + const
+        if v > omega:
+            nxt -= cp
+        elif v < -omega:
+            nxt -= cn
         out[k + 1] = nxt + f[k]
     return out
 

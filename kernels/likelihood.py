@@ -32,21 +32,21 @@ Laplace/BIC-style penalty for the ``k`` hyperparameters fitted to the data,
 with ``--no-tune``, count 0; a period found from the data counts 1).
 
 Evaluation (:func:`reml_terms`): by **whitening** with the inverse Cholesky factor of the Toeplitz
-``A`` from one Levinson–Durbin pass (:func:`kernels.toeplitz.levinson_whiten`), which gives
+``A`` from one Levinson–Durbin pass (:func:`kernels.levinson.levinson_whiten`), which gives
 ``L⁻¹[Z̃, y]`` and ``log|A|`` together; then a QR of the whitened ``Z̃`` gives ``b̂``, ``yᵀPy``,
 ``log|Z̃ᵀA⁻¹Z̃|`` and (L3). Exact, ``O(N² (p + 2))`` time, ``O(N p)`` memory, independent of the
-conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson).
+conditioning of ``A`` (long σ1 and large γ stall PCG, not Levinson). Long records use the order-m
+approximation of :mod:`kernels.levinson` instead (``max_order``, ``tol``): the Durbin recursion
+stopped at order m, later rows whitened by the order-m predictor (one FFT filter), ``O(m² (p + 2) +
+N (p + 2) log m)`` — the exact likelihood of a nearby stationary process, so (L2) and (L3) keep their
+meaning; m is chosen where the reflection coefficients show the lags beyond it to matter less than
+``tol`` in log|A| (eq. V3), never before the kernel's support.
 
 The spindle-phase kernel (:mod:`kernels.spindle_phase`, kind ``"spindle"``) on ``x = (t, θ)`` is
 evaluated on the stretches of constant spindle speed (``phase``): block-diagonal ``A``, one exact
 Levinson whitening per stretch with its own Toeplitz column (eq. S2), ``log|A| = Σ log|A_s|``.
 
-Tuning (:func:`tune`) maximises the exact REML of the whole record. A block-diagonal (segmented)
-approximation is available (``segment``: consecutive segments treated as independent realisations of
-``f`` with a shared ``b``, ``log|A| = Σ log|A_s|``, one Levinson pass of the segment length for all
-of them, ``O(segment · N · (p+1))``) but not used by default: when γ is large (the kernel explains
-nearly all of the residual, as on smooth real data) it misjudges the long-range correlation σ1 by
-thousands of log-likelihood units — every segment start forgets the periodic pattern.
+Tuning (:func:`tune`) maximises the REML of the whole record, exact or of a given order.
 """
 
 from __future__ import annotations
@@ -57,13 +57,14 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg import LinAlgError, cholesky, qr, solve_triangular
 from scipy.optimize import minimize
 
+from .blocks import blocks
 from .covariance import Kernel, LocallyPeriodic, SquaredExponential, ZeroMeanLocallyPeriodic
+from .levinson import levinson_whiten
 from .pl_lssvm import _check_gamma, prepare_regression
 from .spindle_phase import PhaseSegments, spindle_phase_kernel
-from .toeplitz import levinson_whiten
 
 __all__ = ["log_marginal_likelihood", "reml_terms", "REMLTerms", "log_evidence", "tune", "TuneResult",
            "default_bounds", "KINDS", "PERIODIC_KINDS", "BOUND_RTOL"]
@@ -75,6 +76,8 @@ KINDS = {"squared_exponential": ("lengthscale",), "locally_periodic": ("sigma1",
 PERIODIC_KINDS = ("locally_periodic", "locally_periodic_zero_mean")
 #: a tuned value within this fraction (in log space, of the bound interval) of a bound "ends on it"
 BOUND_RTOL = 0.01
+#: the order-m approximation is not stopped before the last lag where the kernel exceeds this share of k(0)
+SUPPORT_RTOL = 1e-3
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,8 @@ class REMLTerms:
     cov: np.ndarray  # ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹, (p, p)
     solver: str
     intercept: bool = False  # True when b[0] is the PL-LSSVM bias c (Z has no constant column)
+    order: int = 0  # order m of the approximation (n − 1: exact; 0: least squares)
+    tail_estimate: float = 0.0  # what the lags beyond m would add to log|A| (eq. V3 of kernels.levinson)
 
     @property
     def beta(self) -> np.ndarray:
@@ -104,101 +109,142 @@ class REMLTerms:
 
 
 def _logdet_scaled_gram(Zs: np.ndarray) -> float:
-    R = np.linalg.qr(Zs, mode="r")
-    return 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
+    return 2.0 * float(np.sum(np.log(np.abs(np.diag(_r_factor(Zs))))))
 
 
-def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, segment: int | None = None,
-               phase: PhaseSegments | None = None, _prepared=None) -> REMLTerms:
+#: the last few ``log|Z̃ᵀZ̃|`` (scaled) by regression: it does not change from one likelihood evaluation to the next
+_GRAM_CACHE: dict = {}
+
+
+def _gram_logdet(Zt: np.ndarray, scale: np.ndarray, kept) -> float:
+    key = (id(Zt), Zt.shape, None if kept is None else hash(np.packbits(kept).tobytes()))
+    hit = _GRAM_CACHE.get(key)
+    if hit is not None and hit[0] is Zt:
+        return hit[1]
+    value = _logdet_scaled_gram((Zt if kept is None else Zt[kept]) / scale)
+    if len(_GRAM_CACHE) >= 8:
+        _GRAM_CACHE.pop(next(iter(_GRAM_CACHE)))
+    _GRAM_CACHE[key] = (Zt, value)  # holds Zt: its id is not reused while cached
+    return value
+
+
+def reml_terms(Z, y, kernel: Kernel | None, gamma, Ts, *, names=None, max_order: int | None = None,
+               tol: float = 0.0, phase: PhaseSegments | None = None, gate=None, keep=None,
+               _prepared=None) -> REMLTerms:
     """All terms of the REML log likelihood (L2) and the GLS covariance (L3) on a uniform time grid.
 
     ``kernel=None`` is least squares (``A = I``; ``gamma`` ignored). Otherwise ``kernel`` must be a
-    time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact (Levinson
-    whitening of the whole record) unless ``segment`` is given: then the block-diagonal (segmented)
-    approximation of the module docstring. With ``phase`` (the stretches of constant spindle speed),
-    ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated block-diagonally.
+    time kernel (``kernel.is_stationary_1d``) and ``Ts`` the sample period (s). Exact by default;
+    ``max_order``/``tol`` select the order-m approximation of :mod:`kernels.levinson` (m at most
+    ``max_order``, stopped earlier when the lags beyond it add less than ``tol`` to log|A| (V3), never
+    before the kernel's support :func:`support_order`). With ``phase`` (the stretches of constant
+    spindle speed), ``kernel`` is a kernel on ``(t, θ)`` (the spindle-phase kernel) evaluated
+    block-diagonally; with ``gate`` (N,) bool the disturbance acts only where it is True (eq. B1 of
+    :mod:`kernels.blocks`); with ``keep`` (N,) bool the samples where it is False are left out.
     """
     if _prepared is None:
         _prepared = prepare_regression(Z, y, names)
     Z_arr, y, names, Zt, intercept = _prepared
     n, p = Zt.shape
     scale = np.sqrt(np.sum(Zt * Zt, axis=0))
+    kept = None if keep is None else np.asarray(keep, dtype=bool)
     if kernel is None:
-        b, quad, logdet_M_s, Rinv = _qr_terms(Zt / scale, y)
-        return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept)
+        w = 1.0 if kept is None else kept[:, None]
+        b, quad, logdet_M_s, Rinv = _qr_terms(Zt * w / scale, y * (1.0 if kept is None else kept))
+        return _assemble(Zt, b / scale, quad, 0.0, logdet_M_s, Rinv, scale, "least-squares", intercept, kept=kept)
     gamma = _check_gamma(gamma)
-    if phase is not None:
-        if phase.edges[-1] != n:
-            raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
-        white, logdet_A = _whiten_phase(Zt, y, kernel, gamma, float(Ts), phase)
-        b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
-        return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, f"spindle-{phase.count}", intercept)
-    if not kernel.is_stationary_1d:
+    if phase is not None and phase.edges[-1] != n:
+        raise ValueError(f"the spindle stretches cover {int(phase.edges[-1])} samples, the regression has {n}")
+    if phase is None and not kernel.is_stationary_1d:
         raise ValueError(f"{kernel!r} is not a time kernel; the likelihood is implemented for uniform time grids")
     Ts = float(Ts)
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive sample period in s, got {Ts!r}")
-    if segment is None:
-        segment, label = n, "levinson"
+    parts = blocks(kernel, gamma, Ts, n, gate=gate, phase=phase, max_order=max_order, keep=kept)
+    white, logdet_A, order, tail = _whiten_blocks(np.column_stack([Zt, y]), parts, gamma, max_order, tol)
+    if phase is not None:
+        solver = f"spindle-{phase.count}"
+    elif len(parts) > 1:
+        solver = f"gated-{sum(b.column is not None for b in parts)}"
     else:
-        segment = int(segment)
-        if segment < 4 * p:
-            raise ValueError(f"segment must be at least {4 * p} samples, got {segment}")
-        segment = min(segment, n)
-        label = None
-    white, logdet_A, count = _whiten(Zt, y, kernel, gamma, Ts, segment)
+        solver = "levinson" if order >= n - 1 else f"levinson-ar{order}"
     b, quad, logdet_M_s, Rinv = _qr_terms(white[:, :p] / scale, white[:, p])
-    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, label or f"segmented-{count}",
-                     intercept)
+    return _assemble(Zt, b / scale, quad, logdet_A, logdet_M_s, Rinv, scale, solver, intercept, order, tail, kept)
 
 
-def _whiten(Zt, y, kernel, gamma, Ts, segment):
-    """``L_s⁻¹[Z̃_s, y_s]`` for consecutive segments of ≤ ``segment`` samples (one Levinson–Durbin
-    pass; exact when ``segment = N``) and ``Σ log|A_s|``."""
-    n, p = Zt.shape
-    count = max(1, -(-n // segment))
-    edges = np.linspace(0, n, count + 1).astype(np.int64)
-    lengths = np.diff(edges)
-    lmax = int(lengths.max())
-    column = kernel.lag(np.arange(lmax) * Ts)
+def support_order(column, max_order: int) -> int:
+    """The last lag (≤ ``max_order``) at which ``|column|`` exceeds :data:`SUPPORT_RTOL` of its peak: the
+    order-m approximation is not stopped before it (a kernel that is ~0 between the multiples of a long
+    period has no small reflection coefficient to show that a longer memory would not matter)."""
+    head = np.abs(np.asarray(column[: max_order + 1]))
+    big = np.flatnonzero(head > SUPPORT_RTOL * head[0])
+    return int(big[-1]) if big.size else 0
+
+
+def toeplitz_column(kernel: Kernel, gamma: float, Ts: float, lags: int) -> np.ndarray:
+    """First column of ``A = Ω + γ⁻¹I`` for a time kernel, lags ``0 … lags − 1``."""
+    column = kernel.lag(np.arange(lags) * Ts)
     column[0] += 1.0 / gamma
-    data = np.column_stack([Zt, y])
-    series = np.zeros((count, p + 1, lmax))
-    for i in range(count):
-        series[i, :, :lengths[i]] = data[edges[i]:edges[i + 1]].T
-    W, logdets = levinson_whiten(column, series, lengths)
-    white = np.concatenate([W[i, :, :lengths[i]].T for i in range(count)], axis=0)
-    return white, float(np.sum(logdets)), int(count)
+    return column
 
 
-def _whiten_phase(Zt, y, kernel, gamma, Ts, phase: PhaseSegments):
-    """``L_s⁻¹[Z̃_s, y_s]`` and ``Σ log|A_s|`` over the stretches of constant spindle speed (eq. S2)."""
-    data = np.column_stack([Zt, y])
+def _whiten_blocks(data, parts, gamma, max_order, tol):
+    """``L̃⁻¹ data`` block by block (eq. B1, V2), ``Σ log|Ã_s|``, the highest order used and the summed
+    tail estimates (V3)."""
     white = np.empty_like(data)
-    logdet = 0.0
-    edges = phase.edges.tolist()
-    for (a, b), column in zip(zip(edges[:-1], edges[1:]), phase.columns(kernel, Ts, 1.0 / gamma)):
-        W, logdets = levinson_whiten(column, data[a:b].T[None])
-        white[a:b] = W[0].T
-        logdet += float(logdets[0])
-    return white, logdet
+    logdet, order, tail = 0.0, 0, 0.0
+    for part in parts:
+        a, b = part.start, part.stop
+        if not part.kept:  # left out of the fit: carries nothing
+            white[a:b] = 0.0
+            continue
+        if part.column is None:  # the gate is closed: white noise of variance 1/γ
+            white[a:b] = data[a:b] * math.sqrt(gamma)
+            logdet -= (b - a) * math.log(gamma)
+            continue
+        m_max = b - a - 1 if max_order is None else min(int(max_order), b - a - 1)
+        res = levinson_whiten(part.column, data[a:b], max_order=max(m_max, 1) if b - a > 1 else None, tol=tol,
+                              min_order=support_order(part.column, max(m_max, 0)))
+        white[a:b] = res.white
+        logdet += res.logdet
+        order, tail = max(order, res.order), tail + res.tail_estimate
+    return white, logdet, order, tail
+
+
+def _r_factor(A: np.ndarray) -> np.ndarray:
+    """The R factor (k × k) of the tall ``A`` (N × k): Cholesky-QR2 — two Gram products and one triangular
+    solve, all BLAS-3 (Householder on a tall, thin matrix is memory-bound: 5× slower at N = 200 000) —
+    falling back to Householder when the Gram matrix is too ill-conditioned for Cholesky."""
+    try:
+        R1 = cholesky(A.T @ A, lower=False, check_finite=False)
+        Q = solve_triangular(R1, A.T, trans="T", lower=False, check_finite=False)  # (A R1⁻¹)ᵀ
+        R2 = cholesky(Q @ Q.T, lower=False, check_finite=False)
+        R = R2 @ R1
+        if np.all(np.isfinite(R)):
+            return R
+    except LinAlgError:
+        pass
+    return qr(A, mode="economic", check_finite=False)[1]
 
 
 def _qr_terms(Zw: np.ndarray, yw: np.ndarray):
-    """GLS on whitened, column-scaled data: ``b_s``, ``yᵀPy``, ``log|Z_wᵀZ_w|`` and ``R⁻¹``."""
-    Q, R = np.linalg.qr(Zw)
-    bs = solve_triangular(R, Q.T @ yw, check_finite=False)
-    rw = yw - Zw @ bs
-    logdet = 2.0 * float(np.sum(np.log(np.abs(np.diag(R)))))
-    Rinv = solve_triangular(R, np.eye(R.shape[0]), check_finite=False)
-    return bs, float(rw @ rw), logdet, Rinv
+    """GLS on whitened, column-scaled data: ``b_s``, ``yᵀPy``, ``log|Z_wᵀZ_w|`` and ``R⁻¹``, from the R factor
+    of ``[Z_w, y_w]`` alone (Q never formed: ``R = [[R₁₁, r], [0, ρ]]``, ``b = R₁₁⁻¹r``, ``yᵀPy = ρ²``)."""
+    p = Zw.shape[1]
+    R = _r_factor(np.column_stack([Zw, yw]))
+    R11 = R[:p, :p]
+    bs = solve_triangular(R11, R[:p, p], check_finite=False)
+    logdet = 2.0 * float(np.sum(np.log(np.abs(np.diag(R11)))))
+    Rinv = solve_triangular(R11, np.eye(p), check_finite=False)
+    return bs, float(R[p, p] ** 2) if R.shape[0] > p else 0.0, logdet, Rinv
 
 
-def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept) -> REMLTerms:
-    n, p = Zt.shape
+def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, intercept, order=0,
+              tail=0.0, kept=None) -> REMLTerms:
+    n, p = Zt.shape if kept is None else (int(np.sum(kept)), Zt.shape[1])
     if not quad > 0:
         raise ValueError("yᵀPy is not positive: the data are fitted exactly; the likelihood is undefined")
-    logdet_ZZ_scaled = _logdet_scaled_gram(Zt / scale)
+    logdet_ZZ_scaled = _gram_logdet(Zt, scale, kept)
     two_log_scale = 2.0 * float(np.sum(np.log(scale)))
     dof = n - p
     s2 = quad / dof
@@ -206,14 +252,16 @@ def _assemble(Zt, b, quad, logdet_A, logdet_M_scaled, Rinv, scale, solver, inter
     cov = s2 * (Rinv @ Rinv.T) / np.outer(scale, scale)
     return REMLTerms(log_likelihood=ll, s2=s2, logdet_A=logdet_A, logdet_M=logdet_M_scaled - two_log_scale,
                      logdet_ZZ=logdet_ZZ_scaled + two_log_scale, quad=quad, n=n, p=p, b=b,
-                     cov=0.5 * (cov + cov.T), solver=solver, intercept=bool(intercept))
+                     cov=0.5 * (cov + cov.T), solver=solver, intercept=bool(intercept), order=int(order),
+                     tail_estimate=float(tail))
 
 
-def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, segment: int | None = None) -> float:
+def log_marginal_likelihood(Z, y, kernel, gamma, Ts, *, names=None, max_order: int | None = None,
+                            tol: float = 0.0) -> float:
     """Restricted log marginal likelihood (L2) of the PL-LSSVM model with ``kernel`` and ``gamma``
     on a uniform grid of period ``Ts`` (``kernel=None``: least squares). Exact by default;
-    ``segment`` selects the block-diagonal approximation (module docstring)."""
-    return reml_terms(Z, y, kernel, gamma, Ts, names=names, segment=segment).log_likelihood
+    ``max_order``/``tol``: the order-m approximation (:func:`reml_terms`)."""
+    return reml_terms(Z, y, kernel, gamma, Ts, names=names, max_order=max_order, tol=tol).log_likelihood
 
 
 def log_evidence(log_likelihood: float, k: int, n: int, p: int) -> float:
@@ -263,14 +311,14 @@ class TuneResult:
     kind: str
     hyper: dict  # kernel hyperparameters (sigma1, sigma2 | lengthscale)
     gamma: float
-    log_likelihood: float  # the tuning objective at the optimum (exact REML unless segmented)
+    log_likelihood: float  # the tuning objective at the optimum (the REML at the order used)
     evaluations: int
     period: float | None = None  # ψ (s); for "spindle" the angle period P (rad)
     seconds: float = 0.0
-    segment: int = 0
+    order: int = 0  # the highest order m of the approximation used at the optimum (n − 1: exact)
     bounds: dict = field(default_factory=dict)
     on_bound: dict = field(default_factory=dict)  # name → "lower" | "upper"
-    terms: REMLTerms | None = None  # exact REML terms at the optimum (None with a segmented objective)
+    terms: REMLTerms | None = None  # REML terms at the optimum
 
     def kernel(self) -> Kernel:
         return _make_kernel(self.kind, self.hyper, self.period)
@@ -285,17 +333,17 @@ class TuneResult:
 
 
 def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | None = None,
-         bounds: dict | None = None, progress=None, names=None, segment: int | None = None,
+         bounds: dict | None = None, progress=None, names=None, max_order: int | None = None, tol: float = 0.0,
          max_evaluations: int = 30, xatol: float = 0.1, fatol: float = 0.1, design: bool = True,
-         phase: PhaseSegments | None = None, _prepared=None) -> TuneResult:
+         step: float = 0.5, phase: PhaseSegments | None = None, gate=None, keep=None,
+         _prepared=None) -> TuneResult:
     """Maximise the REML (L2) over the log hyperparameters of ``kind`` and log γ.
 
-    The objective is the exact REML of the whole record (``segment`` selects the block-diagonal
-    approximation instead: faster, but it misjudges long correlation times σ1 when γ is large).
-    Several starts: ``init`` (clipped into the bounds) and, with ``design``, a two-level design at ¼
+    The objective is the REML of the whole record, exact or of order ≤ ``max_order`` (``tol``:
+    :func:`reml_terms`). Several starts: ``init`` (clipped into the bounds) and, with ``design``, a two-level design at ¼
     and ¾ of each log range (the 4 corners in 2-D, a half fraction of the 8 corners in 3-D); bounded
-    Nelder–Mead from the best start (``xatol`` in log units, ``fatol`` in log likelihood) until
-    ``max_evaluations``.
+    Nelder–Mead from the best start (initial simplex ±``step`` in log units, ``xatol`` in log units,
+    ``fatol`` in log likelihood) until ``max_evaluations``.
     ``on_bound`` names the values that end within ``BOUND_RTOL`` of a bound (in log space).
 
     Parameters
@@ -304,6 +352,8 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         periodic kernel; for ``"spindle"`` the angle period P (rad, default 2π: per revolution).
     kind : "locally_periodic", "locally_periodic_zero_mean", "squared_exponential" or "spindle"
         (the spindle-phase kernel on the stretches ``phase`` of constant spindle speed)
+    gate, keep : arrays (N,) of bool, optional
+        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`); the samples in the fit.
     init : dict, optional
         Starting values by name (e.g. ``{"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}``).
     bounds : dict name → (lo, hi), optional
@@ -353,8 +403,8 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
         theta = np.clip(theta, lo_arr, hi_arr)
         vals = dict(zip(names_all, np.exp(theta).tolist()))
         try:
-            terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, segment=segment,
-                               phase=phase if spindle else None, _prepared=prepared)
+            terms = reml_terms(None, None, _make_kernel(kind, vals, period), vals["gamma"], Ts, max_order=max_order,
+                               tol=tol, phase=phase if spindle else None, gate=gate, keep=keep, _prepared=prepared)
             ll = terms.log_likelihood
         except ValueError:
             terms, ll = None, -math.inf
@@ -382,7 +432,7 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
     if remaining >= 4:
         minimize(objective, best, method="Nelder-Mead", bounds=list(zip(lo_arr, hi_arr)),
                  options={"xatol": xatol, "fatol": fatol, "maxfev": remaining,
-                          "initial_simplex": _simplex(best, lo_arr, hi_arr)})
+                          "initial_simplex": _simplex(best, lo_arr, hi_arr, step)})
     if state["best_x"] is None:
         raise ValueError("the likelihood could not be evaluated anywhere inside the bounds; check the data and bounds")
     best_vals = dict(zip(names_all, np.exp(state["best_x"]).tolist()))
@@ -395,9 +445,9 @@ def tune(Z, y, Ts, period=None, *, kind: str = "locally_periodic", init: dict | 
     gamma = best_vals.pop("gamma")
     return TuneResult(kind=kind, hyper=best_vals, gamma=gamma, log_likelihood=float(state["best"]),
                       evaluations=state["evaluations"], period=period if periodic or spindle else None,
-                      seconds=time.perf_counter() - start_time, segment=n if segment is None else int(segment),
+                      seconds=time.perf_counter() - start_time, order=state["terms"].order,
                       bounds=dict(zip(names_all, box)), on_bound=on_bound,
-                      terms=state["terms"] if segment is None else None)
+                      terms=state["terms"])
 
 
 def _simplex(x0, lo, hi, step: float = 0.5):

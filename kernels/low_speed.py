@@ -30,6 +30,15 @@ below ``2 v_s`` are at most ``max_share`` of the moving ones. Then the law does 
 only above it. A significant effect that is not local (most of the record is "low speed", e.g. a
 milling feed of a few mm/s whose cutting force the column happens to follow) is reported, not
 used: gating it would stop the learning.
+
+Where the law holds (:func:`law_holds_above`): the lowest speed ``c`` such that least squares on the
+samples outside ``Ω < |v| < c`` leaves no significant departure (LS2) among them — bisection on a log
+grid of ``c`` from ``2Ω`` to a third of the largest speed, as far as the samples left out stay at most
+``max_share`` of the motion. The mean departure of the samples below ``c`` from that fit,
+``δ = mean(sign(v)·e)`` (velocity per sample; ``−δ/b`` in N), says which way the friction departs:
+``δ < 0`` (``e`` holds ``−b·ΔF``) is *more* friction than the law, a Stribeck rise; ``δ > 0`` less.
+
+    c* = min { c : Δℓ_max(samples outside Ω < |v| < c) < min_gain }                              (LS3)
 """
 
 from __future__ import annotations
@@ -39,7 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LowSpeedFriction", "low_speed_friction", "MIN_GAIN", "MAX_SHARE", "GRID", "SPAN"]
+__all__ = ["LowSpeedFriction", "LowSpeedCut", "low_speed_friction", "law_holds_above", "stribeck_column", "MIN_GAIN",
+           "MAX_SHARE", "GRID", "SPAN"]
 
 #: log-likelihood gain Δℓ (LS2) from which the effect counts
 MIN_GAIN = 25.0
@@ -64,6 +74,10 @@ class LowSpeedFriction:
     significant: bool     #: gain ≥ min_gain
     local: bool           #: share ≤ max_share
 
+    def to_json(self) -> dict:
+        return {"v_s": self.v_s, "amplitude": self.amplitude, "se": self.se, "gain": self.gain, "share": self.share,
+                "significant": self.significant, "local": self.local, "min_speed": self.min_speed}
+
     @property
     def speed(self) -> float:
         """``SPAN · v_s`` = 2 v_s (m/s): below it the friction departs from the law."""
@@ -76,14 +90,23 @@ class LowSpeedFriction:
         return self.speed if (self.significant and self.local) else 0.0
 
 
+def stribeck_column(v, omega: float, v_s: float) -> np.ndarray:
+    """The column (LS1) ``−sign(v)·exp(−(v/v_s)²)``, 0 inside the dead band ``|v| ≤ Ω``: a friction that departs
+    from the Coulomb level near standstill (its coefficient ``a``: the departure in velocity per sample)."""
+    v = np.asarray(v, dtype=np.float64)
+    sign = np.where(v > omega, 1.0, np.where(v < -omega, -1.0, 0.0))
+    return -sign * np.exp(-((v / v_s) ** 2))
+
+
 def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max_share: float = MAX_SHARE,
-                       grid: int = GRID) -> LowSpeedFriction | None:
+                       grid: int = GRID, rise_only: bool = False) -> LowSpeedFriction | None:
     """Scan the Stribeck column (LS1) against the prediction error ``e`` (eq. LS2).
 
     ``Z`` (N, p): the model's regressors; ``e`` (N,): its one-step prediction error; ``v`` (N,): the
     measured velocity the regressors were built from (m/s), ``omega`` the dead band Ω (m/s). None when
     there is nothing to test (fewer than 50 moving samples, no speed range above ``2Ω``, or no
-    residual)."""
+    residual). ``rise_only``: the best ``v_s`` among those where the friction is *above* the law
+    (``a > 0``: a Stribeck rise, the shape of the column), None when there is none."""
     Z = np.asarray(Z, dtype=np.float64)
     e = np.asarray(e, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
@@ -92,8 +115,7 @@ def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max
         raise ValueError(f"Z {Z.shape}, e {e.shape} and v {v.shape} must have the same number of rows")
     if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(e)) and np.all(np.isfinite(v))):
         raise ValueError("Z, e and v must be finite")
-    sign = np.where(v > omega, 1.0, np.where(v < -omega, -1.0, 0.0))
-    moving = np.abs(sign) > 0
+    moving = np.abs(v) > omega
     v_hi = float(np.max(np.abs(v))) / 3.0 if n else 0.0
     v_lo = max(2.0 * float(omega), 1e-9)
     if moving.sum() < 50 or v_hi <= v_lo or n <= Z.shape[1] + 2:
@@ -105,12 +127,14 @@ def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max
         return None
     best = None
     for vs in np.geomspace(v_lo, v_hi, grid):
-        h = -sign * np.exp(-((v / vs) ** 2))     # LS1
+        h = stribeck_column(v, omega, vs)        # LS1
         hp = h - q @ (q.T @ h)                   # P h
         hh = float(hp @ hp)
         if not hh > 1e-12 * float(h @ h):
             continue
         a = float(hp @ e0) / hh
+        if rise_only and not a > 0.0:
+            continue
         rss1 = max(rss0 - a * a * hh, 1e-300 * rss0)
         gain = 0.5 * n * math.log(rss0 / rss1)    # LS2
         if best is None or gain > best[1]:
@@ -122,3 +146,67 @@ def low_speed_friction(Z, e, v, omega: float, *, min_gain: float = MIN_GAIN, max
     share = float(np.sum(moving & (np.abs(v) < SPAN * vs)) / moving.sum())
     return LowSpeedFriction(v_s=vs, amplitude=a, se=se, gain=gain, share=share, significant=gain >= min_gain,
                             local=share <= max_share)
+
+
+@dataclass(frozen=True)
+class LowSpeedCut:
+    """Result of :func:`law_holds_above` (LS3): ``speed`` c* (m/s), ``departure`` δ (in the units of the
+    regression's residual: ``−δ/b`` is the friction above the law in N), ``share`` of the moving samples
+    below c*."""
+
+    speed: float
+    departure: float
+    share: float
+
+    @property
+    def rise(self) -> bool:
+        """More friction than the law below :attr:`speed` (a Stribeck rise)."""
+        return self.departure < 0.0
+
+    def to_json(self) -> dict:
+        return {"speed": self.speed, "departure": self.departure, "share": self.share, "rise": self.rise}
+
+
+def _departs(Z, y, v, omega, keep, min_gain) -> tuple[bool, np.ndarray]:
+    theta = np.linalg.lstsq(Z[keep], y[keep], rcond=None)[0]
+    e = y - Z @ theta
+    check = low_speed_friction(Z[keep], e[keep], v[keep], omega, min_gain=min_gain, max_share=1.0)
+    return check is not None and check.significant, e
+
+
+def law_holds_above(Z, y, v, omega: float, *, min_gain: float = MIN_GAIN, max_share: float = MAX_SHARE,
+                    grid: int = GRID) -> LowSpeedCut | None:
+    """The speed above which the friction law holds (LS3) for the regression ``y ≈ Zθ`` with velocity ``v``
+    (m/s) and dead band ``omega``; None when the law holds down to the dead band, or when no cut within
+    ``max_share`` of the motion makes it hold."""
+    Z = np.asarray(Z, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    speed = np.abs(v)
+    moving = speed > omega
+    if moving.sum() < 50:
+        return None
+    cuts = np.geomspace(max(2.0 * omega, 1e-9), max(float(speed.max()) / 3.0, 4.0 * omega + 1e-9), grid)
+    cuts = cuts[[np.mean(speed[moving] < c) <= max_share for c in cuts]]
+    everything = np.ones(v.size, dtype=bool)
+    if cuts.size == 0 or not _departs(Z, y, v, omega, everything, min_gain)[0]:
+        return None
+
+    def keep_of(c: float) -> np.ndarray:
+        return ~(moving & (speed < c))
+
+    if _departs(Z, y, v, omega, keep_of(cuts[-1]), min_gain)[0]:
+        return None  # no cut within max_share makes the law hold
+    lo, hi = -1, cuts.size - 1  # departs at lo (the whole record), holds at hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if _departs(Z, y, v, omega, keep_of(cuts[mid]), min_gain)[0]:
+            lo = mid
+        else:
+            hi = mid
+    c = float(cuts[hi])
+    keep = keep_of(c)
+    _, e = _departs(Z, y, v, omega, keep, min_gain)
+    below = ~keep
+    departure = float(np.mean(np.sign(v[below]) * e[below]))
+    return LowSpeedCut(speed=c, departure=departure, share=float(below.sum() / moving.sum()))

@@ -13,13 +13,15 @@ are needed:
 * time kernels on a uniform grid (``x`` = sample times, or ``Ts``): ``A`` is SPD Toeplitz;
   :class:`kernels.toeplitz.ToeplitzSolver` (FFT-PCG with a Strang or T. Chan circulant
   preconditioner, dense Cholesky for small N) — ``O(N log N)`` per iteration, ``O(N)`` memory —
-  or Levinson–Durbin (:func:`kernels.toeplitz.levinson_solve`, exact in ``O(N²)``, whatever the
-  conditioning). ``solver="auto"``: dense Cholesky up to ``toeplitz_dense_limit`` samples, else
+  or Levinson–Durbin (:func:`kernels.levinson.levinson_solve`, exact in ``O(N²)``, whatever the
+  conditioning; with ``order``: the order-m approximation of the likelihood, ``O(m² + N log m)``).
+  ``solver="auto"``: dense Cholesky up to ``toeplitz_dense_limit`` samples, else
   PCG, falling back to Levinson (up to ``LEVINSON_LIMIT`` samples) when PCG does not converge
   (long σ1 with large γ: thousands of iterations).
 * vector inputs ``x`` (N, d): dense Cholesky of ``A``, limited to ``dense_limit`` samples.
 * the spindle-phase kernel on ``(t, θ)`` with the stretches of constant spindle speed ``phase``
-  (:mod:`kernels.spindle_phase`): block-diagonal ``A``, Levinson–Durbin per stretch (eq. S2).
+  (:mod:`kernels.spindle_phase`), and a gate (the disturbance acts only where a process acts,
+  :mod:`kernels.blocks`): block-diagonal ``A``, Levinson–Durbin per stretch (eq. S2, B1).
 
 Uncertainty: in the Gaussian-process reading of :mod:`kernels.likelihood` (eq. L1) ``[c; β]`` is
 the GLS estimate and its covariance is ``ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹`` with ``ŝ² = rᵀA⁻¹r/(N − p)``,
@@ -50,11 +52,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from .blocks import blocks
 from .covariance import Kernel
 from .least_squares import validate_regression
+from .levinson import levinson_solve
 from .spindle_phase import PhaseSegments
 from .toeplitz import DENSE_LIMIT as TOEPLITZ_DENSE_LIMIT
-from .toeplitz import WARN_FACTOR, ToeplitzSolver, levinson_solve
+from .toeplitz import WARN_FACTOR, ToeplitzSolver
 
 __all__ = ["PLLSSVMResult", "pl_lssvm", "DENSE_LIMIT", "LEVINSON_LIMIT", "GRID_RTOL", "time_grid",
            "constant_column", "prepare_regression", "gls_solve"]
@@ -186,31 +190,43 @@ FIRST_TOL = 1e-8
 
 
 class _LevinsonSolver:
-    """``A⁻¹B`` by Levinson–Durbin (exact, ``O(N²)`` per right-hand side)."""
+    """``A⁻¹B`` by Levinson–Durbin (exact, ``O(N²)`` per right-hand side), or of the order-m
+    approximation (:mod:`kernels.levinson`, ``O(m² + N log m)``) when ``order`` is given."""
 
-    def __init__(self, column: np.ndarray):
+    def __init__(self, column: np.ndarray, order: int | None = None):
         self.column = column
+        self.order = order
         self.iterations = 0
         self.residual = 0.0
 
     def solve(self, B, tol=None):
-        return levinson_solve(self.column, B)
+        return levinson_solve(self.column, B, self.order)
 
 
-class _PhaseSolver:
-    """``A⁻¹B`` for the block-diagonal ``A`` of the spindle-phase kernel: Levinson–Durbin per stretch."""
+class _BlockSolver:
+    """``A⁻¹B`` for a block-diagonal ``A`` (:mod:`kernels.blocks`: stretches of constant spindle speed, a
+    gate): Levinson–Durbin per Toeplitz block (of order ≤ ``order`` when given), ``γB`` where the gate is
+    closed."""
 
-    def __init__(self, kernel: Kernel, gamma: float, Ts: float, phase: PhaseSegments):
-        self.blocks = list(zip(phase.edges[:-1].tolist(), phase.edges[1:].tolist(),
-                               phase.columns(kernel, Ts, 1.0 / gamma)))
+    def __init__(self, parts, gamma: float, order: int | None = None):
+        self.parts = parts
+        self.gamma = gamma
+        self.order = order
         self.iterations = 0
         self.residual = 0.0
 
     def solve(self, B, tol=None):
         B = np.asarray(B, dtype=np.float64)
         out = np.empty_like(B)
-        for a, b, column in self.blocks:
-            out[a:b] = levinson_solve(column, B[a:b])
+        for part in self.parts:
+            a, b = part.start, part.stop
+            if not part.kept:  # left out of the fit: infinite variance
+                out[a:b] = 0.0
+            elif part.column is None:
+                out[a:b] = self.gamma * B[a:b]
+            else:
+                order = None if self.order is None or b - a <= 1 else min(self.order, b - a - 1)
+                out[a:b] = levinson_solve(part.column, B[a:b], order)
         return out
 
 
@@ -228,7 +244,8 @@ class _DenseSolver:
         return cho_solve(self._chol, B, check_finite=False)
 
 
-def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_dense_limit, method="auto"):
+def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_dense_limit, method="auto",
+                  order=None):
     """Pick the path of method §4; returns (solver, name, Ts or None)."""
     if method not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {method!r}")
@@ -269,10 +286,11 @@ def _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit, toeplitz_
                     "on a uniform grid (x = sample times, or Ts), which runs in O(N log N), or fewer samples "
                     "(a shorter or decimated segment)")
             return _DenseSolver(_dense_kernel_matrix(kernel, X, 1.0 / gamma)), "dense", None
-    column = kernel.lag(np.arange(n) * step)
+    column = kernel.lag(np.arange(n if method != "levinson" or order is None else min(n, order + 1)) * step)
     column[0] += 1.0 / gamma
     if method == "levinson":
-        return _LevinsonSolver(column), "toeplitz-levinson", step
+        approx = order is not None and order < n - 1
+        return _LevinsonSolver(column, order), f"toeplitz-levinson-ar{order}" if approx else "toeplitz-levinson", step
     if method == "auto" and max_iter is None and n > toeplitz_dense_limit:
         max_iter = AUTO_PCG_ITERATIONS
     solver = ToeplitzSolver(column, tol=tol, max_iter=max_iter, dense_limit=toeplitz_dense_limit)
@@ -318,7 +336,8 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
              tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
              toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto",
-             phase: PhaseSegments | None = None) -> PLLSSVMResult:
+             phase: PhaseSegments | None = None, order: int | None = None, gate=None,
+             keep=None) -> PLLSSVMResult:
     """PL-LSSVM estimate of β and the disturbance ``f`` (method §4, thesis eq. 2.9–2.12).
 
     Parameters
@@ -346,6 +365,14 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
         Time kernels with ``N ≤`` this use a dense Cholesky of the Toeplitz matrix (``solver="auto"``).
     solver : "auto", "pcg" or "levinson"
         Path for time kernels (module docstring); "pcg" honours ``toeplitz_dense_limit`` too.
+    order : int, optional
+        With ``solver="levinson"`` (and the spindle-phase path): the order-m approximation of
+        :mod:`kernels.levinson` (exact when None or ``≥ N − 1``), the one the likelihood used.
+    gate : array (N,) of bool, optional
+        Where the disturbance acts (eq. B1 of :mod:`kernels.blocks`; time kernels and the spindle-phase
+        path): block-diagonal solves, ``f = 0`` where it is False.
+    keep : array (N,) of bool, optional
+        The samples in the fit; where it is False ``α = 0`` and ``f`` is NaN (not estimated).
     phase : PhaseSegments, optional
         Stretches of constant spindle speed: ``kernel`` is then a kernel on ``(t, θ)`` (the
         spindle-phase kernel), solved block-diagonally on a grid of period ``Ts``.
@@ -360,13 +387,15 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     Z_arr, y, names, Zt, intercept = prepare_regression(Z, y, names)
     n, p = Zt.shape
     method = solver
-    if phase is not None:
-        if Ts is None or phase.edges[-1] != n:
-            raise ValueError(f"the spindle-phase path needs Ts and stretches covering the {n} samples")
-        solver, solver_name, step = _PhaseSolver(kernel, gamma, float(Ts), phase), f"spindle-{phase.count}", float(Ts)
+    if phase is not None or gate is not None or keep is not None:
+        if Ts is None or (phase is not None and phase.edges[-1] != n):
+            raise ValueError(f"the spindle-phase and gated paths need Ts and stretches covering the {n} samples")
+        parts = blocks(kernel, gamma, float(Ts), n, gate=gate, phase=phase, max_order=order, keep=keep)
+        name = f"spindle-{phase.count}" if phase is not None else f"gated-{sum(b.column is not None for b in parts)}"
+        solver, solver_name, step = _BlockSolver(parts, gamma, order), name, float(Ts)
     else:
         solver, solver_name, step = _setup_solver(kernel, gamma, n, x, Ts, tol, max_iter, dense_limit,
-                                                  toeplitz_dense_limit, method)
+                                                  toeplitz_dense_limit, method, order)
     fallback = method == "auto" and max_iter is None and solver_name.startswith("toeplitz-pcg") and n <= LEVINSON_LIMIT
     with warnings.catch_warnings():
         if fallback:
@@ -378,8 +407,11 @@ def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = N
     c, beta = (float(b[0]), b[1:]) if intercept else (0.0, b)
     linear = y - Z_arr @ beta
     residuals = alpha / gamma
-    f = linear - residuals
-    s2 = float((y - Zt @ b) @ alpha) / (n - p)
+    f = linear - residuals  # where a gate is closed A = I/γ: α/γ is the whole residual, f = c
+    if keep is not None:
+        f = np.where(np.asarray(keep, dtype=bool), f, np.nan)
+    n_fit = n if keep is None else int(np.sum(keep))
+    s2 = float((y - Zt @ b) @ alpha) / (n_fit - p)
     Minv = cho_solve(cho, np.eye(p), check_finite=False) / np.outer(scale, scale)
     cov = s2 * 0.5 * (Minv + Minv.T)
     return PLLSSVMResult(beta=beta, c=c, alpha=alpha, f=f, residuals=residuals, linear_residuals=linear,

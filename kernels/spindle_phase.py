@@ -14,7 +14,7 @@ Within a stretch where the spindle turns at a constant rate ω (``θ = θ₀ + �
 is the time kernel ``LocallyPeriodic(σ1, σ2, ψ = P/|ω|)`` (``SquaredExponential(σ1)`` at rest).
 Identification therefore splits the record into such stretches (:func:`phase_segments`: θ linear
 in t within ± ``tol`` rad) and treats them as independent realisations of the disturbance with a
-shared β — ``A ≈ diag(A₁, …, A_S)``, one exact Levinson pass per stretch. The approximation leaves
+shared β — ``A ≈ diag(A₁, …, A_S)``, one Levinson pass per stretch (:mod:`kernels.blocks`). The approximation leaves
 out only the correlation across a change of speed (the pattern is learned afresh after each one),
 which can only make this candidate look *worse* than the exact kernel: its evidence is conservative
 against the exact time-kernel candidates it competes with.
@@ -115,18 +115,25 @@ class PhaseSegments:
     def lengths(self) -> np.ndarray:
         return np.diff(self.edges)
 
+    def window(self, a: int, b: int) -> PhaseSegments:
+        """The stretches of samples ``a … b − 1``, numbered from ``a`` (the speed of each unchanged)."""
+        edges = np.clip(self.edges, a, b) - a
+        keep = np.flatnonzero(np.diff(edges) > 0)
+        return PhaseSegments(edges=np.concatenate([edges[keep], [b - a]]).astype(np.int64), rate=self.rate[keep],
+                             tol=self.tol)
+
     def periods(self, P: float = 2.0 * math.pi) -> np.ndarray:
         """``ψ_s = P/|ω_s|`` (s) of each stretch (S2); ``inf`` at rest."""
         with np.errstate(divide="ignore"):
             return np.where(self.rate != 0.0, P / np.abs(self.rate), np.inf)
 
-    def columns(self, kernel: Kernel, Ts: float, shift: float = 0.0) -> list[np.ndarray]:
+    def columns(self, kernel: Kernel, Ts: float, shift: float = 0.0, max_order: int | None = None) -> list[np.ndarray]:
         """First column of each stretch's Toeplitz block of ``Ω + shift·I``: the kernel itself (S1)
-        evaluated at the lags ``(d, ω_s d)``, ``d = 0, Ts, 2Ts, …`` (S2)."""
+        evaluated at the lags ``(d, ω_s d)``, ``d = 0, Ts, 2Ts, …`` (S2) — at most ``max_order + 1`` lags."""
         out = []
         origin = np.zeros((1, 2))
         for n_s, w in zip(self.lengths.tolist(), self.rate.tolist()):
-            d = np.arange(n_s) * Ts
+            d = np.arange(n_s if max_order is None else min(n_s, int(max_order) + 1)) * Ts
             col = kernel(origin, np.column_stack([d, w * d]))[0]
             col[0] += shift
             out.append(col)

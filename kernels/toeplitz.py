@@ -16,21 +16,17 @@ first column ``t``. This module works with that column only:
 * :func:`pcg` — preconditioned conjugate gradients for several right-hand sides at once.
 * :class:`ToeplitzSolver` — the automatic choice: dense Cholesky for small ``N``, else PCG with
   Strang, falling back to T. Chan when Strang has a non-positive eigenvalue.
-* :func:`levinson_whiten`, :func:`levinson_solve` — ``L⁻¹X`` (whitening, with ``log det``) and
-  ``A⁻¹X`` by Levinson–Durbin: exact in ``O(N²)``, whatever the conditioning.
-* :func:`toeplitz_logdet` — ``log det A`` by Levinson–Durbin (``O(N²)`` time, ``O(N)`` memory):
-  the sum of the logs of the prediction-error variances.
+
+Levinson–Durbin (whitening, ``log det``, solves; exact or of order m) is :mod:`kernels.levinson`.
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
-from numba import njit
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, toeplitz
 
 __all__ = [
@@ -42,9 +38,6 @@ __all__ = [
     "pcg",
     "ToeplitzSolver",
     "solve_spd_toeplitz",
-    "toeplitz_logdet",
-    "levinson_whiten",
-    "levinson_solve",
     "DENSE_LIMIT",
 ]
 
@@ -55,11 +48,6 @@ DENSE_LIMIT = 1500
 WARN_FACTOR = 100.0
 #: Lags whose kernel value is below this fraction of the peak are dropped from the FFT embedding.
 BAND_RTOL = 1e-22
-#: Reflection coefficients below this are zero (a short kernel's predictor would otherwise decay into
-#: subnormal numbers, whose arithmetic is ~100× slower); column entries below ``SUBNORMAL_RTOL`` of the
-#: peak are zeroed for the same reason. Both are far below double-precision resolution.
-KAPPA_FLUSH = 1e-150
-SUBNORMAL_RTOL = 1e-280
 #: Threads for scipy.fft (the machines have 2 cores).
 _WORKERS = 2
 
@@ -71,15 +59,6 @@ def _first_column(column) -> np.ndarray:
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         raise ValueError(f"the Toeplitz first column has a non-finite value at lag {bad[0]}")
-    return t
-
-
-def _levinson_column(column) -> np.ndarray:
-    """:func:`_first_column` with entries below ``SUBNORMAL_RTOL`` of the peak set to zero."""
-    t = _first_column(column)
-    tiny = np.abs(t) < SUBNORMAL_RTOL * np.abs(t).max()
-    if tiny.any() and np.any(t[tiny] != 0.0):
-        t = np.where(tiny, 0.0, t)
     return t
 
 
@@ -323,12 +302,6 @@ class ToeplitzSolver:
         self.preconditioner = CirculantPreconditioner(eig, self.n, kind)
         self.method = f"pcg-{kind}"
 
-    def logdet_dense(self) -> float:
-        """``log det A`` from the Cholesky factor (dense method only)."""
-        if self._chol is None:
-            raise ValueError("logdet_dense needs the dense method; use toeplitz_logdet(column)")
-        return 2.0 * float(np.sum(np.log(np.diag(self._chol[0]))))
-
     def solve(self, B, tol: float | None = None) -> np.ndarray:
         """``A⁻¹ B`` for ``B`` of shape (N,) or (N, r) (``tol`` overrides the PCG tolerance once).
 
@@ -355,207 +328,3 @@ def solve_spd_toeplitz(column, B, **kwargs) -> np.ndarray:
     """``A⁻¹ B`` for the SPD symmetric Toeplitz matrix with first column ``column``
     (:class:`ToeplitzSolver` options as keywords)."""
     return ToeplitzSolver(column, **kwargs).solve(B)
-
-
-#: Numba options of the Levinson kernels: re-association lets the lagged dot products vectorise
-#: (without it they run ~2× slower); NaN/inf semantics are kept (no "nnan"/"ninf"). BLAS is not used
-#: on purpose: a BLAS dot per step oversubscribes threads on a loaded machine (20× slower measured).
-_FAST = {"reassoc", "contract"}
-
-
-@njit(cache=True, nogil=True, fastmath=_FAST)
-def _dot_rev(a, x, lo, k):
-    """``Σ_{j=1..k} a[j] x[lo + j − 1]`` (contiguous lagged product, ``x`` stored reversed)."""
-    acc = 0.0
-    for j in range(1, k + 1):
-        acc += a[j] * x[lo + j - 1]
-    return acc
-
-
-@njit(cache=True, nogil=True, fastmath=_FAST)
-def _dot_rev2(a, x0, x1, lo, k):
-    """:func:`_dot_rev` of two series in one pass over ``a`` (~25 % faster than two passes)."""
-    s0 = 0.0
-    s1 = 0.0
-    for j in range(1, k + 1):
-        aj = a[j]
-        s0 += aj * x0[lo + j - 1]
-        s1 += aj * x1[lo + j - 1]
-    return s0, s1
-
-
-@njit(cache=True, nogil=True, fastmath=_FAST)
-def _durbin_step(trev, a, buf, e, k):
-    """Order ``k`` of the Durbin recursion (Golub & Van Loan §4.7) on the normalised column, given
-    reversed (``trev[i] = t[N−1−i]``, so that the lagged products are contiguous): updates the
-    predictor ``a`` in place (reflection coefficient ``κ = a[k]``) and returns the new
-    prediction-error variance ``E_k = E_{k−1}(1 − κ²)``. ``buf`` is scratch of length N."""
-    n = trev.shape[0]
-    kappa = (trev[n - 1 - k] - _dot_rev(a, trev, n - k, k - 1)) / e
-    if abs(kappa) < KAPPA_FLUSH:  # nothing left to predict at this lag: keep the predictor exact
-        a[k] = 0.0                # (and free of subnormal numbers, which are ~100× slower)
-        return e
-    for j in range(1, k):
-        buf[j] = a[k - j]
-    for j in range(1, k):
-        a[j] -= kappa * buf[j]
-    a[k] = kappa
-    return e * (1.0 - kappa) * (1.0 + kappa)
-
-
-@njit(cache=True, nogil=True)
-def _levinson_logdet(t):
-    """Levinson–Durbin on the normalised column; returns (log det, failing order or −1)."""
-    n = t.shape[0]
-    r0 = t[0]
-    if not r0 > 0.0:
-        return 0.0, 0
-    trev = (t / r0)[::-1].copy()
-    a = np.zeros(n)
-    buf = np.zeros(n)
-    e = 1.0  # prediction-error variance / r0
-    logdet = n * math.log(r0)
-    for k in range(1, n):
-        e = _durbin_step(trev, a, buf, e, k)
-        if not e > 0.0:
-            return 0.0, k
-        logdet += math.log(e)
-    return logdet, -1
-
-
-@njit(cache=True, nogil=True)
-def _levinson_whiten(t, Xr, lengths, W, logdets):
-    """Durbin recursion up to order ``max(lengths) − 1``; row ``k`` of every series is replaced by its
-    normalised innovation ``(x_k − Σ_j a_j^(k) x_{k−j}) / √E_k``. ``Xr`` (S, r, L) holds the
-    zero-padded series **reversed** along the last axis (``Xr[..., L−1−k] = x_k``, contiguous
-    lagged products); ``W`` (S, r, L) receives the innovations in natural order."""
-    n = t.shape[0]
-    S = Xr.shape[0]
-    r = Xr.shape[1]
-    L = Xr.shape[2]
-    r0 = t[0]
-    if not r0 > 0.0:
-        return 0
-    trev = (t / r0)[::-1].copy()
-    a = np.zeros(n)
-    buf = np.zeros(n)
-    e = 1.0
-    inv = 1.0 / math.sqrt(r0)
-    for s in range(S):
-        logdets[s] = math.log(r0)
-        for c in range(r):
-            W[s, c, 0] = Xr[s, c, L - 1] * inv
-    for k in range(1, n):
-        e = _durbin_step(trev, a, buf, e, k)
-        if not e > 0.0:
-            return k
-        inv = 1.0 / math.sqrt(e * r0)
-        le = math.log(e * r0)
-        for s in range(S):
-            if k < lengths[s]:
-                logdets[s] += le
-                c = 0
-                while c + 1 < r:
-                    x0 = Xr[s, c]
-                    x1 = Xr[s, c + 1]
-                    s0, s1 = _dot_rev2(a, x0, x1, L - k, k)
-                    W[s, c, k] = (x0[L - 1 - k] - s0) * inv
-                    W[s, c + 1, k] = (x1[L - 1 - k] - s1) * inv
-                    c += 2
-                if c < r:
-                    x = Xr[s, c]
-                    W[s, c, k] = (x[L - 1 - k] - _dot_rev(a, x, L - k, k)) * inv
-    return -1
-
-
-@njit(cache=True, nogil=True, fastmath=_FAST)
-def _levinson_solve(t, Xr, outr):
-    """``A⁻¹ X`` row-wise in one Durbin pass: ``A⁻¹ = L⁻ᵀ L⁻¹`` where row k of ``L⁻¹`` is
-    ``[−a_k … −a_1, 1]/√E_k``; the innovation ``w_k = (L⁻¹x)_k`` is known at step k, and its
-    contribution ``w_k · row_k(L⁻¹)`` to ``L⁻ᵀw`` is added at once. ``Xr`` (r, N) and the
-    result ``outr`` (r, N, zeroed by the caller) are stored reversed along the last axis."""
-    n = t.shape[0]
-    r = Xr.shape[0]
-    r0 = t[0]
-    if not r0 > 0.0:
-        return 0
-    trev = (t / r0)[::-1].copy()
-    a = np.zeros(n)
-    buf = np.zeros(n)
-    e = 1.0
-    for c in range(r):
-        outr[c, n - 1] += Xr[c, n - 1] / r0
-    for k in range(1, n):
-        e = _durbin_step(trev, a, buf, e, k)
-        if not e > 0.0:
-            return k
-        inv2 = 1.0 / (e * r0)
-        lo = n - k
-        for c in range(r):
-            x = Xr[c]
-            w = (x[n - 1 - k] - _dot_rev(a, x, lo, k)) * inv2
-            o = outr[c]
-            o[n - 1 - k] += w
-            for j in range(1, k + 1):
-                o[lo + j - 1] -= a[j] * w
-    return -1
-
-
-def levinson_solve(column, B) -> np.ndarray:
-    """``A⁻¹ B`` for the SPD symmetric Toeplitz ``A`` (first column ``column``) by Levinson–Durbin.
-
-    Exact direct solve in ``O(N² (1 + 2r))`` time and ``O(N r)`` memory for ``r`` right-hand
-    sides, independent of the conditioning that slows PCG (long correlation σ1, large γ);
-    Levinson–Durbin is weakly stable (error ∝ condition number · ε). ``B`` (N,) or (N, r).
-    """
-    t = _levinson_column(column)
-    B = np.asarray(B, dtype=np.float64)
-    single = B.ndim == 1
-    if B.shape[0] != t.size:
-        raise ValueError(f"right-hand side has {B.shape[0]} rows, the system has {t.size}")
-    Xr = np.ascontiguousarray((B[:, None] if single else B).T[:, ::-1])
-    outr = np.zeros_like(Xr)
-    fail = _levinson_solve(t, Xr, outr)
-    out = outr[:, ::-1]
-    if fail >= 0:
-        raise ValueError(f"the Toeplitz matrix is not positive definite (leading minor of order {fail + 1} "
-                         "is not positive); check the kernel parameters")
-    return out[0] if single else out.T
-
-
-def levinson_whiten(column, series, lengths=None):
-    """Whiten series with the inverse Cholesky factor of the SPD Toeplitz matrix (Levinson–Durbin).
-
-    ``series`` (S, r, L): S segments of r series each, zero-padded to ``L = len(column)``;
-    ``lengths`` (S,) their true lengths (default all L). Returns ``(W, logdets)`` with
-    ``W[s, :, :n_s] = L_{n_s}⁻¹ x`` row-wise (``A_{n_s} = L Lᵀ``, the leading block of A) and
-    ``logdets[s] = log det A_{n_s}``. ``O(L² (1 + S r))`` time (contiguous dot products), ``O(S r L)`` memory.
-    """
-    t = _levinson_column(column)
-    X = np.ascontiguousarray(series, dtype=np.float64)
-    if X.ndim != 3 or X.shape[2] != t.size:
-        raise ValueError(f"series must have shape (S, r, {t.size}), got {X.shape}")
-    lengths = np.full(X.shape[0], t.size, dtype=np.int64) if lengths is None else np.asarray(lengths, dtype=np.int64)
-    W = np.zeros_like(X)
-    logdets = np.zeros(X.shape[0])
-    Xr = np.ascontiguousarray(X[:, :, ::-1])
-    fail = _levinson_whiten(t, Xr, lengths, W, logdets)
-    if fail >= 0:
-        raise ValueError(f"the Toeplitz matrix is not positive definite (leading minor of order {fail + 1} "
-                         "is not positive); check the kernel parameters")
-    return W, logdets
-
-
-def toeplitz_logdet(column) -> float:
-    """``log det A`` of an SPD symmetric Toeplitz matrix (first column ``column``).
-
-    Levinson–Durbin recursion: ``det A = Π_k E_k`` with ``E_k`` the order-``k`` one-step
-    prediction-error variance of the stationary sequence with autocovariance ``t``.
-    ``O(N²)`` time, ``O(N)`` memory. Raises ``ValueError`` if ``A`` is not positive definite.
-    """
-    t = _levinson_column(column)
-    logdet, fail = _levinson_logdet(t)
-    if fail >= 0:
-        raise ValueError(f"the Toeplitz matrix is not positive definite (leading minor of order {fail + 1} "
-                         "is not positive); check the kernel parameters")
-    return float(logdet)

@@ -7,7 +7,11 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
 
     [axis]            machine, axis
     [model]           form, Ts (s), beta, beta_se, beta_names, omega (m/s), coulomb,
-                      loop_gain (N·s/m, optional), method
+                      loop_gain (N·s/m, optional), method, noise (m/s, optional: the measurement
+                      part of the one-step residual), offset_separated (optional: whether a
+                      process's mean force is kept out of offset and friction; absent: unknown),
+                      delay (samples, optional: the force acts this late; the first regressor
+                      holds the command that far back, kernels.feed_drive.regressors)
     [physical]        inertia (kg), damping (N·s/m), coulomb (symmetric), coulomb_pos/neg (N),
                       offset (N) — or the ``…_over_gain`` ratios when K is unknown
     [physical_se]     their standard errors (same keys)
@@ -18,8 +22,9 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
     [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
-                      hyperparameters of the chosen model; self_check: what the monitor over the
-                      identification trial said of this model (:mod:`monitor.self_check`)
+                      hyperparameters of the chosen model; order (lags of its likelihood);
+                      offset_note, adequacy (what identify found, in words); self_check: what the
+                      monitor over the identification trial said of this model (:mod:`monitor.self_check`)
     [[identification.candidates]]   method, kernel, period (s; ``per`` for a spindle-phase one),
                       log_evidence, valid, why_not — every candidate ``feedmon identify`` weighed
     [validity]        warning — only in a file written with ``identify --force`` although the model
@@ -120,6 +125,9 @@ class _ModelT(msgspec.Struct, **_Opts):
     beta_names: Annotated[list[_Short], msgspec.Meta(min_length=2, max_length=6)] | None = None
     loop_gain: _num(0.0, 1e10, "N·s/m", open_low=True) | None = None
     method: _Short = "pl-lssvm"
+    noise: _num(0.0, 1e3, "m/s, std of the measurement part of the one-step residual", open_low=True) | None = None
+    offset_separated: bool | None = None
+    delay: _int(0, 16, "samples from a force command to the force") | None = None
 
 
 class _PhysicalT(msgspec.Struct, **_Opts):
@@ -194,6 +202,9 @@ class _IdentificationT(msgspec.Struct, **_Opts):
     evaluations: _int(0, 10**9) | None = None
     tune_seconds: _num(0.0, 1e7, "s") | None = None
     segment: _int(0, 10**9, "samples") | None = None
+    order: _int(0, 10**9, "lags of the likelihood (≥ samples − 1: exact)") | None = None
+    offset_note: _Text | None = None
+    adequacy: _Text | None = None
     self_check: _Text | None = None
     candidates: Annotated[list[_CandidateT], msgspec.Meta(max_length=64)] = []
 
@@ -338,6 +349,9 @@ class AxisModel:
     candidates: list[dict] = field(default_factory=list)
     validity_warning: str | None = None
     online: OS.OnlineSettings = field(default_factory=OS.OnlineSettings)  # [adaptation], [health]
+    noise: float | None = None  # m/s: std of the measurement part ε of v(k) = v_m(k+1) − βᵀz(k)
+    offset_separated: bool | None = None  # a process's mean force kept out of friction/offset (None: unknown)
+    delay: int = 0  # samples from a command to its force: z1(k) holds the command delay samples back
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
@@ -499,6 +513,7 @@ def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
             candidates=[msgspec.structs.asdict(c) for c in f.identification.candidates],
             validity_warning=None if f.validity is None else f.validity.warning,
             online=OS.OnlineSettings(adaptation=f.adaptation, health=f.health),
+            noise=m.noise, offset_separated=m.offset_separated, delay=m.delay or 0,
         )
     except ValueError as exc:
         key = "model.beta_names" if str(exc).startswith("beta_names") else "model.beta"
@@ -571,6 +586,9 @@ _UNITS = {
     "spindle_rpm": "rpm, nominal: used without spindle data",
     "per": "revolution (2π: runout) | tooth (2π/teeth)",
     "search": "the monitor chooses the disturbance model online from the samples it sees, starting from this one",
+    "noise": "m/s, std of the measurement part ε of the one-step residual (not of a disturbance)",
+    "offset_separated": "true: a process's mean force is kept out of offset and friction; false: they hold it",
+    "delay": "samples: the force acts this late; z1 = u(k−d), velocity-loop v_r(k−d) − v_m(k−d) + v_m(k)",
 }
 
 _IDENT_KEYS = [k for k in _IdentificationT.__struct_fields__ if k != "candidates"]
@@ -604,6 +622,9 @@ def save_model(model: AxisModel, path) -> Path:
                 "coulomb": bool(model.coulomb),
                 "loop_gain": None if model.loop_gain is None else float(model.loop_gain),
                 "method": model.method,
+                "noise": None if model.noise is None else float(model.noise),
+                "offset_separated": model.offset_separated,
+                "delay": model.delay or None,
             },
             {k: v for k, v in _UNITS.items() if k != "coulomb"} | {"coulomb": "Coulomb friction columns in β"},
         ),

@@ -134,7 +134,7 @@ def _psd(x: np.ndarray, fs: float):
     from scipy.signal import welch
 
     nperseg = int(min(4096, max(16, x.size // 8)))
-    return welch(x, fs=fs, nperseg=nperseg)
+    return welch(np.where(np.isfinite(x), x, 0.0), fs=fs, nperseg=nperseg)  # samples left out of the fit: 0
 
 
 def _reference(ident):
@@ -143,6 +143,10 @@ def _reference(ident):
     if ident.truth_force is not None and np.isfinite(ident.truth_force).any():
         return ident.truth_force, "true disturbance force"
     return None, None
+
+
+#: the most samples drawn in a time plot of the report (a longer record: every k-th)
+PLOT_POINTS = 100_000
 
 
 def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
@@ -163,13 +167,15 @@ def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
     chosen = model.candidate
     model_label = chosen.label + ("" if chosen.valid else " — NOT VALID")
 
+    k = slice(None, None, max(1, t.size // PLOT_POINTS))  # a long record: every k-th sample in the time plots
+    t = t[k]
     fig, ax = plt.subplots(4, 1, figsize=(11, 13), constrained_layout=True)
-    ax[0].plot(t, ident.y, lw=0.8, label="measured $v_m$")
-    ax[0].plot(t, model.prediction, lw=0.8, ls="--", label=f"{model.name}: one-step prediction")
+    ax[0].plot(t, ident.y[k], lw=0.8, label="measured $v_m$")
+    ax[0].plot(t, model.prediction[k], lw=0.8, ls="--", label=f"{model.name}: one-step prediction")
     ax[0].set(ylabel="velocity (m/s)", title=f"(a) measured vs predicted velocity — {model_label}")
     ax[0].legend(loc="upper right")
 
-    ax[1].plot(t, ident.y - model.prediction, lw=0.6, color="C3")
+    ax[1].plot(t, (ident.y - model.prediction)[k], lw=0.6, color="C3")
     ax[1].set(ylabel="error (m/s)", title=f"(b) prediction error $y - \\hat y$ ({model.name})")
 
     dist = model if model.f is not None else ident.pl
@@ -179,9 +185,9 @@ def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
         ax[2].set(title="(c) identified disturbance")
     else:
         newtons = dist.f_force is not None and dist.candidate.valid
-        est = dist.f_force if newtons else dist.f
+        est = (dist.f_force if newtons else dist.f)[k]
         est = est - np.nanmean(est)
-        ref_c = None if ref is None else ref - np.nanmean(ref)
+        ref_c = None if ref is None else ref[k] - np.nanmean(ref[k])
         if newtons:
             ax[2].set_ylabel("force (N), mean removed")
         else:
@@ -233,6 +239,31 @@ def write_report(ident, out_dir, self_check: dict | None = None) -> list[Path]:
     return [png, md_path]
 
 
+def _checks_section(ident) -> list[str]:
+    """What the data say beyond β (the JSON ``checks``): noise, the process, the friction near standstill,
+    whether the rigid model fits."""
+    checks = ident.checks or {}
+    out = []
+    noise = checks.get("noise")
+    if noise:
+        out.append(f"* measurement noise: σ_n = {noise['sigma_n']:.3g} m/s on the velocity, σ_ε = "
+                   f"{noise['sigma_eps']:.3g} ± {noise['se_eps']:.2g} m/s in the one-step residual")
+    if checks.get("offset_note"):
+        state = {True: "kept out of friction and offset", False: "NOT separated from friction and offset"}.get(
+            checks.get("offset_separated"), "unknown")
+        out.append(f"* a process's mean force: {state} — {checks['offset_note']}")
+    if checks.get("left_out"):
+        out.append(f"* {checks['left_out']} samples below {checks['law_holds_above']['speed']:.3g} m/s left out of "
+                   "the fit (the friction rises above the law there)")
+    adequacy = checks.get("adequacy")
+    if adequacy:
+        out.append("* the rigid model fits the data" if adequacy["adequate"] else
+                   f"* **the rigid model does not fit**: {adequacy['message']}")
+    if checks.get("delay"):
+        out.append(f"* modelled: the force acts {checks['delay']} sample(s) after the command")
+    return ["## What else the data say", "", *out, ""] if out else []
+
+
 def _markdown(ident, png_name: str, self_check: dict | None = None) -> str:
     truth = ident.truth or {}
     psi_text = "none" if ident.period is None else f"{ident.period:.6g} s ({ident.period_source})"
@@ -277,6 +308,7 @@ def _markdown(ident, png_name: str, self_check: dict | None = None) -> str:
             errs.append(f"* disturbance correlation with the truth ({label}): {truth[key]:.4f}")
     if errs:
         lines += ["## Against the truth", "", *errs, ""]
+    lines += _checks_section(ident)
     if self_check is not None:
         lines += ["## Self-check", "", "The monitor (`feedmon run --from`) with the written model over this trial: "
                   + self_check["summary"] + ".", ""]

@@ -103,16 +103,22 @@ def self_check(trial_path: str, model, seq_range: tuple[int, int] | None = None)
     name = f"{model.machine}/{model.axis}"
     reports = []
     breakdowns: list[str] = []
-    for _, _, block in iter_axes(trial_path, [name], kinds=("samples",))[name]:
-        if seq_range is not None:
-            block = _within(block, *seq_range)
-            if block is None:
-                continue
-        try:
-            est.process_rows(block)
-        except TrackerBreakdown as exc:  # the monitor would drop the block and start over: so does the check
-            breakdowns.append(str(exc))
-        reports += est.take_health()
+    blocks = iter_axes(trial_path, [name], kinds=("samples",))[name]
+    try:
+        for _, _, block in blocks:
+            if seq_range is not None:
+                if block.seq > seq_range[1]:  # past the window: the rest of a long record is not read
+                    break
+                block = _within(block, *seq_range)
+                if block is None:
+                    continue
+            try:
+                est.process_rows(block)
+            except TrackerBreakdown as exc:  # the monitor would drop the block and start over: so does the check
+                breakdowns.append(str(exc))
+            reports += est.take_health()
+    finally:
+        blocks.close()
     flagged = [h for h in reports if h.state != "ok"]
     worst = max((h.state for h in flagged), key=HEALTH_STATES.index, default="ok")
     reasons: dict[str, str] = {}                   # the first reason of each kind, in order

@@ -29,6 +29,15 @@ Scenarios for a monitor in production (conditions change while it runs):
 * ``milling-payload`` — an inertia step at ``[drive_step] at`` (``[drive_step]``).
 * ``shaker-step`` — a non-periodic force step on and off (disturbance ``kind = "step"``).
 
+Drives the rigid first-order model does not describe (``[structure]``, Stribeck friction;
+:mod:`replay.plant`), with the shaker's 55 Hz disturbance (the Stribeck drive: none):
+
+* ``drive-stribeck`` — Coulomb friction 35 N rising to 50 N at standstill (Stribeck, 2 mm/s), slow
+  trapezoids;
+* ``two-mass`` — motor and load on a spring, 50 Hz resonance, velocity measured at the motor;
+* ``command-delay`` — the force acts one sample after it is commanded;
+* ``encoder-velocity`` — the velocity is the backward difference of the encoder position.
+
 Drive constants that vary (``[drive_drift]``, ``[drive_step]``, in every scenario;
 zero = constant) are evaluated at each sample time ``t_k`` and held over the
 interval ``[t_k, t_k + Ts)``, like the controller output (:func:`drive_series`).
@@ -73,6 +82,10 @@ SCENARIOS = (
     "shaker-drift",
     "milling-payload",
     "shaker-step",
+    "drive-stribeck",
+    "two-mass",
+    "command-delay",
+    "encoder-velocity",
 )
 
 #: drive constants that may vary over a trial (``[drive_drift]``, ``[drive_step]``)
@@ -225,6 +238,7 @@ def check(sc: dict) -> None:
             raise ValueError(f"disturbance.start and .stop are fractions of the duration with 0 ≤ start ≤ stop ≤ 1, "
                              f"got {start!r} and {stop!r}")
     _check_variation(sc)
+    _check_structure(sc)
     if dk == "milling":
         _check_spindle(sc)
 
@@ -255,6 +269,30 @@ def _check_variation(sc: dict) -> None:
                     f"{table}.{name} = {rel!r} would make drive.{name} {'≤' if positive else '<'} 0 "
                     f"(a relative change must be {'>' if positive else '≥'} −1)"
                 )
+
+
+def _check_structure(sc: dict) -> None:
+    """``[structure]`` and the Stribeck constants of ``[drive]`` (:mod:`replay.plant`)."""
+    from .plant import KINDS, VELOCITY
+
+    st = sc["structure"]
+    if st["kind"] not in KINDS:
+        raise ValueError(f"structure.kind must be one of {', '.join(KINDS)}, got {st['kind']!r}")
+    if st["velocity"] not in VELOCITY:
+        raise ValueError(f"structure.velocity must be one of {', '.join(VELOCITY)}, got {st['velocity']!r}")
+    for p in ("structure.resonance", "structure.resonance_damping", "structure.encoder_resolution",
+              "drive.stribeck_speed"):
+        _pos(sc, p)
+    _pos(sc, "drive.stribeck_force", allow_zero=True)
+    share = _finite(sc, "structure.motor_share")
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"structure.motor_share is the motor's share of the inertia, in (0, 1), got {share!r}")
+    delay = st["delay"]
+    if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= 16:
+        raise ValueError(f"structure.delay must be a whole number of samples 0 … 16, got {delay!r}")
+    if 2.0 * st["resonance"] * 1.0 / sc["rate"] >= 1.0 and st["kind"] == "two-mass":
+        raise ValueError(f"structure.resonance {st['resonance']!r} Hz is at or above half the sample rate "
+                         f"({sc['rate'] / 2:g} Hz): the loop at this rate cannot carry it; lower it")
 
 
 def _check_spindle(sc: dict) -> None:

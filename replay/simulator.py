@@ -53,6 +53,7 @@ from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_bet
 
 from . import scenarios as SC
 from .cutting import MillingTool, SpindleProfile, feed_force
+from .plant import closed_loop_radius, friction, structure_of, structured_loop
 
 __all__ = [
     "SimResult",
@@ -274,12 +275,7 @@ def _zoh_loop(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega, v0, pos0):
             gx = (pd - 1.0) / p  # ∫0^Ts e^{pτ} dτ
         vm = v + noise[k]
         uk = K * (v_ref[k] - vm)
-        if v > omega:
-            tf = dp[k]
-        elif v < -omega:
-            tf = -dn[k]
-        else:
-            tf = 0.0
+        tf = friction(v, omega, dp[k], dn[k], 0.0, 1.0)
         v_true[k] = v
         v_ctrl[k] = vm
         u[k] = uk
@@ -351,12 +347,7 @@ def _loop_fine(v_ref, tc_fine, noise, noise_fine, Ts, n_sub, J, B, K, dp, dn, om
             i = k * n_sub + m
             v_fine[i] = v + noise_fine[i]
             x_fine[i] = pos
-            if v > omega:
-                tf = dp[k]
-            elif v < -omega:
-                tf = -dn[k]
-            else:
-                tf = 0.0
+            tf = friction(v, omega, dp[k], dn[k], 0.0, 1.0)
             force = uk - tf - tc_fine[i]
             vss = force / Bc
             pos += vss * h + (v - vss) * gx
@@ -435,6 +426,26 @@ def _disturbance(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int, spindle: Sp
     return feed_force(tool, 0.0, dt, feed, SC.engagement(sc, t_mid), spindle=spindle)
 
 
+def _structured(sc: dict, st, v_ref, tc, noise, Ts: float, par: dict, K: float, omega: float, fine: bool):
+    """The closed loop of a drive beyond the rigid model (:mod:`replay.plant`): constant drive constants,
+    the exact path; refused when unstable."""
+    if fine:
+        raise ParameterError("fine=True simulates the rigid drive only; a [structure] or Stribeck friction runs on "
+                             "the exact path (fine=False)", "fine")
+    const = {name: float(par[name][0]) for name in SC.VARYING}
+    if any(np.any(par[name] != const[name]) for name in SC.VARYING):
+        raise SimulationError("drive_drift and drive_step need the rigid drive; set them to 0 with a [structure] "
+                              "or Stribeck friction")
+    radius = closed_loop_radius(st, Ts, const["inertia"], const["damping"], K)
+    if not radius < 1.0:
+        raise UnstableLoopError(f"unstable closed loop: {'; '.join(st.describe()) or 'the drive'} with J = "
+                                f"{const['inertia']:.6g} kg, B = {const['damping']:.6g} N·s/m, K = {K:.6g} N·s/m, "
+                                f"Ts = {Ts:.6g} s has a pole of magnitude {radius:.4g} ≥ 1; nothing simulated. Lower "
+                                "drive.loop_gain, or raise structure.resonance (two-mass)")
+    return structured_loop(st, v_ref, tc, noise, Ts, const["inertia"], const["damping"], K, const["coulomb_pos"],
+                           const["coulomb_neg"], omega)
+
+
 def _check_plausible(columns: dict, dt: float, path: str) -> None:
     """Refuse a simulated trial holding a non-finite or absurd sample (:data:`PLAUSIBLE`);
     sample k of every column is at ``t = k·dt``."""
@@ -492,7 +503,13 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
     v_ref = SC.reference_velocity(sc, n, Ts)
     noise = np.random.default_rng([seed, _STREAM_NOISE]).normal(0.0, nz["v_meas_std"], n) if nz["v_meas_std"] > 0 else np.zeros(n)
 
-    if not fine:
+    structure = structure_of(sc)
+    if not structure.rigid_model:
+        tc = _disturbance(sc, v_ref, Ts, 1, spindle)
+        v_true, v_ctrl, u, x = _structured(sc, structure, v_ref, tc, noise, Ts, par, K, omega, fine)
+        v_rec = v_ctrl.copy()
+        pos = x
+    elif not fine:
         tc = _disturbance(sc, v_ref, Ts, 1, spindle)
         v_true, v_ctrl, u, x, _, _ = _zoh_loop(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega, 0.0, 0.0)
         v_rec = v_ctrl.copy()
@@ -543,6 +560,8 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
     physical["loop_gain"] = K
     physical["force_constant"] = float(sc["drive"]["force_constant"])
     details = {"fine": bool(fine), "path": "fine 10 kHz + AA decimation" if fine else "exact ZOH"}
+    if not structure.rigid_model:
+        details["beyond_the_model"] = structure.describe()  # the truth's β is the rigid equivalent's
     varying = [name for name in SC.VARYING if np.any(par[name] != par[name][0])]
     if varying:
         details["time_varying"] = varying  # the truth channel holds their values per sample

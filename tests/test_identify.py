@@ -13,24 +13,25 @@ from trial_edit import rewrite_samples
 from feedio.mcapio import TrialTooLong, iter_blocks, read_trial
 from feedmon.cli import main
 from kernels.errors import ParameterError
-from monitor.identify import MAX_SAMPLES, identify
+from monitor.identify import identify
 from monitor.model_file import load_model
 from replay.importers import EMPS_REFERENCE
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
 SHAKER_PERIOD = 1 / 55
-JSON_KEYS = {"form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth", "self_check"}
+JSON_KEYS = {"form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth", "checks", "self_check",
+             "error"}
 PHYSICAL_KEYS = {"inertia", "damping", "coulomb", "coulomb_pos", "coulomb_neg", "offset"}
 
 _RUNS: dict = {}
 
 
 def run_identify(trial, *args, output=None) -> tuple[int, dict | None, str]:
-    """``feedmon identify TRIAL ARGS --json [-o output]`` → (exit code, JSON document, stderr); cached."""
+    """``feedmon identify TRIAL ARGS --json [-o output | --dry-run]`` → (exit code, JSON document, stderr); cached."""
     key = (str(trial), args, str(output))
     if key not in _RUNS:
-        argv = ["identify", str(trial), *map(str, args), "--json"] + (["-o", str(output)] if output else [])
+        argv = ["identify", str(trial), *map(str, args), "--json"] + (["-o", str(output)] if output else ["--dry-run"])
         out, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(argv)
@@ -80,9 +81,9 @@ def test_emps_clean_data_chooses_ls_and_writes_the_published_model(emps_trials, 
     assert model.beta_names[-1] == "one" and model.beta_se is not None
     assert set(model.physical) == PHYSICAL_KEYS and set(model.physical_se) == PHYSICAL_KEYS
     kernels = [c for c in doc["candidates"] if c["method"] == "pl_lssvm"]
-    assert kernels and all(not c["valid"] and "competes" in c["why_not"] for c in kernels)
-    assert any(c["kernel"] == "squared_exponential" and c["log_evidence"] > doc["candidates"][0]["log_evidence"]
-               for c in kernels)  # the kernel "explains" more, yet is no valid choice
+    assert kernels and all(not c["valid"] for c in kernels)
+    best = max(kernels, key=lambda c: c["log_evidence"])  # the kernel "explains" more, yet is no valid choice
+    assert best["log_evidence"] > doc["candidates"][0]["log_evidence"] and "competes" in best["why_not"]
     assert any("no rest" in n for n in doc["ls"]["notes"])  # asymmetry and offset not separable: said so
     # the friction near standstill departs from the law (~6 N below it under ~3.5 cm/s, at 333 Hz and 1 kHz
     # alike): found, said, and the online β learns only above it (kernels/low_speed.py)
@@ -169,7 +170,7 @@ def test_shaker_pl_lssvm_unbiased_ls_biased(simulated, scenario):
     assert errs["inertia"] < 0.01 and errs["damping"] < 0.02 and errs["coulomb"] < 0.05
 
 
-def test_milling_incdec_period_from_spindle_and_damping_flagged(simulated):
+def test_milling_incdec_period_from_spindle_and_the_cutting_force_kept_out_of_damping_and_offset(simulated):
     code, doc, _ = run_identify(simulated("milling-incdec", duration=20.0))
     assert code == 0
     assert doc["period"] == {"value": pytest.approx(0.02), "source": "spindle", "suggested": None}
@@ -178,8 +179,16 @@ def test_milling_incdec_period_from_spindle_and_damping_flagged(simulated):
     truth = doc["truth"]["beta"]
     assert np.all(_rel(doc["pl_lssvm"]["beta"], truth) < 0.02)
     assert _rel(doc["ls"]["beta"], truth)[0] > 0.2  # LS badly biased by the cutting force
-    # the mean cutting force follows the feed: damping competes with the disturbance model, and is flagged
-    assert "damping" in doc["pl_lssvm"]["competing"] and doc["pl_lssvm"]["vif"]["damping"] > 10
+    # the mean cutting force (~23 N + 1950 N·s/m × feed) once went into offset (+22 N) and damping (2213 for
+    # 375 N·s/m): the cut is found in the residual and its mean kept apart (nuisance columns, the disturbance
+    # model gated to it); damping and offset come from the half second of motion before the cut — honestly
+    # imprecise there ("undetermined"), but right
+    checks = doc["checks"]
+    assert checks["offset_separated"] is True and checks["process"]["nuisance"] == ["process", "process*v_meas"]
+    assert 0.9 < checks["process"]["share"] < 0.99
+    phys, se = doc["model"]["physical"], doc["model"]["physical_se"]
+    assert abs(phys["offset"]) < max(3 * se["offset"], 1.0)
+    assert abs(phys["damping"] - 375.0) < 3 * se["damping"] and "damping" in doc["pl_lssvm"]["undetermined"]
 
 
 @pytest.fixture(scope="module")
@@ -288,23 +297,14 @@ def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simu
     assert doc["period"]["suggested"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
 
 
-def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identified(simulated):
-    """The exact likelihood costs O(N²): beyond MAX_SAMPLES identify refuses at once and names the fix —
-    the command before the trial is all in memory (a 3 M-sample trial once took 663 MB first), the
-    library function with the count; --start/--end identify a window (the self-check runs over the
-    same window)."""
+def test_a_long_record_is_identified_whole_and_a_window_still_can_be(simulated):
+    """A record of any length is identified (61 605 samples at 333 Hz were refused: the exact likelihood
+    cost O(N²)); --start/--end identify a window (the self-check runs over the same window)."""
     path = simulated("shaker-control", seed=3, duration=185.0)  # 61 605 samples at 333 Hz
-    code, doc, err = run_identify(path)
-    assert code == 2 and doc is None
-    assert f"more than {MAX_SAMPLES} samples, more than one identification takes" in err
-    assert err.rstrip().endswith("(command line: --start, --end)")
-    with pytest.raises(TrialTooLong, match=r"holds more than 1,000 samples, the most read into memory") as exc:
-        read_trial(path, max_samples=1000)
-    assert exc.value.limit == 1000
-    with pytest.raises(ParameterError, match=rf"61605 samples \(185 s\) are more than one identification takes "
-                                             rf"\({MAX_SAMPLES} samples") as exc:
-        identify(read_trial(path))
-    assert exc.value.parameters == ("start", "end")
+    code, doc, err = run_identify(path, "--method", "ls", "--no-tune")
+    assert code == 0, err
+    assert doc["model"]["physical"]["inertia"] == pytest.approx(doc["truth"]["physical"]["inertia"], rel=0.01)
+    assert doc["self_check"]["state"] == "ok" and doc["self_check"]["reports"] in (119, 120)  # its first 120 s
     code, _, err = run_identify(path, "--start", 40, "--end", 30)
     assert code == 2 and "window start (40 s) must come before its end (30 s) (command line: --start, --end)" in err
     code, doc, err = run_identify(path, "--start", 5, "--end", 35, "--method", "ls", "--no-tune")
@@ -322,6 +322,32 @@ def test_a_record_too_long_for_one_identification_is_refused_and_a_window_identi
         with pytest.raises(ValueError, match=match):
             whole.window(start, end)
     assert whole.window() is whole
+    with pytest.raises(TrialTooLong, match=r"holds more than 1,000 samples, the most read into memory") as exc:
+        read_trial(path, max_samples=1000)
+    assert exc.value.limit == 1000
+
+
+def test_without_o_the_model_goes_next_to_the_trial_and_is_never_overwritten(simulated, tmp_path, capsys):
+    """``identify`` without -o did all the work and wrote nothing (exit 0). The model file now goes next to the
+    trial (TRIAL.model.toml); when that file exists the command refuses at once, naming -o, before any work;
+    --dry-run writes none."""
+    import shutil
+
+    trial = tmp_path / "axis.mcap"
+    shutil.copy(simulated("shaker-control", duration=6.0), trial)
+    default = tmp_path / "axis.model.toml"
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune"]) == 0
+    assert f"wrote {default}" in capsys.readouterr().err.replace("\n", "")
+    assert load_model(default).method == "ls"
+    before = default.read_bytes()
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune"]) == 2
+    err = capsys.readouterr().err
+    assert "exists" in err and "give -o to replace it" in err and "--dry-run" in err
+    assert default.read_bytes() == before
+    assert main(["identify", str(trial), "--method", "ls", "--no-tune", "--dry-run"]) == 0
+    assert "wrote" not in capsys.readouterr().err and default.read_bytes() == before
+    assert main(["identify", str(trial), "--dry-run", "-o", str(tmp_path / "x.toml")]) == 2
+    assert "--dry-run and -o contradict" in capsys.readouterr().err
 
 
 def test_json_document_has_exactly_the_documented_shape(simulated):
@@ -367,7 +393,7 @@ def test_an_absurd_sample_is_named_not_called_collinear(simulated, tmp_path):
 
     bad = rewrite_samples(simulated("shaker-control", duration=6.0), tmp_path / "spike.mcap", spike)
     code, doc, err = run_identify(bad, "--method", "ls")
-    assert code == 2 and doc is None
+    assert code == 2 and "absurd magnitude" in doc["error"]
     assert "1 sample(s) with an absurd magnitude, first at seq 250" in err and "v_ref = 1e+300 m/s" in err
     assert "collinear" not in err and "Traceback" not in err
 
@@ -377,7 +403,7 @@ def test_a_loop_gain_that_is_not_a_gain_is_refused(simulated, gain):
     # --loop-gain 0 once ended in a ZeroDivisionError traceback, -5 in "Coulomb friction negative",
     # nan in a model-file error after the whole identification
     code, doc, err = run_identify(simulated("shaker-control", duration=6.0), "--method", "ls", "--loop-gain", gain)
-    assert code == 2 and doc is None and "Traceback" not in err
+    assert code == 2 and "Traceback" not in err and "loop_gain must be a positive number" in doc["error"]
     assert f"loop_gain must be a positive number (N·s/m), got {float(gain)!r}" in err
     assert err.rstrip().endswith("(command line: --loop-gain)")
 
@@ -429,8 +455,11 @@ def test_metadata_ts_that_contradicts_the_sample_times_is_refused(simulated, tmp
     write_arrays(bad, msgspec.structs.replace(src.meta, Ts=0.001), dict(t=src.t, v_ref=src.v_ref, v_meas=src.v_meas),
                  start=0)
     code, doc, err = run_identify(bad, "--method", "ls")
-    assert code == 2 and doc is None and "Traceback" not in err
+    assert code == 2 and "Traceback" not in err
     assert "the samples are 0.003003 s apart but the trial's metadata give Ts = 0.001 s" in err
+    # --json: one document on stdout all the same, every key there, the error in it (it printed nothing)
+    assert set(doc) == JSON_KEYS and "the samples are 0.003003 s apart" in doc["error"]
+    assert all(doc[k] is None for k in JSON_KEYS - {"error"})
 
 
 def test_without_loop_gain_only_ratios(simulated):
@@ -548,9 +577,10 @@ def test_a_failing_periodic_tune_stops_the_squared_exponential_one(simulated):
     class Stop(Exception):
         pass
 
-    def progress(label, evaluations, values, ll, best):
-        seen[label] = evaluations
-        if label.startswith("locally periodic") and evaluations == 2:
+    def progress(label, done, total):
+        assert 0 < done <= total
+        seen[label] = seen.get(label, 0) + 1
+        if label.startswith("locally periodic") and seen[label] == 2:
             raise Stop(label)
 
     with pytest.raises(Stop):

@@ -2,42 +2,16 @@
 
 import numpy as np
 import pytest
-from scipy.linalg import block_diag
+from reml_reference import dense_gls_cov, dense_reml
 
 from kernels.covariance import LocallyPeriodic, Product, SquaredExponential
+from kernels.levinson import levinson_whiten
 from kernels.likelihood import default_bounds, log_evidence, log_marginal_likelihood, reml_terms, tune
 from kernels.pl_lssvm import pl_lssvm
 from replay.streams import shaker_stream
 
 THESIS = (0.59, 0.42, 50.3)
 PSI = 1 / 55
-
-
-def dense_reml(Z, y, A, intercept=True):
-    """Reference REML (b integrated out, s² profiled) with numpy slogdet and dense solves."""
-    n = y.size
-    Zt = np.column_stack([np.ones(n), Z]) if intercept else Z
-    p = Zt.shape[1]
-    Ai_Z = np.linalg.solve(A, Zt)
-    Ai_y = np.linalg.solve(A, y)
-    M = Zt.T @ Ai_Z
-    b = np.linalg.solve(M, Zt.T @ Ai_y)
-    r = y - Zt @ b
-    q = r @ np.linalg.solve(A, r)
-    s2 = q / (n - p)
-    return -0.5 * ((n - p) * (np.log(2 * np.pi * s2) + 1) + np.linalg.slogdet(A)[1]
-                   + np.linalg.slogdet(M)[1] - np.linalg.slogdet(Zt.T @ Zt)[1])
-
-
-def dense_gls_cov(Z, y, A, intercept=True):
-    """Reference GLS covariance ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹ (eq. L3)."""
-    n = y.size
-    Zt = np.column_stack([np.ones(n), Z]) if intercept else Z
-    M = Zt.T @ np.linalg.solve(A, Zt)
-    b = np.linalg.solve(M, Zt.T @ np.linalg.solve(A, y))
-    r = y - Zt @ b
-    s2 = r @ np.linalg.solve(A, r) / (n - Zt.shape[1])
-    return s2 * np.linalg.inv(M)
 
 
 @pytest.mark.parametrize("form", ["velocity-loop", "force-input"])
@@ -74,17 +48,25 @@ def test_likelihood_invariant_to_column_scaling():
     assert a == pytest.approx(b, rel=1e-10)
 
 
-def test_segmented_likelihood_is_block_diagonal_reml():
-    s = shaker_stream(601, amplitude=10.0, seed=13)
+def test_order_m_likelihood_and_gls_equal_the_dense_reml_of_its_covariance():
+    """The order-m REML (kernels.levinson, eq. V2) is the exact REML and GLS of the covariance Ã = L̃L̃ᵀ it
+    implies (a valid Gaussian process), and near the exact one when m covers the kernel's memory."""
+    s = shaker_stream(701, amplitude=10.0, seed=13)
     reg = s.regression()
     kernel = LocallyPeriodic(0.3, 0.5, PSI)
-    gamma = 80.0
-    seg = log_marginal_likelihood(reg.Z, reg.y, kernel, gamma, s.Ts, segment=210)  # 3 segments of 200
-    block = kernel(np.arange(200) * s.Ts) + np.eye(200) / gamma
-    ref = dense_reml(reg.Z, reg.y, block_diag(block, block, block))
-    assert seg == pytest.approx(ref, rel=1e-9)
-    whole = log_marginal_likelihood(reg.Z, reg.y, kernel, gamma, s.Ts)
-    assert log_marginal_likelihood(reg.Z, reg.y, kernel, gamma, s.Ts, segment=600) == pytest.approx(whole, rel=1e-12)
+    gamma, m = 80.0, 250
+    approx = reml_terms(reg.Z, reg.y, kernel, gamma, s.Ts, max_order=m)
+    assert approx.order == m and approx.solver == f"levinson-ar{m}"
+    column = kernel.lag(np.arange(700) * s.Ts)
+    column[0] += 1 / gamma
+    L_inv = levinson_whiten(column, np.eye(700), max_order=m).white
+    A_tilde = np.linalg.inv(L_inv.T @ L_inv)
+    assert approx.log_likelihood == pytest.approx(dense_reml(reg.Z, reg.y, A_tilde), rel=1e-9)
+    np.testing.assert_allclose(approx.cov, dense_gls_cov(reg.Z, reg.y, A_tilde), rtol=1e-6)
+    exact = reml_terms(reg.Z, reg.y, kernel, gamma, s.Ts)
+    assert exact.order == 699 and abs(approx.log_likelihood - exact.log_likelihood) < 5.0
+    adaptive = reml_terms(reg.Z, reg.y, kernel, gamma, s.Ts, tol=0.5)
+    assert adaptive.log_likelihood == pytest.approx(exact.log_likelihood, abs=2.0)
 
 
 def test_tune_beats_thesis_values_and_recovers_beta():

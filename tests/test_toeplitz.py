@@ -1,20 +1,19 @@
-"""kernels.toeplitz: FFT products, circulant preconditioners, PCG, automatic choice, Levinson log-det."""
+"""kernels.toeplitz and kernels.levinson: FFT products, circulant preconditioners, PCG, automatic choice;
+Levinson–Durbin whitening, log-det and solves, exact and of order m."""
 
 import numpy as np
 import pytest
 from scipy.linalg import toeplitz
 
 from kernels.covariance import LocallyPeriodic, Periodic, SquaredExponential
+from kernels.levinson import levinson_solve, levinson_whiten, toeplitz_logdet
 from kernels.toeplitz import (
     SymmetricToeplitz,
     ToeplitzSolver,
-    levinson_solve,
-    levinson_whiten,
     pcg,
     solve_spd_toeplitz,
     strang_eigenvalues,
     tchan_eigenvalues,
-    toeplitz_logdet,
 )
 
 TS = 1.0 / 333.0
@@ -129,10 +128,51 @@ def test_levinson_solve_and_whiten_equal_dense(kernel, gamma):
     ref = np.linalg.solve(A, B)
     assert np.linalg.norm(X - ref) / np.linalg.norm(ref) < 1e-7 * max(1.0, gamma / 1e3)
     np.testing.assert_allclose(levinson_solve(t, B[:, 0]), X[:, 0])
-    W, logdets = levinson_whiten(t, B.T[None, :, :])
+    w = levinson_whiten(t, B)
+    assert w.exact and w.order == n - 1
     L = np.linalg.cholesky(A)
-    np.testing.assert_allclose(W[0].T, np.linalg.solve(L, B), rtol=1e-6, atol=1e-7 * np.abs(W).max())
-    assert logdets[0] == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-9, abs=1e-6)
+    np.testing.assert_allclose(w.white, np.linalg.solve(L, B), rtol=1e-6, atol=1e-7 * np.abs(w.white).max())
+    assert w.logdet == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-9, abs=1e-6)
+
+
+def test_order_m_is_the_exact_algebra_of_a_valid_covariance():
+    """Order m (eq. V2): rows ≤ m exact, later rows whitened by the order-m predictor (FFT). Its L̃⁻¹ built
+    column by column gives Ã⁻¹ = L̃⁻ᵀL̃⁻¹, positive definite; the solve and log|Ã| match that matrix to
+    rounding, and (V3) bounds how far log|Ã| lies above the exact log|A|."""
+    n, m = 900, 300
+    t = column(LocallyPeriodic(0.3, 0.5, 0.02), n)
+    B = np.random.default_rng(5).normal(size=(n, 3))
+    L_inv = levinson_whiten(t, np.eye(n), max_order=m).white        # columns of L̃⁻¹
+    A_inv = L_inv.T @ L_inv
+    w = levinson_whiten(t, B, max_order=m)
+    assert w.order == m and not w.exact
+    np.testing.assert_allclose(w.white, L_inv @ B, rtol=1e-10, atol=1e-12)
+    exact = levinson_whiten(t, B)
+    np.testing.assert_allclose(w.white[: m + 1], exact.white[: m + 1], rtol=1e-10, atol=1e-12)
+    assert w.logdet == pytest.approx(-np.linalg.slogdet(A_inv)[1], rel=1e-10)
+    assert 0.0 <= w.logdet - exact.logdet
+    X = levinson_solve(t, B, m)
+    np.testing.assert_allclose(X, A_inv @ B, rtol=1e-9, atol=1e-12 * np.abs(X).max())
+    np.testing.assert_allclose(levinson_solve(t, B, n), np.linalg.solve(toeplitz(t), B), rtol=1e-8)
+
+
+@pytest.mark.parametrize("kernel, gamma", [(LocallyPeriodic(0.3, 0.5, 0.02), 50.0), (SquaredExponential(0.05), 1e3),
+                                           (LocallyPeriodic(30.0, 0.05, 1.0), 1e6)], ids=["lp", "se", "sharp-long-period"])
+def test_the_stop_criterion_bounds_the_log_det_error(kernel, gamma):
+    """The order chosen by the criterion (V3) leaves log|A| within a few ``tol`` of the exact value; a kernel
+    that is ~0 between the multiples of a long period (ψ = 333 samples) is not stopped inside its support,
+    and an order bounded below what the data need says so in its tail estimate."""
+    n = 4000
+    t = column(kernel, n, gamma)
+    exact = levinson_whiten(t, np.zeros((n, 0))).logdet
+    tol = 0.5
+    support = int(np.flatnonzero(np.abs(t) > 1e-3 * t[0])[-1])
+    w = levinson_whiten(t, np.zeros((n, 0)), tol=tol, min_order=support)
+    assert w.order >= min(support, n - 1)
+    assert 0.0 <= w.logdet - exact < 4 * tol + 1e-9
+    if w.order > 1000:
+        bounded = levinson_whiten(t, np.zeros((n, 0)), tol=tol, max_order=1000, min_order=support)
+        assert bounded.order == 1000 and bounded.tail_estimate > tol and bounded.logdet - exact > tol
 
 
 def test_not_positive_definite_is_reported():
