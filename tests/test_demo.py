@@ -68,7 +68,7 @@ def test_dashboard_spectra_are_refreshed_during_a_10x_replay(demo):
         assert seq.size >= 3, ent  # every 1000 samples of data (≈ 3 s), not every few seconds of wall time
         assert np.all(np.diff(seq) > 0)
     _, _, tp = rrd_rows(store, "/cnc-mill/X/psd_markers/tooth_passing", "BarChart:abscissa")
-    assert tp[-1][0]["buffer"] == [100.0]  # 3000 rpm × 2 teeth
+    assert tp[-1][0]["buffer"] == [80.0]  # the job's 2400 rpm × 2 teeth
 
 
 def test_dashboard_event_log_has_warm_up_and_the_glitches_of_the_trial(demo):
@@ -76,9 +76,9 @@ def test_dashboard_event_log_has_warm_up_and_the_glitches_of_the_trial(demo):
     ev = events(open_rrd(out / "monitor.rrd"), "/cnc-mill/X/events")
     texts = [t for _, _, t in ev]
     assert any(t.startswith("WARMUP ended") for t in texts)
-    trial = read_trial(out / "milling-incdec.mcap")
+    trial = read_trial(out / "milling-job.mcap")
     glitches = np.flatnonzero(trial.truth.glitch) + int(trial.seq[0])
     stale = sorted(s for s, _, t in ev if t.startswith("STALE"))
     assert glitches.size >= 1 and stale == glitches.tolist()  # each recording glitch, one line each
     assert any(t.startswith("REDUCED") for t in texts) and len(ev) < 20  # summarised, not one line per sample
-    assert any(t.startswith("spectrum markers") and "tooth passing 100.0 Hz" in t for t in texts)
+    assert any(t.startswith("spectrum markers") and "tooth passing 80.0 Hz" in t for t in texts)
