@@ -218,9 +218,15 @@ N_LAY = 5
 N_CNT = 13
 #: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction,
 #: the velocity the model simulates from the command alone (the velocity-loop instrument, eq. 8), the
-#: accumulators of the fast inertia estimate (eq. 9: Σ ζ_J e/R, Σ ζ_J s_J/R, Σ ζ_J²/R)
-(S_SCALE, S_VHAT, S_VSIM, S_FJN, S_FJD, S_FJV) = range(6)
-N_SST = 6
+#: accumulators of the fast inertia estimate (eq. 9: Σ ζ_J e/R, Σ ζ_J s_J/R, Σ ζ_J²/R, and Σ 1: how full its
+#: memory is)
+(S_SCALE, S_VHAT, S_VSIM, S_FJN, S_FJD, S_FJV, S_FJW) = range(7)
+N_SST = 7
+#: share of a full memory (1/(1 − λ)) the fast inertia estimate needs before it is tested: two time
+#: constants (4 s of learning samples) — the first seconds of a cut, while the disturbance model is still
+#: learning the process, read as a +60 % step at 6–9 standard errors (an air-cut model on
+#: milling-spindle-change)
+FAST_FILL = 1.0 - math.exp(-2.0)
 #: learning samples between two applications of the forgetting (2) (with λ_β^m): keeps the
 #: per-sample work at rank-one updates of Λ⁻¹; the forgetting per sample is 1 − λ_β ≈ 3·10⁻⁴
 FORGET_EVERY = 16
@@ -1182,6 +1188,7 @@ def _beta_step(bs, z, e, R, gate, bout):
     sst[S_FJN] = lf * sst[S_FJN] + cj * e / R
     sst[S_FJD] = lf * sst[S_FJD] + cj * sj / R
     sst[S_FJV] = lf * sst[S_FJV] + cj * cj / R
+    sst[S_FJW] = lf * sst[S_FJW] + 1.0
     Rw = R / w
     den = 1.0 / (Rw + ztg)
     coef = e * den
@@ -1341,10 +1348,13 @@ def fast_inertia(bs, J):
     (kg, or kg over K); NaN when the last ``FAST_MEMORY`` seconds of motion held no acceleration, and in
     the force-input form: there the command is the loop's reaction to the disturbance too, so no
     instrument free of it exists, and a disturbance step reads as an inertia step over a few samples."""
-    d = bs.sst[S_FJD]
+    sst = bs.sst
+    d = sst[S_FJD]
     if bs.lay[L_FORM] == 1 or not (d != 0.0 and math.isfinite(J)):
         return np.nan, np.nan
-    return J + bs.sst[S_FJN] / d, math.sqrt(max(bs.sst[S_FJV], 0.0)) / abs(d)
+    if sst[S_FJW] * (1.0 - bs.par[P_FASTLAM]) < FAST_FILL:   # not yet FAST_FILL of a full memory
+        return np.nan, np.nan
+    return J + sst[S_FJN] / d, math.sqrt(max(sst[S_FJV], 0.0)) / abs(d)
 
 
 @njit(cache=True, nogil=True)
@@ -1419,8 +1429,13 @@ def physical_se(bs, theta, se, cov_work):
             gk[j] = G[k, j]
         _cov_apply(bs, gk, x, t1, t2)
         v = 0.0
+        vm = 0.0
         for j in range(p):
-            v += gk[j] * x[j]
+            v += gk[j] * x[j]                     # the sandwich gᵀΛ⁻¹ΨΛ⁻ᵀg
+            vm += gk[j] * t1[j]                   # the model-based gᵀΛ⁻¹g (t1 = Λ⁻ᵀg)
+        # the larger of the two: the sandwich of a few effective samples is too small (the first seconds
+        # of the real EMPS drive: a damping 'drift' of 8 standard errors at 3 s that was gone at 5 s)
+        v = max(v, vm)
         se[k] = math.sqrt(v) if v > 0.0 else 0.0
     return True
 
@@ -1722,7 +1737,7 @@ class OnlineBeta:
         bs.par[P_ENABLED] = enabled
         for name in ("beta", "cov", "psi"):
             getattr(bs, name)[:] = getattr(old, name)
-        bs.sst[S_FJN:S_FJV + 1] = old.sst[S_FJN:S_FJV + 1]   # the fast inertia estimate goes on
+        bs.sst[S_FJN:S_FJW + 1] = old.sst[S_FJN:S_FJW + 1]   # the fast inertia estimate goes on
         arms, vhat_arm = bs.cnt[C_ARMS], bs.cnt[C_VHAT_ARM]
         bs.cnt[:] = old.cnt
         bs.cnt[C_ARMS], bs.cnt[C_VHAT_ARM] = arms, vhat_arm   # the instrument's v̂: the new tracker's

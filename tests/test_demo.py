@@ -63,12 +63,12 @@ def test_dashboard_spectra_are_refreshed_during_a_10x_replay(demo):
     out, _ = demo
     store = open_rrd(out / "monitor.rrd")
     for ent in ("residual_psd/residual", "disturbance_psd/estimate", "disturbance_psd/actual",
-                "psd_markers/1_over_psi", "psd_markers/tooth_passing"):
+                "psd_markers/tooth_passing"):  # no 1/ψ: the job is tracked by spindle phase
         seq, _, _ = rrd_rows(store, f"/cnc-mill/X/{ent}", "BarChart:values")
         assert seq.size >= 3, ent  # every 1000 samples of data (≈ 3 s), not every few seconds of wall time
         assert np.all(np.diff(seq) > 0)
     _, _, tp = rrd_rows(store, "/cnc-mill/X/psd_markers/tooth_passing", "BarChart:abscissa")
-    assert tp[-1][0]["buffer"] == [80.0]  # the job's 2400 rpm × 2 teeth
+    assert tp[-1][0]["buffer"] == [80.0, 160.0]  # the job's 2400 rpm × 2 teeth and its harmonic below Nyquist
 
 
 def test_dashboard_event_log_has_warm_up_and_the_glitches_of_the_trial(demo):
