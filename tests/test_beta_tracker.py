@@ -134,7 +134,8 @@ def test_recursion_equals_batch_weighted_least_squares_on_gp_innovations():
 
 
 def test_physical_standard_errors_are_the_delta_method():
-    """s.e. of J, B, d_p, c_n from ``physical_se`` equal √(g P gᵀ) with a numerical Jacobian."""
+    """s.e. of J, B, d_p, c_n from ``physical_se`` equal √max(g P gᵀ, g Λ⁻¹ gᵀ) (the sandwich, never below the
+    model-based covariance) with a numerical Jacobian."""
     t, vr, vm, _ = _drive(1500, seed=2)
     ob = _online(_beta())
     ob.track(t, vr, vm)
@@ -153,7 +154,10 @@ def test_physical_standard_errors_are_the_delta_method():
         bp[i] += h
         bm[i] -= h
         G[:, i] = (theta(bp) - theta(bm)) / (2 * h)
-    se = np.sqrt(np.einsum("ij,jk,ik->i", G, P, G))
+    sandwich = np.einsum("ij,jk,ik->i", G, P, G)
+    model_based = np.einsum("ij,jk,ik->i", G, ob.state.cov, G)
+    se = np.sqrt(np.maximum(sandwich, model_based))
+    assert np.any(sandwich != model_based)
     got = np.array([phys[k][1] for k in ("inertia", "damping", "coulomb_pos", "coulomb_neg")])
     np.testing.assert_allclose(got, se, rtol=1e-4)
     np.testing.assert_allclose([phys[k][0] for k in ("inertia", "damping", "coulomb_pos", "coulomb_neg")],
