@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sink_states import WORKING
 
 from feedio import schema as S
 from monitor.sinks.rerun_events import FlagDigest
@@ -336,7 +337,7 @@ def test_a_dead_recording_process_is_replaced_and_what_it_lost_is_counted(tmp_pa
     st = sink.status()
     assert st["failures"] >= 1 and ("died" in st["last_error"] or "broke" in st["last_error"]), st
     sink.offer(est_block(300, 50))
-    assert _wait(lambda: sink.status()["state"] == "ok" and sink.status()["written"] > 1)  # the new one records
+    assert _wait(lambda: sink.status()["state"] in WORKING and sink.status()["written"] > 1)  # the new one records
     assert sink.close(timeout=30)
     st = sink.status()
     assert st["rrd_files"] == [str(tmp_path / "dead.rrd"), str(tmp_path / "dead-001.rrd")]
