@@ -264,8 +264,9 @@ def test_mcap_directory_removed_while_running_is_made_again_and_the_loss_said(wo
             st = wait_status(s, pid=mon.proc.pid, pred=lambda x: _sink(x, "mcap")["removed_files"] == [str(first)])
             mc = _sink(st, "mcap")  # (failed until the new file took a write: it may be ok again already)
             assert mc["failures"] >= 1 and "removed" in mc["last_error"] and mc["removed"] > 100, mc
-            st = wait_status(s, pid=mon.proc.pid, pred=lambda x: _sink(x, "mcap")["state"] in WORKING
-                             and len(_sink(x, "mcap")["files"]) == 2)  # a new file in the directory made again
+            # a new file in the directory made again (and more, when a loaded host starved a logger past its stall)
+            st = wait_status(s, pid=mon.proc.pid, timeout=60, pred=lambda x: _sink(x, "mcap")["state"] in WORKING
+                             and len(_sink(x, "mcap")["files"]) >= 2)
             second = Path(_sink(st, "mcap")["files"][1])
             assert second.parent == logs and second.exists()
             sent = feeder.stop()
@@ -279,7 +280,13 @@ def test_mcap_directory_removed_while_running_is_made_again_and_the_loss_said(wo
     final = _summary_counts(mon.stderr, "mcap")
     assert final["written"] + final["dropped"] + final["lost"] == final["offered"], final
     removed = int(mon.stderr.split(" written to files removed while open")[0].rsplit(" ", 1)[-1])
-    assert _on_disk([str(second)], tmp_path) == final["written"] - removed  # what is on disk, exactly
+    later = sorted(str(p) for p in logs.glob("*.mcap"))  # the new file and any after it
+    assert str(second) in later
+    on_disk = _on_disk(later, tmp_path)
+    if len(later) == 1:
+        assert on_disk == final["written"] - removed  # what is on disk, exactly
+    else:  # a starved logger was replaced as well: its file ends on its last complete record
+        assert final["written"] - removed <= on_disk + final["lost"], (final, on_disk)
     _stderr_sane(mon, "mcap", 6)
 
 

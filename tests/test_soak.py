@@ -36,8 +36,8 @@ SHORT = ["--hours", "0.05", "--nan-rate", "2e-4", "--gap-rate", "0.01", "--dup-r
 @pytest.fixture(scope="module")
 def short_run():
     out = io.StringIO()
-    opts = soak.build_parser().parse_args([*SHORT, "--rate-check", "--min-rate", "1000",
-                                           "--max-rss-growth", "25"])
+    # no --rate-check: a rate is a benchmark's figure (benchmarks/soak.py), not a test's on a loaded machine
+    opts = soak.build_parser().parse_args([*SHORT, "--max-rss-growth", "25"])
     res = soak.run_soak(opts, out=out)
     return res, out.getvalue()
 
@@ -52,7 +52,7 @@ def test_the_short_run_passes_and_prints_the_table(short_run):
 def test_every_criterion_holds_on_a_short_run(short_run):
     res, text = short_run
     assert res.ok, text
-    assert set(res.checks) == {"nan", "accounting", "memory", "inverse", "quality", "health", "rate"}
+    assert set(res.checks) == {"nan", "accounting", "memory", "inverse", "quality", "health"}
     assert res.health["ok"] > 150 and res.health["warn"] == res.health["alarm"] == 0
     assert res.samples > 55_000
     assert len(res.rows) == 10
