@@ -479,3 +479,15 @@ def _release(ints, floats, done, head, tail, truth_seq, truth_vals, truth_end, e
             vals[8, j] = np.nan
             vals[9, j] = np.nan
     return L
+
+
+def warm_up() -> None:
+    """Load the compiled pairing and record code now (from Numba's cache, or compile it): a logging process
+    about to drop to a low priority would otherwise pay for it — seconds of CPU — on its first estimate
+    block, on a busy host long enough to be taken for stalled."""
+    pairer = ScalarsPairer(expect_truth=False)
+    z, t = np.zeros(2), np.array([0.0, 1e-3])
+    batches = pairer.add_rows("warm", "up", 0, t, 1, v_meas=z, f=z, f_var=z, f_next=z, force=z, force_var=z,
+                              force_next=z, flags=np.zeros(2, np.int64)) + pairer.drain()
+    for batch in batches:
+        batch.records(1)

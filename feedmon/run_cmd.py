@@ -81,9 +81,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     g.add_argument("--record-truth", action="store_true",
                    help="also record ground-truth blocks (<prefix>/*/*/truth, from 'feedmon replay') in the sinks")
     g.add_argument("--sink-priority", choices=PRIORITIES, default=None,
-                   help="the MCAP and Rerun processes: idle (default; SCHED_IDLE: they run only on a core nothing "
-                        "else wants and never delay an estimate, but fall behind and drop, counted, on a machine "
-                        "kept busy) or low (nice 10: a share of the CPU under load, estimates later)")
+                   help="the MCAP and Rerun processes: low (default; nice 10: a tenth of a busy core's share, so the log "
+                        "keeps up on a machine kept busy by other work) or idle (SCHED_IDLE: they run only on a "
+                        "core nothing else wants; estimates ~1 ms earlier at p99, but on a busy machine the log "
+                        "starves, is replaced and loses messages, counted)")
     lim = p.add_argument_group("input limits (README: Input limits; file: [run.limits])")
     lim.add_argument("--queue", type=int, default=None, metavar="N",
                      help=f"input queue capacity in messages (default {InputLimits().queue_messages}); "

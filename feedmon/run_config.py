@@ -53,7 +53,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     rrd: str | None = None
     serve_rerun: Annotated[int, msgspec.Meta(ge=1, le=65535)] | None = None
     record_truth: bool = False
-    sink_priority: Priority = "idle"  # the sink processes: SCHED_IDLE, or nice 10 only (monitor.sinks.child)
+    sink_priority: Priority = "low"  # the sink processes: nice 10, or SCHED_IDLE (monitor.sinks.child)
     state_dir: str | None = None
     fresh: bool = False
     drain_seconds: Annotated[float, msgspec.Meta(ge=0.0, le=3600.0)] = 30.0

@@ -432,8 +432,8 @@ def test_scalars_channel_of_the_offline_file_is_per_sample_and_finite(two_axes):
 
 @pytest.mark.parametrize("priority", ["idle", "low"])
 def test_sink_processes_run_below_the_monitor(tmp_path, priority):
-    """The MCAP and Rerun processes yield the CPU to the monitor: 'idle' (default) is Linux's SCHED_IDLE
-    (they run only on a core nothing else wants), 'low' nice 10 only; both are niced. A priority that is
+    """The MCAP and Rerun processes yield the CPU to the monitor: 'idle' is Linux's SCHED_IDLE
+    (they run only on a core nothing else wants), 'low' (default) nice 10 only; both are niced. A priority that is
     neither is refused before any process starts. Finishing moves them out of the idle class
     (:func:`monitor.sinks.child.leave_idle`), nice kept."""
     from monitor.sinks.child import leave_idle

@@ -354,3 +354,69 @@ def test_full_disk_says_what_was_written_and_what_was_lost(work, trial, tmp_path
         assert _on_disk([str(disk / "log.mcap")], tmp_path) == final["written"], final  # "written" is on disk
         assert (tmp_path / "st" / "linear-drive+Z.state.npz").exists()  # the state went elsewhere: saved
         _stderr_sane(mon, "mcap", 6)
+
+
+# ---- a host kept busy by other work ---------------------------------------------------------------------
+@contextlib.contextmanager
+def _cpu_hogs(n: int):
+    """``n`` processes spinning at normal priority: every core busy with other work, as on a shared host."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield hogs
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+
+
+def test_the_log_keeps_up_on_a_host_kept_busy_by_other_work(work, trial, tmp_path):
+    """With the default sink priority, two spinning processes on every core (more than this machine has)
+    do not starve the MCAP child: it is never taken for stalled, nothing is lost, every block reaches the
+    file, the stop exits 0. (An idle-class child gets no CPU at all on such a host.)"""
+    logs = tmp_path / "logs"
+    mon = MonitorProc(prefix=PREFIX, cwd=work, args=["--model", "z.model.toml", "--fresh", "--state-dir",
+                                                     str(tmp_path / "st"), "--mcap", str(logs)])
+    n = 600
+    with _cpu_hogs(2 * (os.cpu_count() or 2)):  # (started once the monitor is up: the claim is the log's)
+        try:
+            with T.open_session(connect=mon.endpoint) as s:
+                pub = s.declare_publisher(T.samples_key(PREFIX, trial.machine, trial.axis),
+                                          congestion_control=zenoh.CongestionControl.BLOCK)
+                assert T.wait_for_matching(pub, 15.0)
+                for b in blocks_of(trial, 0, n, 10):
+                    pub.put(S.encode(b))
+                st = wait_status(s, prefix=PREFIX, pid=mon.proc.pid, timeout=300.0,
+                                 pred=lambda x: x["axes"][AXIS]["estimates_out"] == n)
+                assert _sink(st, "mcap")["state"] in WORKING and _sink(st, "mcap")["lost"] == 0, st
+        finally:
+            rc = mon.stop()
+    assert rc == 0, mon.stderr
+    assert "stalled" not in mon.stderr, mon.stderr
+    assert len(read_trial(mon.stderr.split("MCAP log: ")[1].split()[0])) == n
+
+
+def test_a_starved_child_is_told_from_a_stopped_or_sleeping_one():
+    """What decides between waiting for a late child (starved: runnable) and replacing it (stalled): a
+    spinning process is runnable and uses CPU; stopped (SIGSTOP) or sleeping, it is not runnable."""
+    from monitor.sinks.child import cpu_state
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    sleep = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    try:
+        deadline = time.monotonic() + 60
+        while not (cpu_state(spin.pid)[0] > 0.05 and cpu_state(spin.pid)[1]) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert cpu_state(spin.pid)[1] and cpu_state(spin.pid)[0] > 0.05
+        os.kill(spin.pid, signal.SIGSTOP)
+        while cpu_state(spin.pid)[1] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        used = cpu_state(spin.pid)[0]
+        assert not cpu_state(spin.pid)[1] and cpu_state(spin.pid)[0] == used
+        while cpu_state(sleep.pid)[1] and time.monotonic() < deadline:  # (its start-up may still run)
+            time.sleep(0.05)
+        assert cpu_state(sleep.pid)[1] is False
+    finally:
+        for p in (spin, sleep):
+            p.kill()
+            p.wait()
+    assert cpu_state(spin.pid) is None  # gone: nothing to read

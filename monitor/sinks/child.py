@@ -8,9 +8,12 @@ changed and at least every ``heartbeat`` seconds, and a last one with ``"final":
 parent's ``b"Q"``.
 
 Supervision (the parent's worker thread, :meth:`ChildProcessSink.tick` and every send): the
-child is taken for **stalled** when no report came for ``stall_seconds`` (stopped, starved,
-hung), when it reports its writer busy in one call for that long (stuck I/O), or when the pipe
-stayed full that long (the parent never blocks on it: sends are non-blocking with a deadline);
+child is taken for **stalled** when no report came for ``stall_seconds`` (stopped, hung), when it
+reports its writer busy in one call for that long (stuck I/O), or when the pipe stayed full that
+long (the parent never blocks on it: sends are non-blocking with a deadline) — unless it is only
+**starved** of CPU (a thread runnable, less than half a core got since it was last on time: a host
+kept busy by other work), which is ``degraded`` and waited for up to :data:`STARVED_STALLS` stall
+periods: a replacement would be as starved, and killing it would lose what it holds;
 for **dead** when its process ended or the pipe broke. Either way it is killed, what it did not
 write is counted (every item sent to it and not reported written, lost or dropped by it, is
 ``lost``), its file is listed as incomplete (it ends on its last complete record: ``feedmon
@@ -40,7 +43,7 @@ from typing import Any, Literal, get_args
 
 from .queued import QueuedSink
 
-__all__ = ["ChildProcessSink", "ChildGone", "start_reporter", "send_final", "background_priority", "leave_idle",
+__all__ = ["ChildProcessSink", "ChildGone", "cpu_state", "STARVED_STALLS", "start_reporter", "send_final", "background_priority", "leave_idle",
            "check_priority", "Priority", "PRIORITIES", "STALL_SECONDS"]
 
 #: how a sink's child process yields the CPU to the monitor (``feedmon run`` ``[run] sink_priority``)
@@ -49,6 +52,9 @@ PRIORITIES: tuple[str, ...] = get_args(Priority)
 #: default seconds without a word from a sink's child (or with its writer stuck, or its pipe full)
 #: before it is taken for stalled, killed and replaced (``feedmon run`` ``[run] sink_stall_seconds``)
 STALL_SECONDS = 10.0
+#: a child starved of CPU is waited for this many ``stall_seconds`` before it is replaced all the same (an
+#: endless loop on a host kept busy looks starved too: this bounds it)
+STARVED_STALLS = 6
 #: the child reports at least this often (s), changed or not: its heartbeat
 HEARTBEAT_SECONDS = 0.5
 #: seconds of silence, of a full pipe or of a writer busy in one call after which a child is ``degraded``
@@ -69,10 +75,11 @@ def check_priority(priority: str) -> str:
 def background_priority(priority: str) -> str:
     """Put the calling (child) process below the monitor before it starts any thread (threads inherit):
     ``"idle"`` — scheduling class ``SCHED_IDLE`` (Linux): it runs only on a core nothing else wants,
-    and a waking estimator thread preempts it at once; ``"low"`` — ``nice`` 10 only: a share of the CPU
-    under load, but it can hold a core for a scheduler slice while an estimate waits. Measured at
-    333 Hz with both sinks on the 2-core machine (send → estimate p99, two runs each): low 1.82 /
-    1.83 ms, idle 0.93 / 0.80 ms; no sink drops either way. Returns what was applied (``"low"`` where
+    and a waking estimator thread preempts it at once; ``"low"`` (the default) — ``nice`` 10 only: a
+    share of the CPU under load, but it can hold a core for a scheduler slice while an estimate waits.
+    ``"low"`` is the default because a log must keep up on a host kept busy by other work, where an
+    idle-class child gets no CPU at all and is replaced as stalled, losing messages; ``"idle"`` buys
+    about 1 ms of estimate latency at p99 on a quiet host (docs/design-decisions.md). Returns what was applied (``"low"`` where
     ``SCHED_IDLE`` is not available). Called after the child's imports: a process in ``SCHED_IDLE``
     on a busy machine would take minutes to import Rerun."""
     check_priority(priority)
@@ -109,6 +116,25 @@ def leave_idle(pid: int) -> int:
         except (AttributeError, OSError):
             pass
     return moved
+
+
+def cpu_state(pid: int) -> tuple[float, bool] | None:
+    """``(CPU seconds process pid has used, whether one of its threads is runnable)`` from ``/proc``;
+    ``None`` where that cannot be read (not Linux, the process gone). A stopped (``T``), blocked
+    (``D``) or sleeping (``S``) process is not runnable; a starved one is (``R``), most of the time."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            stat = fh.read()
+        fields = stat[stat.rindex(b")") + 2:].split()
+        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, all threads
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as fh:
+                task = fh.read()
+            if task[task.rindex(b")") + 2:task.rindex(b")") + 3] == b"R":
+                return cpu, True
+        return cpu, False
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 class ChildGone(ConnectionError):
@@ -162,6 +188,22 @@ class _Gen:
         self.last_msg = time.monotonic()
         self.started = self.last_msg
         self.final = False
+        self.on_time = (self.last_msg, 0.0)  # (time.monotonic(), its CPU seconds) when it was last on time
+
+    def mark_on_time(self, now: float) -> None:
+        state = cpu_state(self.proc.pid)
+        if state is not None:
+            self.on_time = (now, state[0])
+
+    def starved(self, now: float) -> str | None:
+        """Why this child counts as starved of CPU rather than stalled (None: it does not): a thread of it
+        is runnable and it got less than half a core since it was last on time."""
+        state = cpu_state(self.proc.pid)
+        if state is None or not state[1]:
+            return None
+        t0, cpu0 = self.on_time
+        share = (state[0] - cpu0) / max(now - t0, 1e-3)
+        return f"starved of CPU ({share:.0%} of a core in {now - t0:.0f} s)" if share < 0.5 else None
 
 
 class ChildProcessSink(QueuedSink):
@@ -305,7 +347,7 @@ class ChildProcessSink(QueuedSink):
         try:
             gen = self._live()
             # a stall: ChildGone after stall_seconds; at close: after the deadline of the stop
-            gen.writer.send(data, min(self._deadline, time.monotonic() + self.stall_seconds),
+            gen.writer.send(data, min(self._deadline, time.monotonic() + STARVED_STALLS * self.stall_seconds),
                             lambda waited: self._waiting(gen, waited))
         except ChildGone as exc:
             self.count_lost(items)
@@ -338,10 +380,21 @@ class ChildProcessSink(QueuedSink):
         self.set_degraded(f"{self._what} is late: {why}")
 
     def _waiting(self, gen: _Gen, waited: float) -> None:
-        """While a send waits on a full pipe: keep reading the child's reports; late after a while."""
+        """While a send waits on a full pipe: keep reading the child's reports; late after a while, gone
+        after ``stall_seconds`` (or more, while it is only starved of CPU)."""
         self._take_reports(gen)
         if waited > self._late_after:
-            self._late(gen, f"its pipe has been full for {waited:.1f} s")
+            starved = self._starved(gen, waited)
+            if waited > self.stall_seconds and starved is None:
+                raise ChildGone(f"it took no data for {waited:.0f} s: its pipe stayed full")
+            self._late(gen, f"its pipe has been full for {waited:.1f} s" + (f", {starved}" if starved else ""))
+
+    def _starved(self, gen: _Gen, late: float) -> str | None:
+        """Why ``gen``, late by ``late`` s, is only starved of CPU (kept, up to :data:`STARVED_STALLS` stall
+        periods), or None: it is stalled."""
+        if late > STARVED_STALLS * self.stall_seconds:
+            return None
+        return gen.starved(time.monotonic())
 
     @property
     def _late_after(self) -> float:
@@ -357,15 +410,19 @@ class ChildProcessSink(QueuedSink):
         self._take_reports(gen)
         quiet = time.monotonic() - gen.last_msg
         stuck = float(gen.report.get("stuck_s") or 0.0)
+        late = max(quiet, stuck)
+        starved = self._starved(gen, late) if late > self.stall_seconds else None
         if not gen.proc.is_alive():
             self._replace(f"{self._what} died (exit code {gen.proc.exitcode})")
-        elif quiet > self.stall_seconds:
+        elif quiet > self.stall_seconds and starved is None:
             self._replace(f"{self._what} stalled: no word from it for {quiet:.0f} s")
-        elif stuck > self.stall_seconds:
+        elif stuck > self.stall_seconds and starved is None:
             self._replace(f"{self._what} stalled: its writer has been busy in one call for {stuck:.0f} s")
-        elif quiet > self._late_after or stuck > self._late_after:
-            self._late(gen, f"no word from it for {quiet:.1f} s, its writer busy in one call for {stuck:.1f} s")
+        elif late > self._late_after:
+            self._late(gen, f"no word from it for {quiet:.1f} s, its writer busy in one call for {stuck:.1f} s"
+                       + (f", {starved}" if starved else ""))
         else:
+            gen.mark_on_time(now)
             self.set_degraded(None)
             if now - gen.started > MAX_BACKOFF:
                 self._backoff = 0.0
@@ -460,7 +517,7 @@ class ChildProcessSink(QueuedSink):
                 quiet, stuck = time.monotonic() - gen.last_msg, float(gen.report.get("stuck_s") or 0.0)
                 if time.monotonic() >= deadline:
                     why = f"did not finish by the deadline of the stop (no word for {quiet:.0f} s)"
-                elif quiet > self.stall_seconds or stuck > self.stall_seconds:
+                elif max(quiet, stuck) > self.stall_seconds and self._starved(gen, max(quiet, stuck)) is None:
                     why = f"stalled while finishing (no word for {quiet:.0f} s, its writer busy for {stuck:.0f} s)"
                 if why:
                     break

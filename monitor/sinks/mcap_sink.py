@@ -73,7 +73,7 @@ block, ``E`` estimate block, ``T`` truth block (head ``machine\0axis``), ``H`` h
 drops, ``last_error`` ...). It ignores SIGINT/SIGTERM (the monitor stops it; if the monitor dies,
 the pipe closes and it finishes the file anyway), logs like the monitor (same format) and runs
 below the monitor, as the Rerun process (:func:`~monitor.sinks.child.background_priority`; default
-``SCHED_IDLE``): the estimator always gets the CPU first. The parent supervises it and replaces a
+``nice`` 10): the estimator gets the CPU first. The parent supervises it and replaces a
 process that stalls or dies (:mod:`monitor.sinks.child`): what it had not written is counted
 ``lost``, its file is left ending on its last complete record, and the new process writes a new
 file.
@@ -96,7 +96,7 @@ from typing import Any
 
 from feedio import schema as S
 from feedio.mcapio import TrialWriter
-from feedio.scalars import HOLD_NS, ScalarsPairer
+from feedio.scalars import HOLD_NS, ScalarsPairer, warm_up
 
 from .child import STALL_SECONDS, ChildProcessSink, background_priority, check_priority, send_final, start_reporter
 from .queued import QueuedSink
@@ -539,7 +539,7 @@ class McapProcessSink(ChildProcessSink):
                  *, metas: S.TrialMeta | Sequence[S.TrialMeta], flush_seconds: float = 0.5, maxsize: int = 4096,
                  max_bytes: int = 64 * 2**20, name: str = "mcap", scalars: bool = True,
                  max_pending_bytes: int | None = None, start_timeout: float = 60.0, report_interval: float = 0.5,
-                 priority: str = "idle", stall_seconds: float = STALL_SECONDS, min_free_bytes: int = 0) -> None:
+                 priority: str = "low", stall_seconds: float = STALL_SECONDS, min_free_bytes: int = 0) -> None:
         path = Path(path)
         if not path.parent.is_dir():
             raise FileNotFoundError(f"directory of the MCAP log {str(path)!r} does not exist")
@@ -626,8 +626,10 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
     """The logging process: pipe → decode → :class:`McapSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    background_priority(priority)
     from monitor.status import install_log_format
+
+    warm_up()  # (its compiled code loaded before the priority drops)
+    background_priority(priority)
 
     install_log_format(log_format)
     try:

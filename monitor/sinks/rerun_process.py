@@ -15,8 +15,8 @@ change (at most every ``report_interval`` s) and once at the end (``"final": tru
 inside the child count in the parent's ``failures``. It ignores SIGINT/SIGTERM (a service
 manager signals the whole process group): it stops when told, or when the pipe closes because
 the monitor died, and finishes the recording either way. It runs below the monitor
-(:func:`~monitor.sinks.child.background_priority`, default ``SCHED_IDLE``), so the monitor's
-estimator thread always gets the CPU first.
+(:func:`~monitor.sinks.child.background_priority`, default ``nice`` 10), so the monitor's
+estimator thread gets the CPU first.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class RerunProcessSink(ChildProcessSink):
 
     def __init__(self, rrd_path=None, serve_port: int | None = None, memory_limit: str = "25%", *,
                  maxsize: int = 4096, max_bytes: int = 64 * 2**20, name: str = "rerun", start_timeout: float = 60.0,
-                 report_interval: float = 0.5, priority: str = "idle", stall_seconds: float = STALL_SECONDS,
+                 report_interval: float = 0.5, priority: str = "low", stall_seconds: float = STALL_SECONDS,
                  **rerun_options) -> None:
         check_outputs(rrd_path, serve_port)
         self.rrd_path = None if rrd_path is None else os.fspath(rrd_path)
@@ -165,7 +165,7 @@ def _report_key(st: dict) -> tuple:
     return st["failures"], st["dropped"], st["lost"], st["state"], st.get("broken"), st["undecodable"]
 
 
-def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5, priority="idle") -> None:
+def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interval=0.5, priority="low") -> None:
     """The recording process: pipe → decode → :class:`RerunSink`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
