@@ -84,7 +84,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="the MCAP and Rerun processes: idle (default; SCHED_IDLE: they run only on a core nothing "
                         "else wants and never delay an estimate, but fall behind and drop, counted, on a machine "
                         "kept busy) or low (nice 10: a share of the CPU under load, estimates later)")
-    lim = p.add_argument_group("input limits (README: Input limits; file: [run.limits])")
+    lim = p.add_argument_group("input limits (docs/limits.md; file: [run.limits])")
     lim.add_argument("--queue", type=int, default=None, metavar="N",
                      help=f"input queue capacity in messages (default {InputLimits().queue_messages}); "
                           "a full queue refuses and counts")

@@ -60,7 +60,6 @@ _V_MAX = PHYSICAL.v_max  # m/s
 
 __all__ = [
     "SCENARIOS",
-    "list_scenarios",
     "load_scenario",
     "merge",
     "describe",
@@ -96,10 +95,6 @@ MAX_SPINDLE_RPM = 100_000.0
 #: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz), and
 #: ``read_trial`` (identify) reads no more
 MAX_SIM_SAMPLES = MAX_TRIAL_SAMPLES
-
-
-def list_scenarios() -> list[str]:
-    return list(SCENARIOS)
 
 
 def describe() -> dict[str, str]:
