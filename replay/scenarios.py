@@ -362,7 +362,7 @@ def spindle_profile(sc: dict):
 # trajectories (sampled at Ts; the velocity loop holds v_r over each interval)
 # ---------------------------------------------------------------------------------------------
 # Every part is cut at ``limit`` samples (the trial's length): the trial keeps only its first n samples,
-# so a longer part changes nothing but would be allocated in full (a 1e6 s hold took 24 GB).
+# so a longer part changes nothing but would be allocated in full (a 1e6 s hold: ~24 GB).
 def _ramp(v0: float, v1: float, accel: float, Ts: float, limit: int) -> np.ndarray:
     n = max(int(math.ceil(abs(v1 - v0) / (accel * Ts))), 1)
     return v0 + (v1 - v0) * np.arange(1, min(n, limit) + 1) / n
