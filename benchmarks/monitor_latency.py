@@ -1,5 +1,6 @@
 """Benchmark of the live monitor (``feedmon run``) and the offline path (``feedmon run --from``): the
-table of issue 13 — measure, the figure when the issue was filed, the target, this run.
+table of its targets — measure, the figure before the performance work, the target, this run
+(docs/benchmarks.md).
 
 Usage::
 
@@ -58,8 +59,8 @@ from feedio.transport import query_status  # noqa: E402
 
 PREFIX = "feedmon-bench"
 
-#: issue 13: the figures when it was filed (quiet machine, one run) and the targets
-NOW = {
+#: the figures before the performance work (2026-11-22, quiet machine, one run) and the targets
+BEFORE = {
     "monitor": "p50 319 µs, p99 1.1 ms, max 4.6 ms",
     "e2e": "p50 735 µs, p99 3.3 ms, max 13 ms",
     "rate": "20,000 samples/s",
@@ -439,19 +440,19 @@ def main(argv=None) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"feedmon monitor benchmark (issue 13; loopback, sinks: {args.sinks}"
+    t = Table(title=f"feedmon monitor benchmark (loopback, sinks: {args.sinks}"
                     f"{'' if args.budget is None else f', budget M = {args.budget}'}; load average {load0} → "
                     f"{_loadavg()} on {os.cpu_count()} cores)")
-    for c in ("measure", "now (issue)", "target", "this run"):
+    for c in ("measure", "before", "target", "this run"):
         t.add_column(c)
     if lat is not None:
         s = lat["status"]
-        t.add_row("inside the monitor, receive → published", NOW["monitor"], TARGET["monitor"],
+        t.add_row("inside the monitor, receive → published", BEFORE["monitor"], TARGET["monitor"],
                   f"p50 {s['p50']:,.0f} µs, p99 {s['p99']:,.0f} µs, max {s['max']:,.0f} µs")
         t.add_row("  by stage, p50 / p99 µs", "", "",
                   ", ".join(f"{k} {v['p50']:,.0f}/{v['p99']:,.0f}" for k, v in lat["stages"].items()))
         p50, p99, mx = lat["e2e"]
-        t.add_row("send → estimate received, 333 Hz, 1 sample/message, sinks on", NOW["e2e"], TARGET["e2e"],
+        t.add_row("send → estimate received, 333 Hz, 1 sample/message, sinks on", BEFORE["e2e"], TARGET["e2e"],
                   f"p50 {p50:,.0f} µs, p99 {p99:,.0f} µs, max {mx:,.0f} µs ({lat['n']} samples, {lat['lost']} "
                   "without an estimate seen)")
         t.add_row("  CPU per message: monitor process / sink processes", "", "",
@@ -459,7 +460,7 @@ def main(argv=None) -> int:
                   f"sinks {lat['sinks']}")
     if rows is not None:
         best = max((r["rate"] for r in rows if r["ok"]), default=0.0)
-        t.add_row(f"highest sustained input, blocks of {args.block}, no drops", NOW["rate"], TARGET["rate"],
+        t.add_row(f"highest sustained input, blocks of {args.block}, no drops", BEFORE["rate"], TARGET["rate"],
                   f"{best:,.0f} samples/s")
         for r in rows:
             lost = f", {r['lost']} estimates lost in transit" if r["lost"] else ""
@@ -467,13 +468,13 @@ def main(argv=None) -> int:
                       f"{'kept up' if r['ok'] else 'FELL BEHIND'}: lag {r['lag']:.3f} s, drops {r['drops']} "
                       f"{r['sinks']}{lost}")
     if off is not None:
-        t.add_row("offline run --from, one axis", NOW["offline"], TARGET["offline"],
+        t.add_row("offline run --from, one axis", BEFORE["offline"], TARGET["offline"],
                   f"{off['rate']:,.0f} samples/s (median of {len(off['rates'])}: "
                   f"{', '.join(f'{r:,.0f}' for r in off['rates'])}; {off['samples']:,} samples)")
         t.add_row("  CPU per sample: all threads / the KRLS-T loop", "", "",
                   f"{off['cpu_us']:.1f} µs / {off['tracker_us']:.1f} µs")
     if multi is not None:
-        t.add_row("offline, 2-axis trial: one process / one worker per axis", NOW["multi"], TARGET["multi"],
+        t.add_row("offline, 2-axis trial: one process / one worker per axis", BEFORE["multi"], TARGET["multi"],
                   f"{multi['ratio']:.2f}× ({multi['one']:.2f} s / {multi['two']:.2f} s, medians of "
                   f"{len(multi['times'][1])}); files {'identical' if multi['same'] else 'DIFFERENT'}")
     Console(width=180).print(t)

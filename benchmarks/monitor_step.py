@@ -1,4 +1,4 @@
-"""Monitor step per sample with and without online β and health (issue 11: at most +30 %).
+"""Monitor step per sample with and without online β and health (target: at most +30 %).
 
     python benchmarks/monitor_step.py                         # this tree: adaptation off / track / apply
     python benchmarks/monitor_step.py --baseline /work/main   # and a tree without online β and health

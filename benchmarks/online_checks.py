@@ -1,4 +1,4 @@
-"""Online β and health, proven offline before they go into the monitor (issue 11).
+"""Online β and health, proven offline before they go into the monitor.
 
     python benchmarks/online_checks.py                      # all checks, 1 h nominal stream
     python benchmarks/online_checks.py --nominal-hours 2    # longer nominal stream
@@ -216,7 +216,7 @@ def run_axis(d: Drive, beta0, hp: dict, *, adapt=True, memory=5.0, inertia_memor
                time.perf_counter() - t0)
 
 
-def reml(d: Drive, beta_true, seconds: float) -> dict:
+def reml(d: Drive, seconds: float) -> dict:
     """σ1, σ2, γ by REML on the first ``seconds`` of the drive (``identify --tune``), λ = FORGETTING."""
     n = int(round(seconds / d.Ts))
     reg = regressors(d.form, d.v[:n], v_ref=d.exo[:n] if d.form == "velocity-loop" else None,
@@ -252,7 +252,7 @@ def check_drift(args):
     tr = d.truth
     beta0 = physical_to_beta(d.form, d.Ts, tr["inertia"][0], tr["damping"][0], gain=d.gain,
                              coulomb_pos=tr["coulomb_pos"][0], coulomb_neg=tr["coulomb_neg"][0])
-    for label, hp in (("thesis", THESIS), ("reml", reml(d, beta0, 20.0))):
+    for label, hp in (("thesis", THESIS), ("reml", reml(d, 20.0))):
         r = run_axis(d, beta0, hp, memory=args.memory)
         fixed = run_axis(d, beta0, hp, adapt=False)
         late = r.ticks >= 60.0
@@ -275,7 +275,7 @@ def check_payload(args):
     d = milling(60.0, t_step=20.0, step=0.2, name="payload")
     beta0 = physical_to_beta(d.form, d.Ts, d.truth["inertia"][0], d.truth["damping"][0], gain=d.gain, coulomb=False)
     nominal = milling(20.0, name="nominal")
-    for label, hp in (("thesis", THESIS), ("reml", reml(nominal, beta0, 20.0))):
+    for label, hp in (("thesis", THESIS), ("reml", reml(nominal, 20.0))):
         r = run_axis(d, beta0, hp, memory=args.memory)
         before = r.ticks < 20.0
         bad_before = sum(s != "ok" for s, b in zip(r.state, before) if b)
@@ -304,7 +304,7 @@ def check_spindle(args):
     d = milling(40.0, rpm_after=2400.0, t_change=20.0, name="spindle")
     beta0 = physical_to_beta(d.form, d.Ts, d.truth["inertia"][0], d.truth["damping"][0], gain=d.gain, coulomb=False)
     nominal = milling(20.0, name="nominal")
-    for label, hp in (("thesis", THESIS), ("reml", reml(nominal, beta0, 20.0))):
+    for label, hp in (("thesis", THESIS), ("reml", reml(nominal, 20.0))):
         r = run_axis(d, beta0, hp, memory=args.memory, period=0.02)
         k0 = int(round(20.0 / d.Ts))
         pre = int(np.max(r.level[:k0]))

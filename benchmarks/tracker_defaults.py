@@ -1,4 +1,4 @@
-"""Tracker defaults from measurements (issue 11, item 4): one-step disturbance prediction per setting.
+"""Tracker defaults from measurements: one-step disturbance prediction per setting.
 
     python benchmarks/tracker_defaults.py            # the table of the report (~5 min)
 

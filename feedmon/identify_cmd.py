@@ -1,4 +1,4 @@
-"""``feedmon identify``: candidate models chosen by evidence, a model file and a report (issue 10)."""
+"""``feedmon identify``: candidate models chosen by evidence, a model file and a report ."""
 
 from __future__ import annotations
 
@@ -59,8 +59,7 @@ def register(sub) -> None:
     p.add_argument("--start", type=float, metavar="S",
                    help="identify from S seconds after the trial's first sample (default: its start)")
     p.add_argument("--end", type=float, metavar="S",
-                   help="identify up to S seconds after the trial's first sample (default: its end); a trial "
-                        "longer than what one identification takes (README: Input limits) needs a window")
+                   help="identify up to S seconds after the trial's first sample (default: its end)")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and a markdown summary into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.set_defaults(func=run)
@@ -82,7 +81,7 @@ def run(args) -> int:
         raise
 
 
-#: the keys of the --json document (README, "Identification")
+#: the keys of the --json document (docs/identify.md, "Output")
 JSON_KEYS = ("form", "Ts", "chosen", "period", "candidates", "ls", "pl_lssvm", "model", "truth", "checks",
              "self_check", "error")
 

@@ -85,7 +85,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "keeps up on a machine kept busy by other work) or idle (SCHED_IDLE: they run only on a "
                         "core nothing else wants; estimates ~1 ms earlier at p99, but on a busy machine the log "
                         "starves, is replaced and loses messages, counted)")
-    lim = p.add_argument_group("input limits (README: Input limits; file: [run.limits])")
+    lim = p.add_argument_group("input limits (docs/limits.md; file: [run.limits])")
     lim.add_argument("--queue", type=int, default=None, metavar="N",
                      help=f"input queue capacity in messages (default {InputLimits().queue_messages}); "
                           "a full queue refuses and counts")

@@ -234,9 +234,6 @@ class _Copier:
         self.chunk_seconds_ns = int(chunk_seconds * 1e9)
         self._loose_t0: int | None = None  # first log time of unchunked messages since the last flush
 
-    def knows_channel(self, cid: int) -> bool:
-        return cid in self.channel_ids or cid in self.known_channels or cid in self.fallback_channels
-
     def schema(self, rec) -> None:
         self.known_schemas.setdefault(rec.id, rec)
         if rec.id == 0 or rec.id in self.schema_ids:

@@ -60,7 +60,6 @@ _V_MAX = PHYSICAL.v_max  # m/s
 
 __all__ = [
     "SCENARIOS",
-    "list_scenarios",
     "load_scenario",
     "merge",
     "describe",
@@ -96,10 +95,6 @@ MAX_SPINDLE_RPM = 100_000.0
 #: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz), and
 #: ``read_trial`` (identify) reads no more
 MAX_SIM_SAMPLES = MAX_TRIAL_SAMPLES
-
-
-def list_scenarios() -> list[str]:
-    return list(SCENARIOS)
 
 
 def describe() -> dict[str, str]:
@@ -367,7 +362,7 @@ def spindle_profile(sc: dict):
 # trajectories (sampled at Ts; the velocity loop holds v_r over each interval)
 # ---------------------------------------------------------------------------------------------
 # Every part is cut at ``limit`` samples (the trial's length): the trial keeps only its first n samples,
-# so a longer part changes nothing but would be allocated in full (a 1e6 s hold took 24 GB).
+# so a longer part changes nothing but would be allocated in full (a 1e6 s hold: ~24 GB).
 def _ramp(v0: float, v1: float, accel: float, Ts: float, limit: int) -> np.ndarray:
     n = max(int(math.ceil(abs(v1 - v0) / (accel * Ts))), 1)
     return v0 + (v1 - v0) * np.arange(1, min(n, limit) + 1) / n

@@ -1,5 +1,5 @@
 """One definition of the estimate flags (``kernels.flags.EstimateFlag``) for the numerics, the schema and
-the README; the schema loads without Numba."""
+docs/estimates.md; the schema loads without Numba."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from feedio import schema as S
 from kernels import flags, online
 from kernels.flags import DESCRIPTIONS, EstimateFlag, markdown_table
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ESTIMATES_DOC = Path(__file__).resolve().parents[1] / "docs" / "estimates.md"
 
 
 def test_the_bits_are_the_contract_and_the_schema_uses_them():
@@ -30,11 +30,11 @@ def test_the_bits_are_the_contract_and_the_schema_uses_them():
     assert online.STALE_BIT is flags.STALE_BIT and set(DESCRIPTIONS) == set(EstimateFlag)
 
 
-def test_readme_flags_table_is_the_intflag():
-    text = README.read_text(encoding="utf-8")
+def test_docs_flags_table_is_the_intflag():
+    text = ESTIMATES_DOC.read_text(encoding="utf-8")
     m = re.search(r"<!-- flags-table:start -->\n(.*?)\n<!-- flags-table:end -->", text, re.S)
-    assert m, "README has no flags table between the markers"
-    assert m.group(1) == markdown_table(), "README flags table differs from kernels.flags; paste markdown_table()"
+    assert m, "docs/estimates.md has no flags table between the markers"
+    assert m.group(1) == markdown_table(), "docs/estimates.md flags table differs from kernels.flags; paste markdown_table()"
 
 
 def test_schema_and_status_do_not_load_numba():

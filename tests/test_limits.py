@@ -1,5 +1,5 @@
 """One source of truth for the input limits: ``feedio.limits`` is what the schema, the pipeline, the
-daemon and the config loader use, and what the README's "Input limits" table says."""
+daemon and the config loader use, and what the table of docs/limits.md says."""
 
 from __future__ import annotations
 
@@ -12,11 +12,12 @@ import pytest
 from feedio import limits as L
 from feedio import schema as S
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+LIMITS_DOC = Path(__file__).resolve().parents[1] / "docs" / "limits.md"
+SECTION = "The monitor's input"
 
 
 def _section(title: str) -> str:
-    text = README.read_text(encoding="utf-8")
+    text = LIMITS_DOC.read_text(encoding="utf-8")
     start = text.index(f"## {title}\n")
     end = text.find("\n## ", start + 1)
     return text[start:end]
@@ -32,10 +33,10 @@ def _rows(section: str) -> dict[str, list[str]]:
     return out
 
 
-def test_readme_table_lists_every_configurable_limit_with_its_default_and_range():
-    rows = _rows(_section("Input limits"))
+def test_docs_table_lists_every_configurable_limit_with_its_default_and_range():
+    rows = _rows(_section(SECTION))
     for name in L.InputLimits.__struct_fields__:
-        assert name in rows, f"README 'Input limits' has no row for {name}"
+        assert name in rows, f"docs/limits.md '{SECTION}' has no row for {name}"
         default, allowed = rows[name][0], rows[name][1]
         assert default.split()[0] == repr(getattr(L.DEFAULT, name)), (name, default)
         lo, hi = L.field_range(L.InputLimits, name)
@@ -43,8 +44,8 @@ def test_readme_table_lists_every_configurable_limit_with_its_default_and_range(
 
 
 def test_contract_bounds_are_the_schemas():
-    sec = _section("Input limits")
-    assert L.NAME_PATTERN in README.read_text(encoding="utf-8")
+    sec = _section(SECTION)
+    assert L.NAME_PATTERN in LIMITS_DOC.read_text(encoding="utf-8")
     assert "2**53 − 1" in sec and "1e10" in sec and "1 000 000" in sec
     assert S.SEQ_MAX == L.SEQ_MAX == 2**53 - 1 and S.T_MAX == L.T_MAX == 1e10
     assert L.BLOCK_SAMPLES_MAX == L.field_range(L.InputLimits, "max_block_samples")[1]

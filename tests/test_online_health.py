@@ -257,7 +257,7 @@ def emps(tmp_path_factory, emps_file):
 
 def test_emps_inertia_is_recovered_from_a_model_with_beta1_20_percent_off(emps, capsys):
     """β1 (the force gain 1/… of the model file) +20 %: the online mass M is within 3 % of the offline
-    value from 10 s of motion on. (Fv and the Coulomb forces are not: see the README; printed here.)"""
+    value from 10 s of motion on. (Fv and the Coulomb forces are not: see docs/online-health.md, Limits; printed here.)"""
     d, model = emps
     m = load_model(model)
     offline = dict(m.physical)

@@ -32,7 +32,7 @@ from monitor.model_file import load_model
 
 PREFIX = "feedmon-seq"
 AXIS = "linear-drive/Z"
-TOP = 2**53 - 1  # feedio.schema's largest sequence number (CONTRACTS.md)
+TOP = 2**53 - 1  # feedio.schema's largest sequence number (docs/limits.md)
 W = online.REORDER_WINDOW
 
 

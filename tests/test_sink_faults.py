@@ -95,11 +95,6 @@ def _sink(st: dict, name: str) -> dict:
     return next(s for s in st["sinks"] if s["name"] == name)
 
 
-def _accounted(s: dict) -> None:
-    """Every message offered ended written, dropped or lost (nothing pending after the stop)."""
-    assert s["written"] + s["dropped"] + s["lost"] == s["offered"], s
-
-
 def _on_disk(files: list[str], tmp: Path) -> int:
     """Block messages (samples, estimates, health) in MCAP files; an incomplete one is finished by recover first."""
     n = 0
