@@ -16,3 +16,6 @@ _.bits
 
 # tests/test_linuxcnc.py: a module-scoped autouse fixture, run by pytest for every test of the file
 _._linuxcnc_here
+
+# tests/conftest.py: a pytest hook (the longest test files handed to the workers first), called by pytest
+_.pytest_collection_modifyitems
