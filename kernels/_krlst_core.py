@@ -111,13 +111,13 @@ pruning step (``O_REMOVED ≥ 0``) moves the new basis into the pruned one's slo
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep, unowned_array, view
+from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep
 from .covariance import KERNEL_FLOOR, envelope_bound, kernel_phases, kernel_row_phased, kernel_value
+from .layout import Field, Layout
 
 # ---- ist: integer state ---------------------------------------------------------------------
 I_N = 0           # dictionary size n
@@ -196,130 +196,68 @@ T_LEARNED = T_SIZE + 1      # 1.0 if an update ran
 N_TRACK = T_LEARNED + 1
 
 LAG_TOL = 1e-6
-_HEADER = 8                 # int buffer: cap, n8, dim, factors, table length, then the fields
+_HEADER = 8                 # int buffer: cap, n8, dim, factors, table length (the dims), then the fields
 
+#: every field of :class:`State`: ``cap = M+1`` slots, ``n8 = ⌈cap/8⌉·8``, ``nf`` kernel factors,
+#: ``ntab`` lag-table entries; roles: ``state`` is saved by snapshots, ``setting`` is rebuilt from the
+#: hyperparameters (kernel spec, lag table), ``scratch`` is not kept
+FIELDS = (
+    Field("layout", "i8", (_HEADER,), "layout", "cap, n8, dim, nf, ntab"),
+    Field("kinds", "i8", ("nf",), "setting", "factor kinds (Kernel.spec)"),
+    Field("cols", "i8", ("nf", 2), "setting", "factor columns"),
+    Field("order", "i8", ("cap",), "state", "slots in logical order, then the free ones"),
+    Field("ist", "i8", (N_IST,), "state", "integer state I_*"),
+    Field("params", "f8", ("nf", 3), "setting", "factor parameters"),
+    Field("tab", "f8", ("ntab",), "setting", "lag table k(L·Ts)"),
+    Field("fst", "f8", (N_FST,), "state", "float state F_*"),
+    Field("X", "f8", ("cap", "dim"), "state", "inputs of the slots"),
+    Field("Ph", "f8", ("cap", "2 * nf"), "state", "sin, cos of each slot's phase per periodic factor"),
+    Field("xph", "f8", ("2 * nf",), "scratch", "phases of a predicted x"),
+    Field("Q", "f8", ("n8", "n8"), "state", "strict upper triangle of Q ≈ K_D⁻¹"),
+    Field("Qd", "f8", ("n8",), "state", "diagonal of Q"),
+    Field("D", "f8", ("n8", "n8"), "state", "strict upper triangle of Δ/c, Δ = Σ − K_D, c = fst[F_DSC]"),
+    Field("Dd", "f8", ("n8",), "state", "diagonal of Δ/c"),
+    Field("K", "f8", ("n8", "n8"), "state", "strict upper triangle of K_D"),
+    Field("Kd", "f8", ("n8",), "state", "diagonal of K_D"),
+    Field("mu", "f8", ("n8",), "state", "posterior mean μ"),
+    Field("occ", "f8", ("n8",), "state", "1.0 for an occupied slot"),
+    Field("P", "f8", (N_P, "n8"), "state", "pending and armed vectors P_*"),
+    Field("W", "f8", (N_W, "n8"), "scratch", "scratch vectors W_*"),
+    Field("A", "f8", ("n8", "n8"), "scratch", "dense scratch of refresh_inverse"),
+)
 
-class State(NamedTuple):
-    """One tracker's complete state (see the module docstring; shapes from :func:`new_state`).
-
-    ``cap = M+1`` slots, ``n8 = ⌈cap/8⌉·8``, ``F`` kernel factors, ``L`` lag-table entries.
-    """
-
-    layout: np.ndarray   # int64 (8,): cap, n8, dim, F, L (derived)
-    kinds: np.ndarray    # int64 (F,): factor kinds (Kernel.spec)
-    cols: np.ndarray     # int64 (F, 2): factor columns
-    order: np.ndarray    # int64 (cap,): slots in logical order, then the free ones
-    ist: np.ndarray      # int64 (N_IST,)
-    params: np.ndarray   # float64 (F, 3): factor parameters
-    tab: np.ndarray      # float64 (L,): lag table k(L·Ts)
-    fst: np.ndarray      # float64 (N_FST,)
-    X: np.ndarray        # float64 (cap, dim): inputs of the slots
-    Ph: np.ndarray       # float64 (cap, 2F): sin, cos of each slot's phase per periodic factor
-    xph: np.ndarray      # float64 (2F,): scratch, phases of a predicted x
-    Q: np.ndarray        # float64 (n8, n8): strict upper triangle of Q ≈ K_D⁻¹
-    Qd: np.ndarray       # float64 (n8,): diagonal of Q
-    D: np.ndarray        # float64 (n8, n8): strict upper triangle of Δ/c, Δ = Σ − K_D, c = fst[F_DSC]
-    Dd: np.ndarray       # float64 (n8,): diagonal of Δ/c
-    K: np.ndarray        # float64 (n8, n8): strict upper triangle of K_D
-    Kd: np.ndarray       # float64 (n8,)
-    mu: np.ndarray       # float64 (n8,): posterior mean μ
-    occ: np.ndarray      # float64 (n8,): 1.0 for an occupied slot
-    P: np.ndarray        # float64 (N_P, n8): pending and armed vectors
-    W: np.ndarray        # float64 (N_W, n8): scratch
-    A: np.ndarray        # float64 (n8, n8): scratch of refresh_inverse
-
+#: the layout of :class:`State` (float fields padded to 8 doubles, so every matrix row and vector starts
+#: on a 64-byte boundary of an aligned buffer; the matrices, then the vectors, at the end)
+LAYOUT = Layout("State", __name__, FIELDS, dims=("cap", "n8", "dim", "nf", "ntab"), align=LANES,
+                placement=("layout", "kinds", "cols", "order", "ist", "params", "tab", "fst", "X", "Ph", "xph",
+                           "Q", "D", "K", "A", "Qd", "Dd", "Kd", "mu", "occ", "P", "W"),
+                doc="One tracker's complete state: named views of two base buffers (:data:`FIELDS`).")
+State = LAYOUT.tuple
 
 #: fields that are the tracker's state (saved by snapshots); the others are rebuilt
 #: from the hyperparameters (layout, kernel spec, lag table) or are scratch
-STATE_FIELDS = ("order", "ist", "fst", "X", "Ph", "Q", "Qd", "D", "Dd", "K", "Kd", "mu", "occ", "P")
+STATE_FIELDS = LAYOUT.names("state")
 
 
 def _round8(n):
     return (n + LANES - 1) // LANES * LANES
 
 
-N_VEC = 5          # rows of the vector block before P and W: Qd, Dd, Kd, mu, occ
-
-
-def _offsets(cap, n8, dim, nf, ntab):
-    """Where each field starts in the base buffers (float fields padded to 8 doubles, so every
-    matrix row and vector starts on a 64-byte boundary of an aligned buffer); the last entry of
-    each group is the buffer's length."""
-    i_kinds = _HEADER
-    i_cols = i_kinds + nf
-    i_order = i_cols + 2 * nf
-    i_ist = i_order + cap
-    i_end = i_ist + N_IST
-    f_params = 0
-    f_tab = f_params + (3 * nf + 7) // 8 * 8
-    f_fst = f_tab + (ntab + 7) // 8 * 8
-    f_x = f_fst + (N_FST + 7) // 8 * 8
-    f_ph = f_x + (cap * dim + 7) // 8 * 8
-    f_xph = f_ph + (cap * 2 * nf + 7) // 8 * 8
-    f_mats = f_xph + (2 * nf + 7) // 8 * 8
-    f_vecs = f_mats + 4 * n8 * n8
-    f_end = f_vecs + (N_VEC + N_P + N_W) * n8
-    return (i_kinds, i_cols, i_order, i_ist, i_end, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs, f_end)
-
-
-_offsets_nb = njit(cache=True, nogil=True)(_offsets)
-
-
 def state_views(fbuf, ibuf) -> State:
     """The :class:`State` of the two base buffers of :func:`new_buffers`, as NumPy views."""
-    cap, n8, dim, nf, ntab = (int(v) for v in ibuf[:5])
-    (i_kinds, i_cols, i_order, i_ist, _, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs,
-     f_end) = _offsets(cap, n8, dim, nf, ntab)
-    mats = fbuf[f_mats:f_vecs].reshape(4, n8, n8)
-    vecs = fbuf[f_vecs:f_end].reshape(N_VEC + N_P + N_W, n8)
-    return State(ibuf[:_HEADER], ibuf[i_kinds:i_cols], ibuf[i_cols:i_order].reshape(nf, 2), ibuf[i_order:i_ist],
-                 ibuf[i_ist:i_ist + N_IST], fbuf[f_params:f_params + 3 * nf].reshape(nf, 3),
-                 fbuf[f_tab:f_tab + ntab], fbuf[f_fst:f_fst + N_FST], fbuf[f_x:f_x + cap * dim].reshape(cap, dim),
-                 fbuf[f_ph:f_ph + cap * 2 * nf].reshape(cap, 2 * nf), fbuf[f_xph:f_xph + 2 * nf],
-                 mats[0], vecs[0], mats[1], vecs[1], mats[2], vecs[2], vecs[3], vecs[4],
-                 vecs[N_VEC:N_VEC + N_P], vecs[N_VEC + N_P:], mats[3])
+    return LAYOUT.views(fbuf, ibuf)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def state_of(fbuf, ibuf):
-    """The :class:`State` of the two base buffers, inside compiled code: the same fields as
-    :func:`state_views`, built as reference-free views (valid while the buffers are; for compiled
-    code only — from Python, arrays returned by it would not keep the buffers alive: use
-    :func:`state_views`)."""
-    cap = ibuf[0]
-    n8 = ibuf[1]
-    dim = ibuf[2]
-    nf = ibuf[3]
-    ntab = ibuf[4]
-    (i_kinds, i_cols, i_order, i_ist, _, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs,
-     _) = _offsets_nb(cap, n8, dim, nf, ntab)
-    nn = n8 * n8
-    v = f_vecs
-    return State(view(ibuf, 0, (_HEADER,)), view(ibuf, i_kinds, (nf,)), view(ibuf, i_cols, (nf, 2)),
-                 view(ibuf, i_order, (cap,)), view(ibuf, i_ist, (N_IST,)), view(fbuf, f_params, (nf, 3)),
-                 view(fbuf, f_tab, (ntab,)), view(fbuf, f_fst, (N_FST,)), view(fbuf, f_x, (cap, dim)),
-                 view(fbuf, f_ph, (cap, 2 * nf)), view(fbuf, f_xph, (2 * nf,)),
-                 view(fbuf, f_mats, (n8, n8)), view(fbuf, v, (n8,)),
-                 view(fbuf, f_mats + nn, (n8, n8)), view(fbuf, v + n8, (n8,)),
-                 view(fbuf, f_mats + 2 * nn, (n8, n8)), view(fbuf, v + 2 * n8, (n8,)),
-                 view(fbuf, v + 3 * n8, (n8,)), view(fbuf, v + 4 * n8, (n8,)),
-                 view(fbuf, v + N_VEC * n8, (N_P, n8)), view(fbuf, v + (N_VEC + N_P) * n8, (N_W, n8)),
-                 view(fbuf, f_mats + 3 * nn, (n8, n8)))
+#: ``state_of(fbuf, ibuf)``: the :class:`State` of the two base buffers inside compiled code, as
+#: reference-free views (valid while the buffers are; for compiled code only — from Python, arrays
+#: returned by it would not keep the buffers alive: use :func:`state_views`)
+state_of = LAYOUT.accessor("state_of", __file__)
 
-
-@njit(cache=True, nogil=True, inline="always")
-def unowned(st):
-    """``st`` with reference-free arrays (:func:`kernels._krlst_simd.unowned_array`), valid while ``st`` is
-    (compiled code only, as :func:`state_of`).
-
-    numba increments and decrements the reference count of every array of a ``State`` each time
-    it is passed on (~0.2 µs per call for its 22 arrays); the public functions below start with
-    this, and a compiled loop that calls them many times should too.
-    """
-    u = unowned_array
-    return State(u(st.layout), u(st.kinds), u(st.cols), u(st.order), u(st.ist), u(st.params), u(st.tab),
-                 u(st.fst), u(st.X), u(st.Ph), u(st.xph), u(st.Q), u(st.Qd), u(st.D), u(st.Dd), u(st.K),
-                 u(st.Kd), u(st.mu), u(st.occ), u(st.P), u(st.W), u(st.A))
+#: ``unowned(st)``: ``st`` with reference-free arrays, valid while ``st`` is (compiled code only, as
+#: :func:`state_of`). numba increments and decrements the reference count of every array of a ``State``
+#: each time it is passed on (~0.2 µs per call for its 22 arrays); the public functions below start
+#: with this, and a compiled loop that calls them many times should too.
+unowned = LAYOUT.unowned("unowned", __file__)
 
 
 def _aligned_zeros(n):
@@ -337,10 +275,7 @@ def new_buffers(budget: int, dim: int, forgetting: float, sn2: float, jitter: fl
     n8 = _round8(cap)
     nf = kinds.shape[0]
     ntab = tab.shape[0]
-    offsets = _offsets(cap, n8, dim, nf, ntab)
-    fbuf = _aligned_zeros(offsets[-1])
-    ibuf = np.zeros(offsets[4], dtype=np.int64)
-    ibuf[:5] = cap, n8, dim, nf, ntab
+    fbuf, ibuf = LAYOUT.new_buffers(_aligned_zeros, cap=cap, n8=n8, dim=dim, nf=nf, ntab=ntab)
     st = state_views(fbuf, ibuf)
     st.kinds[:] = kinds
     st.cols[:] = cols

@@ -83,15 +83,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from ._krlst_simd import view
 from ._snapshot import fill_views
+from .layout import Field, Layout
 
-__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
+__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_buffers",
            "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
            "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
 
@@ -158,41 +157,33 @@ class HealthConfig:
         return self
 
 
-class HealthState(NamedTuple):
-    """Named views of two base buffers (:func:`new_health_buffers`): ``par`` settings, ``ref``
-    rows ``[θ⁰, s⁰, ŝ^prior, scale]`` per :data:`PARAMS` (settings), ``acc`` the EWMA, run
-    lengths and window sums (state), ``stat`` rows ``[z, r, determined]`` of the last tick
-    (output), ``level`` one level per :data:`REASONS` (state, the ``int64`` buffer)."""
-
-    par: np.ndarray
-    ref: np.ndarray
-    acc: np.ndarray
-    stat: np.ndarray
-    level: np.ndarray
-
+#: every field of :class:`HealthState` (``k`` = len(:data:`PARAMS`)): ``par`` settings (Q_*), ``ref`` rows
+#: ``[θ⁰, s⁰, ŝ^prior, scale]`` per parameter (settings), ``acc`` the EWMA, run lengths and window sums
+#: (state, A_*), ``stat`` rows ``[z, r, determined]`` of the last tick (output), ``level`` one level per
+#: :data:`REASONS` (state)
+FIELDS = (
+    Field("par", "f8", (N_QPAR,), "setting", "thresholds and rates (Q_*)"),
+    Field("ref", "f8", (4, "k"), "setting", "θ⁰, s⁰, ŝ^prior, scale per PARAMS"),
+    Field("acc", "f8", (N_ACC,), "state", "EWMA, run lengths, window sums (A_*)"),
+    Field("stat", "f8", (3, "k"), "output", "z, r, determined of the last tick (S_*)"),
+    Field("level", "i8", (N_REASON,), "state", "level per REASONS"),
+)
+LAYOUT = Layout("HealthState", __name__, FIELDS, consts={"k": len(PARAMS)},
+                doc="Named views of the two base buffers of the health state (:data:`FIELDS`).")
+HealthState = LAYOUT.tuple
 
 #: the fields that are state (snapshots): the others are settings or the last tick's output
-STATE_FIELDS = ("acc", "level")
-_F_REF = N_QPAR
-_F_ACC = _F_REF + 4 * len(PARAMS)
-_F_STAT = _F_ACC + N_ACC
-_F_END = _F_STAT + 3 * len(PARAMS)
+STATE_FIELDS = LAYOUT.names("state")
 
 
 def health_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> HealthState:
     """The :class:`HealthState` of the two base buffers, as NumPy views."""
-    k = len(PARAMS)
-    return HealthState(fbuf[:N_QPAR], fbuf[_F_REF:_F_ACC].reshape(4, k), fbuf[_F_ACC:_F_STAT],
-                       fbuf[_F_STAT:_F_END].reshape(3, k), ibuf[:N_REASON])
+    return LAYOUT.views(fbuf, ibuf)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def health_state_of(fbuf, ibuf):
-    """The :class:`HealthState` of the two base buffers inside compiled code (reference-free views,
-    valid while the buffers are)."""
-    k = len(PARAMS)
-    return HealthState(view(fbuf, 0, (N_QPAR,)), view(fbuf, _F_REF, (4, k)), view(fbuf, _F_ACC, (N_ACC,)),
-                       view(fbuf, _F_STAT, (3, k)), view(ibuf, 0, (N_REASON,)))
+#: ``health_state_of(fbuf, ibuf)``: the :class:`HealthState` of the two base buffers inside compiled code
+#: (reference-free views, valid while the buffers are)
+health_state_of = LAYOUT.accessor("health_state_of", __file__)
 
 
 def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
@@ -202,8 +193,7 @@ def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
     cfg = (config or HealthConfig()).validate()
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive number of seconds, got {Ts!r}")
-    fbuf = np.zeros(_F_END)
-    ibuf = np.zeros(N_REASON, dtype=np.int64)
+    fbuf, ibuf = LAYOUT.new_buffers()
     hs = health_state_views(fbuf, ibuf)
     par = hs.par
     par[Q_A] = 1.0 - math.exp(-Ts / cfg.tau)
@@ -223,11 +213,6 @@ def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
     hs.acc[A_EWMA] = 1.0
     hs.stat[:] = np.nan
     return fbuf, ibuf
-
-
-def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: HealthConfig | None = None) -> HealthState:
-    """A fresh :class:`HealthState` (views of :func:`new_health_buffers`)."""
-    return health_state_views(*new_health_buffers(Ts, theta_file, se_file, se_prior, scale, config))
 
 
 def validate_health_state(hs: HealthState) -> None:
