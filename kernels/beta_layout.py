@@ -40,9 +40,8 @@ N_CNT = 13
 (S_SCALE, S_VHAT, S_VSIM, S_FJN, S_FJD, S_FJV, S_FJW) = range(7)
 N_SST = 7
 #: share of a full memory (1/(1 − λ)) the fast inertia estimate needs before it is tested: two time
-#: constants (4 s of learning samples) — the first seconds of a cut, while the disturbance model is still
-#: learning the process, read as a +60 % step at 6–9 standard errors (an air-cut model on
-#: milling-spindle-change)
+#: constants (4 s of learning samples), so the first seconds of a cut, while the disturbance model is
+#: still learning the process, are not read as a payload step
 FAST_FILL = 1.0 - math.exp(-2.0)
 #: learning samples between two applications of the forgetting (2) (with λ_β^m): keeps the
 #: per-sample work at rank-one updates of Λ⁻¹; the forgetting per sample is 1 − λ_β ≈ 3·10⁻⁴

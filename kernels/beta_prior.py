@@ -160,7 +160,7 @@ def forgetting_operators(basis: np.ndarray, lam: float, lam_j: float) -> np.ndar
 
 def prior_covariance(beta0, names, Ts: float, *, gain: float | None = None, beta_cov=None,
                      rel: float = 0.3) -> np.ndarray:
-    """``P₀ = P_file + G diag((ρ θ₀)²) Gᵀ`` (module docstring, "Prior").
+    """``P₀ = P_file + G diag((ρ θ₀)²) Gᵀ`` (:mod:`kernels.beta_tracker`).
 
     ``beta_cov``: the model file's covariance of β (p×p), or its standard errors (p,),
     or None. ``rel`` = ρ, the relative drift allowance on inertia, damping, Coulomb

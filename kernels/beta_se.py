@@ -155,8 +155,7 @@ def physical_se(bs, theta, se, cov_work):
         for j in range(p):
             v += gk[j] * x[j]                     # the sandwich gᵀΛ⁻¹ΨΛ⁻ᵀg
             vm += gk[j] * t1[j]                   # the model-based gᵀΛ⁻¹g (t1 = Λ⁻ᵀg)
-        # the larger of the two: the sandwich of a few effective samples is too small (the first seconds
-        # of the real EMPS drive: a damping 'drift' of 8 standard errors at 3 s that was gone at 5 s)
+        # the larger of the two: the sandwich of a few effective samples is too small
         v = max(v, vm)
         se[k] = math.sqrt(v) if v > 0.0 else 0.0
     return True

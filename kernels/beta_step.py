@@ -430,7 +430,7 @@ def _beta_step(bs, z, e, R, gate, bout):
     omega = par[P_OMEGA]
     vk = z[1]
     d = 1 if vk > omega else (-1 if vk < -omega else 0)   # direction of motion (0: dead band)
-    # learn only in motion, and not from the first sample of a run of motion (module docstring)
+    # learn only in motion, and not from the first sample of a run of motion (:mod:`kernels.beta_tracker`)
     learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
     cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
@@ -454,7 +454,7 @@ def _beta_step(bs, z, e, R, gate, bout):
     if bs.lay[L_ISP] >= 0 and bs.lay[L_IONE] >= 0:
         # (3') a moving sample says nothing about the rest direction d = e_sp + e_sn + e_one (zᵀd = 0 for
         # every z in motion); z̃ = z − ẑ has a component along d only through the tracker's memory of
-        # samples at rest, which β does not learn from: learn with z̃, ζ̃ off d (module docstring)
+        # samples at rest, which β does not learn from: learn with z̃, ζ̃ off d (:mod:`kernels.beta_tracker`)
         zt = _off_rest(zt, vec[V_ZTR], bs.lay)
         zeta = _off_rest(zeta, vec[V_ZETAR], bs.lay)
         ztg = _gain_direction(C, zt, zeta, g, row)

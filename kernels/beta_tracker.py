@@ -1,165 +1,53 @@
-"""Online β: the linear feed-drive parameters estimated jointly with the KRLS-T tracker.
+"""Online β: the linear feed-drive parameters estimated jointly with the KRLS-T tracker (method §9).
 
-Thesis future work (b), method §2 and §6. The model is the PL-ARX regression
+The model is the PL-ARX regression ``y(k) = v_m(k+1) = βᵀz(k) + f(x(k)) + ε(k)``, ``f ~ GP(0, s0² k)``,
+with ``f`` tracked by KRLS-T; this is the recursive counterpart of PL-LSSVM's GLS estimate (method §4)
+with the *tracker's* GP. KRLS-T's posterior mean is linear in its targets and nothing else in its state
+depends on them, so a *shadow* mean ``M_Z`` (one column per regressor, in the tracker's slots, trained
+with the same gains on ``z``) gives, for every β,
 
-    y(k) = v_m(k+1) = βᵀ z(k) + f(x(k)) + ε(k),      f ~ GP(0, s0² k),
+    μ(β) = μ_y − M_Z β,   f̂(x | β) = qᵀμ(β)                                                  (1)
+    e(k) = ỹ − β̂ᵀz̃,  z̃ = z − ẑ,  ẑ = M_Zᵀq,  E[e²] = R + z̃ᵀPz̃,  R = s0² σ_y² (eq. 2.17/2.20)
 
-with the disturbance ``f`` tracked by KRLS-T. Offline, PL-LSSVM estimates β by
-generalised least squares with the GP covariance (method §4); this module is the
-recursive counterpart with the *tracker's* GP (its kernel, γ, forgetting λ, budget M).
+and β given the data is recursive least squares on ``(z̃, e)`` weighted by ``1/R`` (tested against the
+dense formula ``(Z̃ᵀA⁻¹Z̃)⁻¹ Z̃ᵀA⁻¹ y``). Per learning sample (Λ the information, kept as ``Λ⁻¹``; ζ̃ the
+instrument, = z̃ without it):
 
-Joint recursion (exact for λ = 1 and no pruning)
-------------------------------------------------
-KRLS-T's posterior mean is linear in its training targets and every other part
-of its state (dictionary, ``Q``, ``Σ``, the gains) is independent of them. Next to
-the tracker's mean ``μ`` (trained on the residual) keep a *shadow* mean ``M_Z`` —
-one column per regressor, in the tracker's slots — trained with the same gains on
-the regressors ``z`` themselves (forget ``√λ``, add ``z̃/σ_y² [h; σ_f²]``, drop the
-pruned slot). Then, for every β,
+    g = Λ⁻¹ζ̃,  s = z̃ᵀΛ⁻¹ζ̃,  S = R + s,  ν = e/√S                   gain direction, innovation (3)
+    z̃, ζ̃ ← x − (xᵀd/3) d,  d = e_sp + e_sn + e_one                 off the rest direction     (3')
+    w = min(1, c/|ν|),  R_w = R/w                                  Huber weight               (4)
+    β̂ ← β̂ + g e/(R_w + s),  Λ⁻¹ ← Λ⁻¹ − g (z̃ᵀΛ⁻¹)/(R_w + s)         RLS update                 (5)
+    Ψ ← Ψ + ζ̃ζ̃ᵀ R/R_w²,  P = Λ⁻¹ΨΛ⁻ᵀ                               sandwich covariance        (5')
+    every m = 16 samples, per physical parameter (G = ∂β/∂θ at β₀, T = G diag(√λ_i^m) G⁻¹,
+    S = G diag(√(1 − λ_i^m)) G⁻¹):  Λ ← TᵀΛT + SᵀΛ₀S, Ψ likewise,
+    β̂ ← β̂ + Λ⁻¹SᵀΛ₀S(β₀ − β̂)                                      forgetting to N(β₀, P₀)    (2)
+    projection onto the physical set when β̂ leaves it                                         (7)
+    μ ← μ − M_Z(β̂ − β_trk),  β_trk ← β̂ every 64 samples; in between the
+    predictions are corrected exactly by ẑᵀ(β̂ − β_trk)                                        (6)
 
-    μ(β) = μ_y − M_Z β,          f̂(x | β) = qᵀμ(β)                                   (1)
+Why: (6) keeps (1) true, so the published disturbance always goes with the current β̂ and stays
+unbiased while β adapts. ``z̃`` is the part of ``z`` the GP cannot predict, so β learns only what is
+persistently correlated with it and the tracker keeps what varies fast or periodically. (5) moves β̂
+only along excited directions; nothing is learned at rest (``|v_m| ≤ Ω``: stiction), from the first
+sample of a run of motion (the Coulomb column steps, the drive's force does not), below ``min_speed``
+(:mod:`kernels.low_speed`) or during warm-up. (3') keeps the rest direction — told only by samples at
+rest — out of the update. (2) runs on learning samples only, so ``P`` is bounded by ``P₀`` and a
+standstill neither learns nor forgets; inertia (memory ``T_J``) and friction (``T_β``) forget at their
+own rates because they are excited at different times. The prior ``P₀ = P_file + G diag((ρθ₀)²) Gᵀ``
+(:func:`prior_covariance`) bounds how far the parameters may plausibly move. The instrument of the
+``v_m`` column is the model's own prediction made before ``v_m`` was seen (recursive IV, Young),
+because ``v_m``'s noise is fed back by the loop. The projection (7) (Simon & Chia 2002) keeps β̂ a
+physical drive. Measurements behind these choices: ``docs/design-decisions.md``, "Kernels".
 
-and the one-step prediction error of the joint model is a difference of GP innovations
+Modes: with the re-basing (6) this is *apply*; with ``rebase_every = 0`` (*track*) the tracker's mean
+keeps the model file's β and β̂ is only estimated and reported.
 
-    e(k) = y − β̂ᵀz − f̂(x | β̂) = ỹ − β̂ᵀz̃,    z̃ = z − ẑ,  ẑ = M_Zᵀq  (the GP's prediction
-    of z from the past, made exactly as the tracker predicts the residual),
-    E[e²] = R + z̃ᵀPz̃,   R = s0² σ_y²  (the tracker's predictive variance, eq. 2.17/2.20).
-
-β given the data is recursive least squares on ``(z̃, e)`` weighted by ``1/R`` — the
-sequential form of PL-LSSVM's ``(Z̃ᵀA⁻¹Z̃)⁻¹ Z̃ᵀA⁻¹ y`` (tested against that dense
-formula). Per trained sample, after the tracker's own update (Λ = information, kept as
-``Λ⁻¹`` by rank-one updates; ζ̃ the instrument, = z̃ without it):
-
-    g = Λ⁻¹ζ̃,  s = z̃ᵀΛ⁻¹ζ̃ (≥ 0),  S = R + s,  ν = e/√S      gain direction, innovation  (3)
-    z̃, ζ̃ ← x − (xᵀd/3) d,  d = e_sp + e_sn + e_one          off the rest direction      (3')
-      (in the update only, when the Coulomb columns and ``one`` are present; ν keeps z̃)
-    w = min(1, c/|ν|),  R_w = R/w                           Huber weight                (4)
-    β̂ ← β̂ + g e/(R_w + s),  Λ⁻¹ ← Λ⁻¹ − g (z̃ᵀΛ⁻¹)/(R_w + s)   RLS update (Λ += ζ̃z̃ᵀ/R_w) (5)
-    Ψ ← Ψ + ζ̃ζ̃ᵀ R/R_w²,   P = Λ⁻¹ Ψ Λ⁻ᵀ                    covariance (sandwich)       (5')
-    every m = 16 learning samples, per physical parameter θ_i (G = ∂β/∂θ at β₀; λ_i = λ_J for
-    the inertia, λ_β for damping, Coulomb and offset; T = G diag(√λ_i^m) G⁻¹,
-    S = G diag(√(1 − λ_i^m)) G⁻¹):
-    Λ ← TᵀΛT + SᵀΛ₀S,  Ψ likewise,                              forgetting back to the
-    β̂ ← β̂ + Λ⁻¹ SᵀΛ₀S (β₀ − β̂)                               prior N(β₀, P₀)             (2)
-    (with λ_J = λ_β: Λ ← λ_β^m Λ + (1 − λ_β^m) Λ₀, the plain exponential forgetting)
-    projection onto the physical set when β̂ leaves it                                   (7)
-    μ ← μ − M_Z (β̂ − β_trk),  β_trk ← β̂   every 64 samples;  in between every prediction
-    and residual is corrected exactly by ẑᵀ(β̂ − β_trk)                                   (6)
-
-(6) keeps (1) true, so the published disturbance (``f_next`` = ŷ − ẑᵀ(β̂ − β_trk), the
-filtered ``f``) always goes with the current β̂: no memory of an old β error lingers in
-the tracker, and the disturbance estimate stays unbiased while β adapts. The lazy
-re-basing, the scale factor that carries the forgetting of ``M_Z`` (``√λ`` per arm on one
-scalar instead of the matrix) and the batched forgetting (2) save work (one read and one
-update pass over ``M_Z`` per sample). They are exact for the published values; what
-differs from a per-sample re-basing is that the tracker's own ``s0²`` and pruning choice
-see the residual of a β at most 64 samples old.
-
-Why these choices
------------------
-* **Two time scales without chasing.** ``z̃`` is the part of ``z`` the GP cannot
-  predict. What the kernel explains — slow variation within σ1 and the memory of the
-  forgetting, the periodic pattern with period ψ — carries no information about β,
-  exactly as in the batch GLS: a constant feed (z̃ ≈ 0), a standstill, or a regressor
-  that moves with the periodic disturbance teach β nothing. β learns what is
-  persistently correlated with the unpredictable part of z; the tracker keeps what
-  varies fast or periodically. The price: a drive quantity the kernel can explain
-  (a slowly varying force ∝ v, a Coulomb step the tracker absorbs within a sample) is
-  weakly determined — its standard error says so.
-* **Excitation awareness.** (5) moves β̂ only along ``Λ⁻¹ζ̃`` and adds information only
-  in the direction of ``z̃``: an unexcited direction keeps its estimate (exactly, with
-  an uncorrelated prior). Nothing is learned while ``|v_m(k)| ≤ Ω`` (the model has no
-  static friction: at standstill the force balance is stiction), nor from the first sample of a
-  run of motion (out of the dead band or after a reversal: the Coulomb column steps there, which
-  the tracker could not foresee, while the drive's real force does not step — stiction before,
-  presliding after; learning from that sample reads the step as "less Coulomb friction", measured
-  −80 % at 15–20 standard errors on the EMPS drive with its correct model), nor while
-  ``|v_m(k)| ≤ min_speed`` when identification found that the friction law does not hold at low
-  speed (:mod:`kernels.low_speed`: a Stribeck rise or a gradual Coulomb onset; the samples around
-  reversals and starts carry large innovations, and learning from them read the departure as
-  friction — EMPS with its own model: damping +25 %, Coulomb −11 % against least squares; with
-  min_speed 0.035 m/s damping −8 % ± 20 % (not determined), Coulomb +0.8 %),
-  during the tracker's warm-up (M trained samples), on samples the caller does not gate in (stale,
-  restarted chain), or when adaptation is off. Optionally (``reject``, off by default)
-  not on a sample with a very large ``|ν|`` (an abrupt disturbance the tracker could not
-  foresee): that also delays learning after a real parameter step, because a wrong β
-  makes ``|ν|`` large too — measured trade-off in :class:`OnlineBeta`.
-  Every regressor in motion has ``z_sp + z_sn + z_one = 0`` (−1 in its direction's Coulomb
-  column, +1 in ``one``): the *rest direction* ``d`` — the Coulomb asymmetry against the
-  offset — is told only by samples at rest, which β does not learn from. The tracker does learn
-  them, so ``ẑ`` (its prediction of z from its dictionary) and with it ``z̃`` have a component
-  along ``d`` after every rest. Learning from it read the tracker's memory of the rests as a
-  split of the friction: on a 250 Hz shaker trial, with the model identified on another seed,
-  "coulomb_pos +51 %, coulomb_neg −41 %, offset −48 %" at 6–8 standard errors in the first 8 s.
-  (3') takes ``d`` out of the update: the split keeps the model file's values (reported "not
-  determined" online), the symmetric Coulomb friction and everything else learn as before.
-* **No wind-up.** (2) runs on learning samples only, so a standstill neither learns nor
-  forgets. Under excitation the information of a direction is that of the last ~T_β
-  seconds of learning; without it Λ relaxes to Λ₀, so ``P`` is bounded by the prior
-  ``P₀`` and never grows without limit. Forgetting *back to the prior* (mean and
-  covariance, like KRLS-T's own forgetting) also bounds how far a weakly determined
-  direction can wander: there β̂ is the posterior of the prior and a few seconds of data.
-* **Drift rate trade-off, per parameter.** ``T_β`` (``memory``, default 5 s of learning
-  samples) is the drift setting of damping, Coulomb and offset: a parameter drifting linearly at
-  rate ``ṙ`` (relative per second) is followed with a lag of about ``1.5 ṙ·T_β`` (measured
-  1.4–1.7; part of the excess over ``ṙ·T_β``: the weights ``1/R = 1/(s0²σ_y²)`` fall while the
-  tracker's residual under the file's β grows with the drift, so older samples weigh more — a scale
-  from the joint innovations instead of ``s0²`` removed a fifth of the excess, but made the first
-  seconds overconfident: 32 false reports at the start of the soak stream);
-  an excited step decays like ``exp(−t/T_β)``; standard errors scale like ``1/√T_β``. Measured
-  through ``feedmon run --from`` on the ``shaker-drift`` trial (friction +30 % in 120 s, 0.25 %/s,
-  REML-tuned tracker), largest error from 60 s on over seeds 3, 4, 7: damping 3.3–3.4 % and
-  Coulomb 3.8–4.2 % with T_β = 5 s; 5.4–5.5 % and 6.3–6.6 % with 10 s. The inertia has its own
-  memory ``T_J`` (``inertia_memory``, default 10 s): friction is excited whenever the axis moves,
-  the inertia only while it accelerates — at the feed starts of a machining cycle, every 18 s in
-  the soak stream. With one memory for all, 5 s made the inertia rest on the last one or two
-  accelerations, with an error heavier-tailed than its standard error: over the 24 h soak stream
-  (``benchmarks/soak.py``) it gave 15 false inertia warnings (−4.8 % at 6.0–6.3 standard errors);
-  10 s none (largest |z| 4.5). The forgetting (2) is therefore applied in the coordinates of the
-  physical parameters, each at its own rate; inertia and friction drift on different time scales
-  anyway (a payload changes in steps, friction with temperature and lubrication). A plant known to
-  drift faster or slower is served by ``[adaptation] memory`` / ``inertia_memory``.
-* **Prior.** ``P₀ = P_file + G diag((ρθ₀)²) Gᵀ``: the model file's covariance of β plus a
-  drift allowance ρ (default 0.3, relative, on inertia, damping, Coulomb ± and offset —
-  Coulomb and offset relative to the friction scale ``max(d_p, c_n, |offset|, 1 N)`` — mapped
-  through ``G = ∂β/∂θ``). Least-squares standard errors in a model file assume white noise
-  and are far smaller than the changes the monitor must follow; ρ says how far the
-  parameters may plausibly move in the field and is the bound of ``P``.
-* **Closed-loop noise.** The measured velocity ``v_m(k)`` is in ``z(k)`` and its noise is
-  fed back by the loop and sits in ``ε(k) = n(k+1) − p n(k)``: least squares is biased
-  by ``−p σ_n²`` per unit of excitation, which dominates when the excitation is the
-  noise itself (constant-feed milling). The instrument of the ``v_m`` column is the
-  model's own one-step prediction ``v̂(k) = β̂ᵀz(k−1) + f̂(k−1)`` made before ``v_m(k)`` was
-  seen (ζ̃ = ζ − ẑ); the estimate is then recursive IV (Young), consistent under white
-  noise, with the sandwich covariance (5'). The force command ``u`` (force-input form)
-  is its own instrument: the controller law is unknown to the monitor.
-* **Robustness.** The Huber weight (4) bounds one sample's influence to ``c = 3``
-  standard deviations (0.3 % of Gaussian samples are touched).
-* **Physical constraints** (7): β̂ is projected in the metric of ``P``,
-  ``β̂ ← β̂ − P a (aᵀβ̂ − b)/(aᵀPa)`` for each violated ``aᵀβ ≤ b`` (Simon & Chia 2002,
-  estimate projection), onto the pole ``p_d ∈ [10⁻⁶, 1 − 10⁻³(1 − p_d0)]``, input gain
-  ``β1 ≥ 10⁻³ β1₀`` and Coulomb magnitudes ≥ 0. The output is always a physical drive.
-
-Physical parameters and standard errors (delta method, method §2): with ``b`` the force
-gain (``β1`` in force-input form, ``β1/K`` in velocity-loop form) and ``p`` the pole,
-``B = (1 − p)/b``, ``J = B Ts/(−ln p)``, ``d_p = β_sp/b``, ``c_n = −β_sn/b``,
-``offset = −β_one/b`` and ``Var θ_k = g_kᵀ P g_k`` with the analytic gradient ``g_k = ∂θ_k/∂β``
-(:func:`physical_se`). Without the loop gain ``K`` (velocity-loop) ``K = 1`` is used: the
-values are then ``J/K, B/K, d/K`` (the caller labels them so).
-
-Modes (``monitor`` settings ``[adaptation] mode``): the recursion above with the re-basing (6)
-is *apply* — the published disturbance goes with β̂. With the re-basing off (*track*:
-``rebase_every = 0``) the tracker's mean keeps going with the model file's β (β_trk = β₀ for
-ever), its predictions are published unchanged, and β̂, P and the innovations of the joint
-model are still exact by (1): β is estimated and reported without touching the disturbance.
-
-Wiring (stumpy-style): the state is one :class:`BetaState` of named views of two base buffers
-(``float64``, ``int64``; :func:`new_beta_buffers`, :func:`beta_state_views`, and inside compiled
-code :func:`beta_state_of`), as the KRLS-T core's :class:`~kernels._krlst_core.State`.
-:func:`joint_arm` and :func:`joint_update` replace ``_krlst_core.arm`` / ``update`` in a compiled
-loop (:func:`kernels.online.track_block`; the tracker-side contract is listed in
-:func:`joint_arm`); :class:`OnlineBeta` is the thin Python API (river-style ``learn_one`` /
-``predict_one``), with snapshot/restore as plain arrays (:data:`STATE_FIELDS`).
+The module is split by concern: :mod:`kernels.beta_layout` (the state's field list and slots),
+:mod:`kernels.beta_prior` (prior, constraints, a fresh state), :mod:`kernels.linalg_small`,
+:mod:`kernels.beta_step` (the compiled step, run by :func:`kernels.online.track_block`),
+:mod:`kernels.beta_se` (physical parameters and standard errors); this module is the thin Python API,
+:class:`OnlineBeta` (river-style ``learn_one`` / ``predict_one``, snapshot/restore as plain arrays
+of :data:`STATE_FIELDS`), and re-exports the names callers use.
 """
 
 from __future__ import annotations
@@ -277,7 +165,7 @@ class JointStep(NamedTuple):
 
 
 class OnlineBeta:
-    """Online β joined to a KRLS-T tracker (module docstring); river-style API.
+    """Online β joined to a KRLS-T tracker (:mod:`kernels.beta_tracker`); river-style API.
 
     Parameters
     ----------
@@ -304,15 +192,14 @@ class OnlineBeta:
         T_β (s of learning samples), the forgetting time constant of the friction parameters —
         damping, Coulomb, offset (default 5 s).
     inertia_memory : float, optional
-        The inertia's (default 10 s; None: ``memory``). Module docstring, "Drift rate trade-off".
+        The inertia's (default 10 s; None: ``memory``): the inertia is excited only while the axis
+        accelerates, so it needs a longer memory than friction.
     huber : float
         Huber threshold c (standard deviations, default 3).
     reject, hold : float, optional
         A sample with ``|ν| ≥ reject`` teaches nothing, nor do the ``hold`` seconds after one.
         Off by default (None): a wrong β makes ``|ν|`` large too, so the rule delays the
-        learning after a real parameter step (measured: payload step detected after 7 s instead
-        of 1 s with the REML tracker at reject = 8; 20 s with a 0.1 s hold); it halves what β
-        takes from an abrupt 300 N disturbance (0.4 % instead of 1.3 %).
+        learning after a real parameter step (the trade-off measured: ``docs/design-decisions.md``).
     instrument : bool
         Use the model's one-step velocity prediction as the instrument of the measured
         velocity (default True: removes the bias of noise that the velocity loop feeds back).

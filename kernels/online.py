@@ -17,7 +17,7 @@ for each arriving sample ``j`` of a block,
 6. about once a second of data time (:attr:`OnlineConfig.tick_period`), and at once when the
    model-validity level changes, a health report (``ticks``, :data:`TICK`).
 
-Online β and health (issue 11; method "Online β and health"). With adaptation on
+Online β and health (method §9). With adaptation on
 (:attr:`OnlineConfig.mode` *track* or *apply*) steps 3–5 are the joint recursion of
 :mod:`kernels.beta_tracker` (:func:`~kernels.beta_tracker.joint_update`,
 :func:`~kernels.beta_tracker.joint_arm`): β̂ and its covariance learn from every sample the
@@ -41,10 +41,10 @@ with ψ = 60/n_nominal.
 Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
 what links consecutive blocks is :class:`OnlineState` (``int64`` sequence numbers and counters,
 ``float64`` for the rest): NamedTuples the loop builds from a few plain typed buffers
-(:class:`ConfigBuffers`, :class:`StateBuffers`; a tuple argument would cost ~1.5 µs per call to
-type). The output of a block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`,
-:data:`IROWS`), and ``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β
-estimation), add fields to these.
+(:class:`ConfigBuffers`, :class:`StateBuffers`: numba types each array of a tuple argument on every
+call), generated from one field list each (:data:`CONFIG_SPEC`, :data:`STATE_SPEC`). The output of a
+block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`, :data:`IROWS`), and ``counts``
+(:data:`COUNTERS`). To extend the loop, add fields to these lists.
 
 Sequence numbers and time
 -------------------------
