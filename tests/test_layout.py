@@ -73,7 +73,7 @@ def test_core_state_is_its_field_list():
     _check_compiled(core.state_of, core.LAYOUT, fbuf, ibuf)
     assert core.STATE_FIELDS == tuple(f.name for f in core.FIELDS if f.role == "state")
     for k in range(30):
-        tr.learn(np.array([k * TS]), math.sin(k / 5.0))
+        tr.learn_one(k * TS, math.sin(k / 5.0))
     snap = tr.snapshot()
     assert set(core.STATE_FIELDS) <= set(snap)
     assert not set(snap) & set(core.LAYOUT.names("scratch", "layout"))
