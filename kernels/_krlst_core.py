@@ -1,430 +1,137 @@
 """Allocation-free ``@njit`` core of the KRLS-T tracker (method §6, thesis eq. 2.14–2.22).
 
-Reference: kafbox ``lib/krlst.m`` (S. Van Vaerenbergh), back-to-the-prior forgetting.
-The public class is :class:`kernels.krlst.KRLST`; this module holds only the numerics.
-Kernel values come from :mod:`kernels.covariance` (one formula per kernel).
-
-State
------
-Everything a tracker reads or writes is one :class:`State` (a ``NamedTuple`` of arrays):
-the kernel's factor table and lag table, the dictionary, the matrices, the pending and
-armed vectors and the scratch. :func:`new_state` is the single definition of every
-field's shape and dtype. All fields are views of two base buffers (``float64`` and
-``int64``; :func:`new_buffers`, :func:`state_views`). A compiled function takes a ``State``
-(``arm(st, x, out)``); Python calls go through ``*_buffers`` twins that take the two
-buffers and rebuild the views inside (:func:`state_of`), because numba types and unboxes
-each array of a tuple argument separately (~0.1 µs per array, ~2 µs per call for a whole
-``State``). Compiled code passes a ``State`` on without reference counting (:func:`unowned`).
-
-Slots and storage
------------------
-The ``M+1`` dictionary positions are *slots*. ``order[:n]`` lists the slots of the ``n``
-dictionary elements in the dictionary's logical order (kafbox's order, oldest first),
-``order[n:]`` the free slots; ``occ[s]`` is 1 for an occupied slot. A free slot has a zero
-row and column in every matrix and zero entries in every vector, so the sweeps run over
-the contiguous range ``[0, hw)`` (``hw``: high-water mark of used slots) without gathering.
-Adding a basis writes one row/column into a free slot; when a basis is pruned in the same
-step the new one takes over its slot (one row/column written instead of one zeroed and one
-written). Nothing is shifted and no kernel value is recomputed. Only the pruning ``argmin``
-walks the logical order, so ties resolve to the first (oldest) element as Matlab's ``min``.
-
-The symmetric matrices ``Q ≈ K_D⁻¹``, ``Δ = Σ − K_D`` and ``K_D = k(D, D) + ε_j I`` are kept
-as strict upper triangles (``Q``, ``D``, ``K``, ``(n8, n8)``, ``n8 = ⌈(M+1)/8⌉·8``) plus
-diagonals (``Qd``, ``Dd``, ``Kd``), swept by the 8-lane kernels of
-:mod:`kernels._krlst_simd` (half of each matrix per pass; the lanes are explicit, so the
-results do not depend on the vector width or on the caller). ``Δ`` instead of ``Σ`` makes the
-forgetting ``Σ ← λΣ + (1−λ)K_D`` (2.19) the scaling ``Δ ← λΔ``, which is kept as a scalar:
-``Δ = c·D`` with ``c = fst[F_DSC]`` (folded into ``D`` before it underflows), and the ``h``
-pass yields ``K_D q`` (needed by ``refine``) along with ``h = Σ q = c·Dq + K_D q``.
+Reference: kafbox ``lib/krlst.m`` (S. Van Vaerenbergh), back-to-the-prior forgetting. The public class
+is :class:`kernels.krlst.KRLST`; this module holds only the numerics, on the :class:`State` of
+:mod:`kernels._krlst_state` (its slots, storage and named slots are described there). Kernel values
+come from :mod:`kernels.covariance` (one formula per kernel).
 
 Deferred rank-one updates
 -------------------------
-The rank-one (rank-two with a removal) updates of ``Q`` and ``Δ`` at the end of step ``t``
-are stored as *pending* vectors and applied inside the passes of step ``t+1`` (``q = Q k_t``
-and ``h = Σq``), so each matrix is swept once per step for them. :func:`predict`
-applies pending updates on the fly without writing; ``KRLST`` materialises them for its
-``Q``/``Sigma`` properties.
-
-Cost per step at ``M = 100`` (2-core Xeon, numbers from ``benchmarks/krlst_step.py``): the three
-sweeps do ~13 multiply–adds per stored matrix entry (``Q``: pending rank-two, ``Q k_t``,
-``Q μ_new``, ``Q(k_t − K_D q)``; ``D``: pending rank-one, ``D q``; ``K``: ``K_D q``), ~70 % of the
-step; the rest is the ``k_t`` row, the pruning criterion and the row/column writes.
+The rank-one (rank-two with a removal) updates of ``Q`` and ``Δ`` at the end of step ``t`` are stored
+as *pending* vectors and applied inside the passes of step ``t+1`` (``q = Q k_t`` and ``h = Σq``), so
+each matrix is swept once per step. :func:`predict` applies pending updates on the fly without
+writing; ``KRLST`` materialises them for its ``Q``/``Sigma`` properties. The ``h`` pass also yields
+``K_D q`` (for ``refine``): ``h = Σ q = c·Dq + K_D q``.
 
 Uniform-grid lag table
 ----------------------
-For a stationary kernel on a scalar time input sampled on a grid of step ``Ts``,
-``k(t − t_i)`` depends on the integer lag ``L = (t − t_i)/Ts`` only. With a table
-``tab[L] = kernel_value(L·Ts, 0)`` (built once by :func:`build_lag_table`) the ``k_t``
-row costs ``n`` lookups instead of ``n`` ``exp``. A lag further than ``1e-6·Ts`` from an
-integer falls back to the direct evaluation. A kernel with a squared-exponential envelope is 0
-beyond the lag where the envelope falls below the floor of kernel values
-(:data:`~kernels.covariance.KERNEL_FLOOR`, 2⁻⁵¹¹: ``≈ σ1·√(2·354)``, 2.8 s for σ1 = 0.1 s; values
-below it are 0 on both paths, no subnormal numbers): the table ends there with a ``0.0`` and every
-older dictionary entry gets 0 without evaluation (a short REML-tuned σ1 with old entries in the
-dictionary once cost 18 µs per sample instead of 5 µs, in ``exp``, ``sin``, the zero-mean kernel's
-Bessel series and subnormal arithmetic). Other kernels end at their first 0 or
-at ``nmax`` entries, and a lag beyond is evaluated directly. Without a table the row is :func:`kernels.covariance.kernel_row_phased` (one
-``exp`` per entry; the sines of periodic factors from each slot's cached phases ``Ph``,
-e.g. the spindle angle of ``x = (t, θ)``).
+For a stationary kernel on a scalar time input sampled on a grid of step ``Ts``, ``k(t − t_i)``
+depends on the integer lag ``L = (t − t_i)/Ts`` only: ``tab[L] = k(L·Ts)`` (:func:`build_lag_table`)
+makes the ``k_t`` row ``n`` lookups instead of ``n`` ``exp``. A lag further than ``1e-6·Ts`` from an
+integer falls back to the direct evaluation. A kernel with a squared-exponential envelope is 0 beyond
+the lag where the envelope falls below :data:`~kernels.covariance.KERNEL_FLOOR`: the table ends there
+with a ``0.0`` and every older dictionary entry gets 0 without evaluation (no subnormal arithmetic, no
+``exp`` of old entries). Other kernels end at their first 0 or at ``nmax`` entries. Without a table
+the row is :func:`kernels.covariance.kernel_row_phased` (the sines of periodic factors from each
+slot's cached phases ``Ph``).
 
 Split step (predict_next / update)
 ----------------------------------
-:func:`learn` is :func:`arm` (steps 1–2: forget, then predict at ``x``) followed by
-:func:`update` (steps 3–5, or 6 on the first sample). :func:`arm` writes the forgetting
-into the state and keeps everything the update needs ("armed"): ``k_t, q, h`` and
-``k_t − K_D q`` in rows of ``P``, ``k_tt, ŷ, γ², σ_f², σ_y²`` in ``fst`` and ``x`` itself in
-the free slot ``X[order[n]]`` (where step 3 puts it). The monitor arms on ``x(k+1)`` as
-soon as it arrives and publishes the prediction, then calls :func:`update` with the
-residual once ``v_m(k+2)`` is known. Arming again without an update re-arms at the new
-``x``; the forgetting is then applied once per :func:`arm`. :func:`track` runs
-``[update(y_j)] + arm(x_j)`` over a block of arriving samples.
+:func:`learn` is :func:`arm` (steps 1–2: forget, then predict at ``x``) followed by :func:`update`
+(steps 3–5, or 6 on the first sample). :func:`arm` writes the forgetting into the state and keeps
+everything the update needs ("armed"): ``k_t, q, h`` and ``k_t − K_D q`` in rows of ``P``,
+``k_tt, ŷ, γ², σ_f², σ_y²`` in ``fst`` and ``x`` in the free slot ``X[order[n]]``. The monitor arms on
+``x(k+1)`` as soon as it arrives and publishes the prediction, then calls :func:`update` with the
+residual once ``v_m(k+2)`` is known. Arming again without an update re-arms at the new ``x``.
+:func:`track` runs ``[update(y_j)] + arm(x_j)`` over a block of arriving samples.
 
-Accuracy of Q: refinement and periodic re-inversion
----------------------------------------------------
-kafbox's rank-one update multiplies the current error of ``Q`` by up to ~``|q|²/γ²``
-(``γ² ≳ ε_j``) in a single step: with ``ε_j = 1e-6`` ``max|Q K_D − I|`` is ~3e-6
-typically and exceeds 1e-5 on ~10 % of the steps (up to ~1e-3), and it is back at
-that level ~100 steps after an exact re-inversion, so re-inverting alone cannot hold
-it down. With ``ist[I_REFINE]`` the update uses ``q ← q + Q(k_t − K_D q)`` (one step
-of iterative refinement; ``K_D q`` comes from the h pass, ``Q(k_t − K_D q)`` shares the
-``Q μ_new`` sweep of the pruning criterion) and the error stays ~1e-9. Every
-``refresh_every`` steps (0 = never), at the end of :func:`update`, :func:`refresh_inverse`
-recomputes ``Q`` from ``K_D`` by a Cholesky factorisation in the dense scratch ``A``; the
-new ``Q`` supersedes a pending ``Q`` update.
-
-Named slots
------------
-``ist`` (int64): ``I_*``; ``fst`` (float64): ``F_*`` (the ``F_KTT…F_SY2`` block is the armed
-prediction); rows of ``P`` (pending and armed vectors, state): ``P_*``; rows of ``W``
-(scratch): ``W_*``. Output buffers: :func:`update`/:func:`learn` write ``O_*`` (``N_OUT``),
-:func:`arm`/:func:`predict` write ``A_*`` (``N_ARM``), a row of :func:`track` is ``T_*``
-(``N_TRACK``).
-
-Compiled code that runs beside the tracker on the same slots (the shadow means of
-:mod:`kernels.beta_tracker`) reads, after :func:`arm`, ``P[P_Q]`` (``q``) and ``P[P_H]`` (``h``;
-:func:`update` does not change it) and the armed ``fst[F_YM…F_SY2]``; the new basis goes to the
-free slot ``order[n]``; after :func:`update` a reduced step (``O_REDUCED``) leaves it free, a
-pruning step (``O_REMOVED ≥ 0``) moves the new basis into the pruned one's slot, which is then
-``order[n − 1]``, and frees ``order[n]``. These are part of the layout: keep them when changing it.
+Accuracy of Q
+-------------
+kafbox's rank-one update can multiply the error of ``Q`` by up to ``|q|²/γ²`` (``γ² ≳ ε_j``) in one
+step, and re-inverting alone does not hold it down. With ``ist[I_REFINE]`` the update uses
+``q ← q + Q(k_t − K_D q)`` (one step of iterative refinement, sharing the ``Q μ_new`` sweep of the
+pruning criterion). Every ``refresh_every`` steps (0 = never) :func:`refresh_inverse` recomputes ``Q``
+from ``K_D`` by a Cholesky factorisation in the dense scratch ``A``; the new ``Q`` supersedes a
+pending update.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep, unowned_array, view
+from ._krlst_dense import _refresh_inverse, materialize, refresh_inverse  # noqa: F401 (re-exported)
+from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep
+from ._krlst_state import (  # noqa: F401 (the state's names are the core's: core.I_N, core.state_of, …)
+    A_G2,
+    A_MEAN,
+    A_SF2,
+    A_SY2,
+    F_DEN,
+    F_DSC,
+    F_G2,
+    F_INVTS,
+    F_JIT,
+    F_KTT,
+    F_LAM,
+    F_NUM,
+    F_QBINV,
+    F_QSC,
+    F_S02,
+    F_SC,
+    F_SF2,
+    F_SN2,
+    F_SY2,
+    F_YM,
+    FIELDS,
+    I_ARMED,
+    I_HW,
+    I_M,
+    I_N,
+    I_QPEND,
+    I_REFINE,
+    I_REFRESH,
+    I_SPEND,
+    I_STEPS,
+    LAG_TOL,
+    LAYOUT,
+    N_ARM,
+    N_FST,
+    N_IST,
+    N_OUT,
+    N_P,
+    N_TRACK,
+    N_W,
+    O_FILT,
+    O_FILTVAR,
+    O_G2,
+    O_MEAN,
+    O_REDUCED,
+    O_REMOVED,
+    O_S02,
+    O_SF2,
+    O_SIZE,
+    O_SY2,
+    P_A,
+    P_G,
+    P_H,
+    P_KT,
+    P_P,
+    P_Q,
+    P_RES,
+    STATE_FIELDS,
+    T_LEARNED,
+    T_NEXT,
+    T_S02,
+    T_SIZE,
+    W_H,
+    W_KQ,
+    W_KT,
+    W_M,
+    W_Q,
+    W_U,
+    W_W,
+    State,
+    new_buffers,
+    new_state,
+    state_of,
+    state_views,
+    unowned,
+    validate_state,
+)
 from .covariance import KERNEL_FLOOR, envelope_bound, kernel_phases, kernel_row_phased, kernel_value
-
-# ---- ist: integer state ---------------------------------------------------------------------
-I_N = 0           # dictionary size n
-I_HW = 1          # high-water mark of used slots
-I_M = 2           # budget M
-I_STEPS = 3       # trained samples (refresh schedule)
-I_QPEND = 4       # pending Q update: 0 none, 1 rank-one, 2 rank-one + removal downdate
-I_SPEND = 5       # pending Δ rank-one update: 0/1
-I_REFRESH = 6     # refresh_every (0 = never)
-I_ARMED = 7       # 1 between arm and update
-I_REFINE = 8      # 1: refine q before the Q update
-N_IST = 9
-
-# ---- fst: float state ------------------------------------------------------------------------
-F_LAM = 0         # λ
-F_SN2 = 1         # σ² = 1/γ
-F_JIT = 2         # ε_j
-F_NUM = 3         # num of s0² (2.20)
-F_DEN = 4         # den of s0²
-F_S02 = 5         # s0² = num/den
-F_QSC = 6         # 1/γ² of the pending Q update
-F_QBINV = 7       # 1/[Q_new]_rr of the pending removal
-F_SC = 8          # 1/(c σ_y²) of the pending Δ update (in units of D)
-F_INVTS = 9       # 1/Ts of the lag table (0: none)
-F_KTT = 10        # armed k_tt = k(x,x) + ε_j
-F_YM = 11         # armed ŷ
-F_G2 = 12         # armed γ²
-F_SF2 = 13        # armed σ_f²
-F_SY2 = 14        # armed σ_y²
-F_DSC = 15        # c: Δ = c·D (the forgetting Δ ← λΔ is c ← λc)
-N_FST = 16
-
-# ---- P: pending and armed vectors (state) ------------------------------------------------------
-P_P = 0           # p = [q; −1] of the pending Q update
-P_A = 1           # a = [Q_new]_{:,r} of the pending removal
-P_G = 2           # g = [h; σ_f²] of the pending Δ update
-P_KT = 3          # armed k_t
-P_Q = 4           # armed q = Q k_t
-P_H = 5           # armed h = Σ q
-P_RES = 6         # armed k_t − K_D q (refine)
-N_P = 7
-
-# ---- W: scratch vectors (not state) --------------------------------------------------------------
-W_KT = 0          # predict: k_t;  update: the pruning criterion
-W_Q = 1           # predict: q
-W_H = 2           # predict: h
-W_KQ = 3          # K_D q
-W_M = 4           # update: μ_new;  predict: √λ μ
-W_U = 5           # update: Q μ_new;  refresh: diag of U
-W_W = 6           # update: Q (k_t − K_D q);  refresh: diag of Z
-N_W = 7
-
-# ---- output buffers ------------------------------------------------------------------------------
-O_MEAN = 0        # ŷ (prediction of y before it was seen)
-O_SY2 = 1         # σ_y²
-O_SF2 = 2         # σ_f²
-O_G2 = 3          # γ²
-O_REMOVED = 4     # logical index of the pruned basis, −1: none
-O_REDUCED = 5     # 1.0: the new sample itself was dropped
-O_FILT = 6        # E[f(x) | y] = ŷ + σ_f² (y − ŷ)/σ_y²
-O_FILTVAR = 7     # Var[f(x) | y] = σ_f² − σ_f⁴/σ_y²
-O_S02 = 8         # s0² after the step
-O_SIZE = 9        # n after the step
-N_OUT = 10
-
-A_MEAN = 0        # ŷ at the armed x
-A_SF2 = 1         # σ_f²
-A_SY2 = 2         # σ_y² = sn2 + σ_f²
-A_G2 = 3          # γ²
-N_ARM = 4
-
-T_NEXT = N_OUT              # track row: [0, N_OUT) the update (NaN when not learned), then the arm
-T_S02 = T_NEXT + N_ARM      # s0² after the sample
-T_SIZE = T_S02 + 1          # n after the sample
-T_LEARNED = T_SIZE + 1      # 1.0 if an update ran
-N_TRACK = T_LEARNED + 1
-
-LAG_TOL = 1e-6
-_HEADER = 8                 # int buffer: cap, n8, dim, factors, table length, then the fields
-
-
-class State(NamedTuple):
-    """One tracker's complete state (see the module docstring; shapes from :func:`new_state`).
-
-    ``cap = M+1`` slots, ``n8 = ⌈cap/8⌉·8``, ``F`` kernel factors, ``L`` lag-table entries.
-    """
-
-    layout: np.ndarray   # int64 (8,): cap, n8, dim, F, L (derived)
-    kinds: np.ndarray    # int64 (F,): factor kinds (Kernel.spec)
-    cols: np.ndarray     # int64 (F, 2): factor columns
-    order: np.ndarray    # int64 (cap,): slots in logical order, then the free ones
-    ist: np.ndarray      # int64 (N_IST,)
-    params: np.ndarray   # float64 (F, 3): factor parameters
-    tab: np.ndarray      # float64 (L,): lag table k(L·Ts)
-    fst: np.ndarray      # float64 (N_FST,)
-    X: np.ndarray        # float64 (cap, dim): inputs of the slots
-    Ph: np.ndarray       # float64 (cap, 2F): sin, cos of each slot's phase per periodic factor
-    xph: np.ndarray      # float64 (2F,): scratch, phases of a predicted x
-    Q: np.ndarray        # float64 (n8, n8): strict upper triangle of Q ≈ K_D⁻¹
-    Qd: np.ndarray       # float64 (n8,): diagonal of Q
-    D: np.ndarray        # float64 (n8, n8): strict upper triangle of Δ/c, Δ = Σ − K_D, c = fst[F_DSC]
-    Dd: np.ndarray       # float64 (n8,): diagonal of Δ/c
-    K: np.ndarray        # float64 (n8, n8): strict upper triangle of K_D
-    Kd: np.ndarray       # float64 (n8,)
-    mu: np.ndarray       # float64 (n8,): posterior mean μ
-    occ: np.ndarray      # float64 (n8,): 1.0 for an occupied slot
-    P: np.ndarray        # float64 (N_P, n8): pending and armed vectors
-    W: np.ndarray        # float64 (N_W, n8): scratch
-    A: np.ndarray        # float64 (n8, n8): scratch of refresh_inverse
-
-
-#: fields that are the tracker's state (saved by snapshots); the others are rebuilt
-#: from the hyperparameters (layout, kernel spec, lag table) or are scratch
-STATE_FIELDS = ("order", "ist", "fst", "X", "Ph", "Q", "Qd", "D", "Dd", "K", "Kd", "mu", "occ", "P")
-
-
-def _round8(n):
-    return (n + LANES - 1) // LANES * LANES
-
-
-N_VEC = 5          # rows of the vector block before P and W: Qd, Dd, Kd, mu, occ
-
-
-def _offsets(cap, n8, dim, nf, ntab):
-    """Where each field starts in the base buffers (float fields padded to 8 doubles, so every
-    matrix row and vector starts on a 64-byte boundary of an aligned buffer); the last entry of
-    each group is the buffer's length."""
-    i_kinds = _HEADER
-    i_cols = i_kinds + nf
-    i_order = i_cols + 2 * nf
-    i_ist = i_order + cap
-    i_end = i_ist + N_IST
-    f_params = 0
-    f_tab = f_params + (3 * nf + 7) // 8 * 8
-    f_fst = f_tab + (ntab + 7) // 8 * 8
-    f_x = f_fst + (N_FST + 7) // 8 * 8
-    f_ph = f_x + (cap * dim + 7) // 8 * 8
-    f_xph = f_ph + (cap * 2 * nf + 7) // 8 * 8
-    f_mats = f_xph + (2 * nf + 7) // 8 * 8
-    f_vecs = f_mats + 4 * n8 * n8
-    f_end = f_vecs + (N_VEC + N_P + N_W) * n8
-    return (i_kinds, i_cols, i_order, i_ist, i_end, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs, f_end)
-
-
-_offsets_nb = njit(cache=True, nogil=True)(_offsets)
-
-
-def state_views(fbuf, ibuf) -> State:
-    """The :class:`State` of the two base buffers of :func:`new_buffers`, as NumPy views."""
-    cap, n8, dim, nf, ntab = (int(v) for v in ibuf[:5])
-    (i_kinds, i_cols, i_order, i_ist, _, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs,
-     f_end) = _offsets(cap, n8, dim, nf, ntab)
-    mats = fbuf[f_mats:f_vecs].reshape(4, n8, n8)
-    vecs = fbuf[f_vecs:f_end].reshape(N_VEC + N_P + N_W, n8)
-    return State(ibuf[:_HEADER], ibuf[i_kinds:i_cols], ibuf[i_cols:i_order].reshape(nf, 2), ibuf[i_order:i_ist],
-                 ibuf[i_ist:i_ist + N_IST], fbuf[f_params:f_params + 3 * nf].reshape(nf, 3),
-                 fbuf[f_tab:f_tab + ntab], fbuf[f_fst:f_fst + N_FST], fbuf[f_x:f_x + cap * dim].reshape(cap, dim),
-                 fbuf[f_ph:f_ph + cap * 2 * nf].reshape(cap, 2 * nf), fbuf[f_xph:f_xph + 2 * nf],
-                 mats[0], vecs[0], mats[1], vecs[1], mats[2], vecs[2], vecs[3], vecs[4],
-                 vecs[N_VEC:N_VEC + N_P], vecs[N_VEC + N_P:], mats[3])
-
-
-@njit(cache=True, nogil=True, inline="always")
-def state_of(fbuf, ibuf):
-    """The :class:`State` of the two base buffers, inside compiled code: the same fields as
-    :func:`state_views`, built as reference-free views (valid while the buffers are; for compiled
-    code only — from Python, arrays returned by it would not keep the buffers alive: use
-    :func:`state_views`)."""
-    cap = ibuf[0]
-    n8 = ibuf[1]
-    dim = ibuf[2]
-    nf = ibuf[3]
-    ntab = ibuf[4]
-    (i_kinds, i_cols, i_order, i_ist, _, f_params, f_tab, f_fst, f_x, f_ph, f_xph, f_mats, f_vecs,
-     _) = _offsets_nb(cap, n8, dim, nf, ntab)
-    nn = n8 * n8
-    v = f_vecs
-    return State(view(ibuf, 0, (_HEADER,)), view(ibuf, i_kinds, (nf,)), view(ibuf, i_cols, (nf, 2)),
-                 view(ibuf, i_order, (cap,)), view(ibuf, i_ist, (N_IST,)), view(fbuf, f_params, (nf, 3)),
-                 view(fbuf, f_tab, (ntab,)), view(fbuf, f_fst, (N_FST,)), view(fbuf, f_x, (cap, dim)),
-                 view(fbuf, f_ph, (cap, 2 * nf)), view(fbuf, f_xph, (2 * nf,)),
-                 view(fbuf, f_mats, (n8, n8)), view(fbuf, v, (n8,)),
-                 view(fbuf, f_mats + nn, (n8, n8)), view(fbuf, v + n8, (n8,)),
-                 view(fbuf, f_mats + 2 * nn, (n8, n8)), view(fbuf, v + 2 * n8, (n8,)),
-                 view(fbuf, v + 3 * n8, (n8,)), view(fbuf, v + 4 * n8, (n8,)),
-                 view(fbuf, v + N_VEC * n8, (N_P, n8)), view(fbuf, v + (N_VEC + N_P) * n8, (N_W, n8)),
-                 view(fbuf, f_mats + 3 * nn, (n8, n8)))
-
-
-@njit(cache=True, nogil=True, inline="always")
-def unowned(st):
-    """``st`` with reference-free arrays (:func:`kernels._krlst_simd.unowned_array`), valid while ``st`` is
-    (compiled code only, as :func:`state_of`).
-
-    numba increments and decrements the reference count of every array of a ``State`` each time
-    it is passed on (~0.2 µs per call for its 22 arrays); the public functions below start with
-    this, and a compiled loop that calls them many times should too.
-    """
-    u = unowned_array
-    return State(u(st.layout), u(st.kinds), u(st.cols), u(st.order), u(st.ist), u(st.params), u(st.tab),
-                 u(st.fst), u(st.X), u(st.Ph), u(st.xph), u(st.Q), u(st.Qd), u(st.D), u(st.Dd), u(st.K),
-                 u(st.Kd), u(st.mu), u(st.occ), u(st.P), u(st.W), u(st.A))
-
-
-def _aligned_zeros(n):
-    """``n`` zeros starting on a 64-byte boundary (the sweeps load 8 doubles at a time)."""
-    raw = np.zeros(n + LANES)
-    skip = (-raw.ctypes.data // 8) % LANES
-    return raw[skip:skip + n]
-
-
-def new_buffers(budget: int, dim: int, forgetting: float, sn2: float, jitter: float, grid_step: float | None,
-                refresh_every: int, refine: bool, spec: tuple, tab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two base buffers ``(float64, int64)`` of a fresh tracker (see :func:`new_state`)."""
-    kinds, params, cols = spec
-    cap = budget + 1
-    n8 = _round8(cap)
-    nf = kinds.shape[0]
-    ntab = tab.shape[0]
-    offsets = _offsets(cap, n8, dim, nf, ntab)
-    fbuf = _aligned_zeros(offsets[-1])
-    ibuf = np.zeros(offsets[4], dtype=np.int64)
-    ibuf[:5] = cap, n8, dim, nf, ntab
-    st = state_views(fbuf, ibuf)
-    st.kinds[:] = kinds
-    st.cols[:] = cols
-    st.params[:] = params
-    st.tab[:] = tab
-    st.order[:] = np.arange(cap)
-    st.ist[I_M] = budget
-    st.ist[I_REFRESH] = refresh_every
-    st.ist[I_REFINE] = 1 if refine else 0
-    st.fst[F_LAM] = forgetting
-    st.fst[F_SN2] = sn2
-    st.fst[F_JIT] = jitter
-    st.fst[F_INVTS] = 0.0 if not grid_step else 1.0 / grid_step
-    st.fst[F_DSC] = 1.0
-    return fbuf, ibuf
-
-
-def new_state(budget: int, dim: int, forgetting: float, sn2: float, jitter: float, grid_step: float | None,
-              refresh_every: int, refine: bool, spec: tuple, tab: np.ndarray) -> State:
-    """A fresh :class:`State` for budget ``M``, input dimension ``dim``, the kernel ``spec``
-    (:meth:`Kernel.spec`) and lag table ``tab`` (empty for none): the single definition of
-    every field's shape and dtype (see :class:`State`)."""
-    return state_views(*new_buffers(budget, dim, forgetting, sn2, jitter, grid_step, refresh_every, refine,
-                                    spec, tab))
-
-
-def validate_state(st: State) -> None:
-    """Raise ``ValueError`` (naming the field) unless ``st`` holds a state the core can use safely.
-
-    For a state read from outside (a snapshot): the compiled code indexes with ``order``,
-    ``ist[I_N]`` and ``ist[I_HW]`` without bounds checks and relies on the layout above
-    (free slots, lower triangles and padding zero). Checked: every float finite; ``n ≤ M``,
-    ``n ≤ hw ≤ M+1``, ``order`` a permutation with the dictionary below ``hw``, ``occ`` its
-    indicator; the pending/armed modes; free slots, lower triangles and padding of ``Q``, ``D``,
-    ``K`` zero and ``K_D``'s diagonal positive on the dictionary; ``0 < c ≤ 1``; the phases in
-    ``[−1, 1]``; the signal-power accumulators and an armed ``σ_y²`` possible.
-    """
-    cap, n8 = int(st.layout[0]), int(st.layout[1])
-    ist, fst, order = st.ist, st.fst, st.order
-    for name in ("fst", "X", "Ph", "Q", "Qd", "D", "Dd", "K", "Kd", "mu", "occ", "P"):
-        if not np.isfinite(getattr(st, name)).all():
-            raise ValueError(f"state {name!r} holds non-finite values")
-    M, n, hw = int(ist[I_M]), int(ist[I_N]), int(ist[I_HW])
-    if M != cap - 1:
-        raise ValueError(f"state 'ist' budget {M} does not match its {cap} slots")
-    if not 0 <= n <= M:
-        raise ValueError(f"state 'ist' dictionary size {n} is outside 0…{M}")
-    if not n <= hw <= cap:
-        raise ValueError(f"state 'ist' high-water mark {hw} is outside {n}…{cap}")
-    for name, slot, allowed in (("pending Q update", I_QPEND, (0, 1, 2)), ("pending Σ update", I_SPEND, (0, 1)),
-                                ("armed flag", I_ARMED, (0, 1)), ("refine flag", I_REFINE, (0, 1))):
-        if int(ist[slot]) not in allowed:
-            raise ValueError(f"state 'ist' {name} is {int(ist[slot])}, expected one of {allowed}")
-    if ist[I_STEPS] < 0 or ist[I_REFRESH] < 0:
-        raise ValueError("state 'ist' step count and refresh interval must be >= 0")
-    if not np.array_equal(np.sort(order), np.arange(cap)):
-        raise ValueError(f"state 'order' is not a permutation of 0…{cap - 1}")
-    used = order[:n]
-    if n and int(used.max()) >= hw:
-        raise ValueError("state 'order' puts a dictionary element beyond the high-water mark")
-    occ = np.zeros(n8)
-    occ[used] = 1.0
-    if not np.array_equal(st.occ, occ):
-        raise ValueError("state 'occ' does not mark exactly the dictionary's slots")
-    free = np.setdiff1d(np.arange(n8), used)
-    for name, U, d in (("Q", st.Q, st.Qd), ("D", st.D, st.Dd), ("K", st.K, st.Kd)):
-        if np.tril(U).any():
-            raise ValueError(f"state {name!r} has entries on or below the diagonal (it holds the strict upper triangle)")
-        if U[free, :].any() or U[:, free].any() or d[free].any():
-            raise ValueError(f"state {name!r} has entries in free slots")
-    if n and not (st.Kd[used] > 0.0).all():
-        raise ValueError("state 'Kd': the kernel matrix needs a positive diagonal")
-    if st.mu[free].any() or st.P[P_P:P_G + 1][:, free].any():
-        raise ValueError("state 'mu'/'P' have entries in free slots")
-    if st.P[:, cap:].any():
-        raise ValueError("state 'P' has entries beyond the slots")
-    if np.abs(st.Ph).max(initial=0.0) > 1.0:
-        raise ValueError("state 'Ph' holds a sine or cosine outside [-1, 1]")
-    if not 0.0 < fst[F_DSC] <= 1.0:
-        raise ValueError(f"state 'fst' scale of Σ − K_D is {float(fst[F_DSC])!r}, expected in (0, 1]")
-    if fst[F_NUM] < 0.0 or fst[F_S02] < 0.0 or fst[F_DEN] < (1.0 if n else 0.0):
-        raise ValueError("state 'fst' signal-power accumulators are impossible")
-    if ist[I_ARMED] and n and not fst[F_SY2] > 0.0:
-        raise ValueError("state 'fst' armed predictive variance must be > 0")
 
 
 @njit(cache=True, nogil=True)
@@ -929,96 +636,6 @@ def _write_out(out, y, y_mean, sy2, sf2, gamma2, removed, reduced, s02, n):
     out[O_SIZE] = n
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _k_at(st, i, j):
-    """``K_D`` entry of slots ``i, j`` from the (strict upper, diagonal) storage."""
-    if i == j:
-        return st.Kd[i]
-    return st.K[i, j] if i < j else st.K[j, i]
-
-
-@njit(cache=True, nogil=True)
-def refresh_inverse(st):
-    """:func:`_refresh_inverse` (see there) on ``st``."""
-    return _refresh_inverse(unowned(st))
-
-
-@njit(cache=True, nogil=True)
-def _refresh_inverse(st):
-    """``Q ← K_D⁻¹`` from the cached ``K_D`` by Cholesky; False (``Q`` untouched) if not PD.
-
-    Works in the dense scratch ``A`` in the dictionary's logical order, with row-wise axpys
-    only (contiguous, so LLVM vectorises them without reassociation; ~``n³/2`` multiply-adds):
-
-    1. ``K_D = Uᵀ U`` (upper ``U`` in ``A``'s upper triangle), diagonal copied to ``W[W_U]``;
-    2. ``Z = U⁻ᵀ = L⁻¹`` row by row into ``A``'s strict lower triangle, diagonal in ``W[W_W]``;
-    3. ``K_D⁻¹ = Zᵀ Z`` accumulated into ``A``'s upper triangle (``U`` is no longer needed);
-    4. scattered into ``Q``'s (strict upper, diagonal) storage. The pending update of ``Q``
-       is dropped. A pivot ``≤ 0`` (``K_D`` numerically singular, e.g. ``ε_j = 0`` and a
-       repeated input) leaves ``Q`` and its pending update as they were.
-    """
-    n = st.ist[I_N]
-    order = st.order
-    A = st.A
-    ud = st.W[W_U]
-    zd = st.W[W_W]
-    # ---- 1. Cholesky K_D = Uᵀ U (right-looking, row axpys) ----------------------------------------
-    for i in range(n):
-        si = order[i]
-        for j in range(i, n):
-            A[i, j] = _k_at(st, si, order[j])
-    for k in range(n):
-        d = A[k, k]
-        if not d > 0.0:
-            return False
-        ukk = math.sqrt(d)
-        A[k, k] = ukk
-        ud[k] = ukk
-        for j in range(k + 1, n):
-            A[k, j] = A[k, j] / ukk
-        for i in range(k + 1, n):
-            c = A[k, i]
-            for j in range(i, n):
-                A[i, j] -= c * A[k, j]
-    # ---- 2. Z = L⁻¹ (L = Uᵀ): row i solves Σ_k L[i,k] Z[k,:] = e_i -----------------------------------
-    for i in range(n):
-        for j in range(i):
-            A[i, j] = 0.0                         # row i of Z accumulates here (strict lower)
-        for k in range(i):
-            c = A[k, i]                           # L[i, k]
-            for j in range(k):
-                A[i, j] -= c * A[k, j]            # − L[i, k] Z[k, j]
-            A[i, k] -= c * zd[k]
-        uii = ud[i]
-        for j in range(i):
-            A[i, j] = A[i, j] / uii
-        zd[i] = 1.0 / uii
-    # ---- 3. K_D⁻¹ = Zᵀ Z = Σ_k Z[k,:]ᵀ Z[k,:] into the upper triangle --------------------------------
-    for a in range(n):
-        for b in range(a, n):
-            A[a, b] = 0.0
-    for k in range(n):
-        for a in range(k):
-            c = A[k, a]                           # Z[k, a]
-            for b in range(a, k):
-                A[a, b] += c * A[k, b]            # row a of K_D⁻¹, columns a..k−1
-            A[a, k] += c * zd[k]
-        A[k, k] += zd[k] * zd[k]
-    # ---- 4. scatter --------------------------------------------------------------------------------
-    Q = st.Q
-    for a in range(n):
-        sa = order[a]
-        st.Qd[sa] = A[a, a]
-        for b in range(a + 1, n):
-            sb = order[b]
-            if sa < sb:
-                Q[sa, sb] = A[a, b]
-            else:
-                Q[sb, sa] = A[a, b]
-    st.ist[I_QPEND] = 0
-    return True
-
-
 @njit(cache=True, nogil=True)
 def update(st, y, out):
     """Steps 3–5 (or 6 on the first sample) with the armed prediction; False if nothing is armed.
@@ -1129,45 +746,7 @@ def _predict(st, x, forget, out):
     out[A_G2] = gamma2
 
 
-@njit(cache=True, nogil=True)
-def materialize(st, Qout, Sout):
-    """Full ``Q`` and ``Σ = K_D + c D`` over the slots ``[0, hw)`` with the pending updates applied (no forgetting)."""
-    st = unowned(st)
-    ist = st.ist
-    fst = st.fst
-    hw = ist[I_HW]
-    p = st.P[P_P]
-    a = st.P[P_A]
-    g = st.P[P_G]
-    sc = fst[F_QSC]
-    nb = -fst[F_QBINV]
-    ncs = -fst[F_SC]
-    mode = ist[I_QPEND]
-    spend = ist[I_SPEND]
-    for j in range(hw):
-        for i in range(j, hw):
-            if i == j:
-                v = st.Qd[j]
-                w = st.Dd[j]
-                k = st.Kd[j]
-            else:
-                v = st.Q[j, i]
-                w = st.D[j, i]
-                k = st.K[j, i]
-            if mode >= 1:
-                v = fmuladd(sc * p[j], p[i], v)
-            if mode == 2:
-                v = fmuladd(nb * a[j], a[i], v)
-            if spend:
-                w = fmuladd(ncs * g[j], g[i], w)
-            w = k + fst[F_DSC] * w
-            Qout[j, i] = v
-            Qout[i, j] = v
-            Sout[j, i] = w
-            Sout[i, j] = w
-
-
-# ---- Python entry points: the two base buffers instead of a State (see the module docstring) -----
+# ---- Python entry points: the two base buffers instead of a State (kernels._krlst_state) ---------
 
 @njit(cache=True, nogil=True)
 def arm_buffers(fbuf, ibuf, x, out):

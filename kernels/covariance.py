@@ -57,8 +57,7 @@ KIND_LOCALLY_PERIODIC = 2
 KIND_LOCALLY_PERIODIC_ZERO_MEAN = 3
 #: the online tracker's kernel values of magnitude below 2⁻⁵¹¹ (≈ 1.5e-154, the square root of the smallest
 #: normal double) are 0: 148 orders of magnitude below the jitter, and the products of two of them in the
-#: rank-one updates would otherwise be subnormal numbers, which x86 processes ~100× slower (a short σ1 with
-#: old dictionary entries once cost 18 instead of 5 µs per sample)
+#: rank-one updates would otherwise be subnormal numbers, which x86 processes ~100× slower
 KERNEL_FLOOR = 2.0 ** -511
 
 

@@ -1,51 +1,32 @@
-"""Health statistics of one axis: parameter drift and model validity (issue 11, item 3).
+"""Health statistics of one axis: parameter drift and model validity (method §9).
 
-Pure numerics: a per-sample ``@njit`` step on the normalised innovation and a
-per-tick (about once a second) verdict on the online physical parameters,
-allocation-free over a :class:`HealthState` of plain arrays, plus the thin
-Python class :class:`HealthMonitor`. Levels: 0 ``ok``, 1 ``warn``, 2 ``alarm``.
+Pure numerics: a per-sample ``@njit`` step on the normalised innovation and a per-tick (about once a
+second) verdict on the online physical parameters, allocation-free over a :class:`HealthState` of plain
+arrays, plus the thin Python class :class:`HealthMonitor`. Levels: 0 ``ok``, 1 ``warn``, 2 ``alarm``.
 
 Model validity (per sample)
 ---------------------------
-Input: the normalised innovation ``ν(k) = e(k)/√S(k)`` of the joint tracker
-(:mod:`kernels.beta_tracker`: ``e = v_m(k+1) − β̂ᵀz(k) − f̂(k)``, ``S = s0²σ_y² + z̃ᵀPz̃``).
-When the model explains the data, ``ν`` has unit variance (KRLS-T's ``s0²`` is the
-running mean of ``e²/σ_y²``, eq. 2.20). A disturbance the model cannot explain — a
-spindle-speed change the time kernel does not know, a wrong model file — makes
-the tracker's one-step predictions fail and ``ν²`` large for as long as it lasts.
+Input: the normalised innovation ``ν(k) = e(k)/√S(k)`` of the joint tracker (:mod:`kernels.beta_tracker`:
+``e = v_m(k+1) − β̂ᵀz(k) − f̂(k)``, ``S = s0²σ_y² + z̃ᵀPz̃``). When the model explains the data ``ν`` has
+unit variance (KRLS-T's ``s0²`` is the running mean of ``e²/σ_y²``, eq. 2.20); a disturbance the model
+cannot explain makes ``ν²`` large for as long as it lasts.
 
-    c(k) = min(ν(k)², c_max)                         clipped square (one outlier ≤ c_max)
+    c(k) = min(ν(k)², c_max)                                 clipped square (one outlier ≤ c_max)
     m(k) = m(k−1) + a (c(k) − m(k−1)),  a = 1 − exp(−Ts/τ)   EWMA of ν², time constant τ
     warn  while m ≥ θ_warn  for ≥ t_persist (and until m < θ_clear for ≥ t_hold)
     alarm while m ≥ θ_alarm for ≥ t_persist (and until m < θ_warn for ≥ t_hold)
 
-Why these numbers (defaults; measured with ``benchmarks/online_checks.py``):
-``τ = 0.5 s``, ``θ_warn = 5``, ``θ_alarm = 8``, ``θ_clear = 3``, ``c_max = 16``
-(|ν| clipped at 4), ``t_persist = 0.25 s``, ``t_hold = 2 s``.
-
-* False alarms. For white Gaussian ``ν`` the EWMA has mean 1 and standard
-  deviation ``√(2a/(2−a)) ≈ 0.078`` (τ = 0.5 s at 333 Hz): ``θ_warn = 5`` is ~50
-  standard deviations away, so what sets the threshold is the *nominal* non-white
-  behaviour. Measured maxima of the EWMA on nominal streams: 1.1–1.5 (shaker,
-  milling), 2.7–2.8 over 1 h and 4 h of the soak stream (a 60 N shaker and a feed
-  force switched on abruptly every 18 s). θ_warn = 5 leaves a factor ≥ 1.8; the
-  clipping bounds one sample's contribution to 16/333 of a window, and the
-  persistence of 0.25 s rejects bursts. White-noise check in the tests: 2·10⁶
-  N(0, 1) samples, no warning.
-* Detection. After a 3000 → 2400 rpm spindle change with the time kernel at the
-  old period the EWMA passes 5 within ~0.2 s and stays above it for seconds
-  (peak ~11–12): warn 0.44 s after the change, alarm (θ = 8, below the clip
-  ceiling 16) shortly after.
-* Limits (documented): ``s0²`` is a cumulative mean, so after a persistent change
-  the normalisation catches up over tens of seconds and the verdict returns to
-  ok once the tracker has adapted (the spindle case: ~20 s). A whiteness test
-  (autocorrelation of ν) is not used: its nominal value depends on the noise
-  structure and the tracker (lag-1 autocorrelation measured −0.44 … +0.37).
+Defaults ``τ = 0.5 s``, ``θ_warn = 5``, ``θ_alarm = 8``, ``θ_clear = 3``, ``c_max = 16``, ``t_persist =
+0.25 s``, ``t_hold = 2 s``. For white ``ν`` the EWMA has mean 1 and standard deviation ``√(2a/(2−a))``
+(≈ 0.078 at 333 Hz), so the threshold is set by the *nominal* non-white behaviour of real streams, with a
+margin; the clipping bounds one sample's share and the persistence rejects bursts. ``s0²`` is a cumulative
+mean: after a persistent change the verdict returns to ok once the tracker has adapted. A whiteness test
+is not used: its nominal value depends on the noise structure and the tracker.
 
 Parameter drift (per tick)
 --------------------------
-For each physical parameter j (inertia, damping, Coulomb +, Coulomb −, offset) with
-model-file value ``θ_j⁰ ± s_j⁰`` and online value ``θ̂_j ± ŝ_j``:
+For each physical parameter j (inertia, damping, Coulomb ±, offset) with model-file value ``θ_j⁰ ± s_j⁰``
+and online value ``θ̂_j ± ŝ_j``:
 
     z_j = (θ̂_j − θ_j⁰) / √(ŝ_j² + s_j⁰²)            drift in combined standard errors
     r_j = |θ̂_j − θ_j⁰| / scale_j                       relative drift (scale: |θ_j⁰|, or the
@@ -54,44 +35,29 @@ model-file value ``θ_j⁰ ± s_j⁰`` and online value ``θ̂_j ± ŝ_j``:
     warn  when determined, |z| ≥ z_warn  and r ≥ r_warn;  cleared when |z| < z_clear or r < r_warn/2
     alarm when determined, |z| ≥ z_alarm and r ≥ r_alarm; back to warn when |z| < z_warn or r < r_alarm/2
 
-Defaults ``z_warn = 6``, ``z_alarm = 8``, ``z_clear = 4``, ``r_warn = 0.03``,
-``r_alarm = 0.15``, ``κ = 0.5``. With β memories of 5–10 s a day holds ~9000–17000 independent
-looks per parameter, ~3·10⁷ a year for five parameters: the expected largest |z| of honest
-standard errors is ≈ 4.9 in a day and ≈ 6.0 in a year. Measured over the 24 h soak stream
-(``benchmarks/soak.py``, true β, friction memory 5 s, inertia 10 s): largest |z| 4.0 (inertia),
-3.5 (damping), 2.8 and 1.6 (Coulomb ±) — the standard errors are about honest (before the first
-sample of each run of motion was kept out of the β learning, Coulomb + reached 5.1, and
-``z_warn = 5`` warned once in those 24 h; with one memory of 5 s for all parameters the inertia
-reached 6.3).
-``z_warn = 6`` (``P(|z| > 6) = 2·10⁻⁹``: less than one false warning in 30 years per
-axis if Gaussian; a factor 1.3 above the measured nominal maximum) and the relative
-threshold (statistically *and* practically significant) removes the alarms a
-high-SNR drive would otherwise raise for irrelevant deviations. ``r_warn = 3 %`` (not 5 %)
-because a parameter is seen only while it is excited: with the inertia memory of 10 s and a feed
-change every ~6 s (milling), one acceleration event moves the inertia estimate about a third of
-the way after a step (+4.4 … +6.5 % after a +20 % payload step, three noise seeds, at 8.6 … 11
-standard errors); 3 % warns at the first event after the step (3 s), 5 % at the second (10 s).
-No nominal stream measured warns at 3 %. The gap between
-``z_warn`` and ``z_clear`` (hysteresis) keeps a parameter sitting at the threshold
-from flapping. A parameter the data do not determine (its online s.e. still more
-than half the prior's — e.g. damping during constant-feed milling, where the mean
-cutting force and viscous friction cannot be told apart) is reported with its
-uncertainty and never raises a drift warning.
+Defaults ``z_warn = 6``, ``z_alarm = 8``, ``z_clear = 4``, ``r_warn = 0.03``, ``r_alarm = 0.15``, ``κ = 0.5``.
+With β memories of 5–10 s a year holds ~3·10⁷ independent looks for five parameters, so the largest |z|
+of honest standard errors is ≈ 6: ``z_warn = 6`` with ``P(|z| > 6) = 2·10⁻⁹``. The relative threshold makes
+a report practically as well as statistically significant (a high-SNR drive would otherwise alarm on
+irrelevant deviations); 3 % because a parameter moves only while it is excited, so the first acceleration
+after a step shows a fraction of it. The gap between ``z_warn`` and ``z_clear`` (hysteresis) keeps a
+parameter at the threshold from flapping. A parameter the data do not determine is reported with its
+uncertainty and never raises a drift warning. The measurements behind the defaults:
+``docs/design-decisions.md``, "Kernels".
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from ._krlst_simd import view
 from ._snapshot import fill_views
+from .layout import Field, Layout
 
-__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_state", "new_health_buffers",
+__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_buffers",
            "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
            "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
 
@@ -158,41 +124,33 @@ class HealthConfig:
         return self
 
 
-class HealthState(NamedTuple):
-    """Named views of two base buffers (:func:`new_health_buffers`): ``par`` settings, ``ref``
-    rows ``[θ⁰, s⁰, ŝ^prior, scale]`` per :data:`PARAMS` (settings), ``acc`` the EWMA, run
-    lengths and window sums (state), ``stat`` rows ``[z, r, determined]`` of the last tick
-    (output), ``level`` one level per :data:`REASONS` (state, the ``int64`` buffer)."""
-
-    par: np.ndarray
-    ref: np.ndarray
-    acc: np.ndarray
-    stat: np.ndarray
-    level: np.ndarray
-
+#: every field of :class:`HealthState` (``k`` = len(:data:`PARAMS`)): ``par`` settings (Q_*), ``ref`` rows
+#: ``[θ⁰, s⁰, ŝ^prior, scale]`` per parameter (settings), ``acc`` the EWMA, run lengths and window sums
+#: (state, A_*), ``stat`` rows ``[z, r, determined]`` of the last tick (output), ``level`` one level per
+#: :data:`REASONS` (state)
+FIELDS = (
+    Field("par", "f8", (N_QPAR,), "setting", "thresholds and rates (Q_*)"),
+    Field("ref", "f8", (4, "k"), "setting", "θ⁰, s⁰, ŝ^prior, scale per PARAMS"),
+    Field("acc", "f8", (N_ACC,), "state", "EWMA, run lengths, window sums (A_*)"),
+    Field("stat", "f8", (3, "k"), "output", "z, r, determined of the last tick (S_*)"),
+    Field("level", "i8", (N_REASON,), "state", "level per REASONS"),
+)
+LAYOUT = Layout("HealthState", __name__, FIELDS, consts={"k": len(PARAMS)},
+                doc="Named views of the two base buffers of the health state (:data:`FIELDS`).")
+HealthState = LAYOUT.tuple
 
 #: the fields that are state (snapshots): the others are settings or the last tick's output
-STATE_FIELDS = ("acc", "level")
-_F_REF = N_QPAR
-_F_ACC = _F_REF + 4 * len(PARAMS)
-_F_STAT = _F_ACC + N_ACC
-_F_END = _F_STAT + 3 * len(PARAMS)
+STATE_FIELDS = LAYOUT.names("state")
 
 
 def health_state_views(fbuf: np.ndarray, ibuf: np.ndarray) -> HealthState:
     """The :class:`HealthState` of the two base buffers, as NumPy views."""
-    k = len(PARAMS)
-    return HealthState(fbuf[:N_QPAR], fbuf[_F_REF:_F_ACC].reshape(4, k), fbuf[_F_ACC:_F_STAT],
-                       fbuf[_F_STAT:_F_END].reshape(3, k), ibuf[:N_REASON])
+    return LAYOUT.views(fbuf, ibuf)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def health_state_of(fbuf, ibuf):
-    """The :class:`HealthState` of the two base buffers inside compiled code (reference-free views,
-    valid while the buffers are)."""
-    k = len(PARAMS)
-    return HealthState(view(fbuf, 0, (N_QPAR,)), view(fbuf, _F_REF, (4, k)), view(fbuf, _F_ACC, (N_ACC,)),
-                       view(fbuf, _F_STAT, (3, k)), view(ibuf, 0, (N_REASON,)))
+#: ``health_state_of(fbuf, ibuf)``: the :class:`HealthState` of the two base buffers inside compiled code
+#: (reference-free views, valid while the buffers are)
+health_state_of = LAYOUT.accessor("health_state_of", __file__)
 
 
 def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
@@ -202,8 +160,7 @@ def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
     cfg = (config or HealthConfig()).validate()
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"Ts must be a positive number of seconds, got {Ts!r}")
-    fbuf = np.zeros(_F_END)
-    ibuf = np.zeros(N_REASON, dtype=np.int64)
+    fbuf, ibuf = LAYOUT.new_buffers()
     hs = health_state_views(fbuf, ibuf)
     par = hs.par
     par[Q_A] = 1.0 - math.exp(-Ts / cfg.tau)
@@ -223,11 +180,6 @@ def new_health_buffers(Ts: float, theta_file, se_file, se_prior, scale,
     hs.acc[A_EWMA] = 1.0
     hs.stat[:] = np.nan
     return fbuf, ibuf
-
-
-def new_health_state(Ts: float, theta_file, se_file, se_prior, scale, config: HealthConfig | None = None) -> HealthState:
-    """A fresh :class:`HealthState` (views of :func:`new_health_buffers`)."""
-    return health_state_views(*new_health_buffers(Ts, theta_file, se_file, se_prior, scale, config))
 
 
 def validate_health_state(hs: HealthState) -> None:

@@ -1,5 +1,5 @@
 """Restricted marginal likelihood (REML) of the PL-LSSVM model, its tuning, and the evidence of a
-candidate model (method §4; issue 10).
+candidate model (method §4).
 
 The PL-LSSVM model read as a Gaussian process with an explicit linear basis:
 
@@ -17,7 +17,7 @@ where ``yᵀPy = (y − Z̃b̂)ᵀA⁻¹(y − Z̃b̂)`` and ``p`` = columns of 
 the REML of different covariance models with the same ``Z̃`` comparable — LS gives
 ``ℓ_LS = −½ (N − p)(log(2π ŝ²) + 1)``.
 
-GLS covariance of ``b`` (the uncertainty of β under the candidate, issue 10 item 4):
+GLS covariance of ``b`` (the uncertainty of β under the candidate):
 
     cov(b̂) = ŝ² (Z̃ᵀA⁻¹Z̃)⁻¹                                                                   (L3)
 
@@ -181,13 +181,6 @@ def support_order(column, max_order: int) -> int:
     return int(big[-1]) if big.size else 0
 
 
-def toeplitz_column(kernel: Kernel, gamma: float, Ts: float, lags: int) -> np.ndarray:
-    """First column of ``A = Ω + γ⁻¹I`` for a time kernel, lags ``0 … lags − 1``."""
-    column = kernel.lag(np.arange(lags) * Ts)
-    column[0] += 1.0 / gamma
-    return column
-
-
 def _whiten_blocks(data, parts, gamma, max_order, tol):
     """``L̃⁻¹ data`` block by block (eq. B1, V2), ``Σ log|Ã_s|``, the highest order used and the summed
     tail estimates (V3)."""
@@ -270,7 +263,7 @@ def log_evidence(log_likelihood: float, k: int, n: int, p: int) -> float:
 
 
 def default_bounds(kind: str, n: int, Ts: float, period: float | None = None) -> dict:
-    """Hyperparameter bounds scaled to the record (issue 10 item 6), ``T = N Ts`` the record length.
+    """Hyperparameter bounds scaled to the record, ``T = N Ts`` the record length.
 
     * locally periodic (and its zero-mean form): ``σ1 ∈ [2ψ, max(4ψ, T)]`` (from a couple of periods to the record: how long
       the periodic pattern stays correlated), ``σ2 ∈ [max(0.05, π Ts/(2ψ)), 5]`` (within-period

@@ -17,7 +17,7 @@ for each arriving sample ``j`` of a block,
 6. about once a second of data time (:attr:`OnlineConfig.tick_period`), and at once when the
    model-validity level changes, a health report (``ticks``, :data:`TICK`).
 
-Online β and health (issue 11; method "Online β and health"). With adaptation on
+Online β and health (method §9). With adaptation on
 (:attr:`OnlineConfig.mode` *track* or *apply*) steps 3–5 are the joint recursion of
 :mod:`kernels.beta_tracker` (:func:`~kernels.beta_tracker.joint_update`,
 :func:`~kernels.beta_tracker.joint_arm`): β̂ and its covariance learn from every sample the
@@ -41,10 +41,10 @@ with ψ = 60/n_nominal.
 Python API around it (stumpy-style split). The model is :class:`OnlineConfig` (read only) and
 what links consecutive blocks is :class:`OnlineState` (``int64`` sequence numbers and counters,
 ``float64`` for the rest): NamedTuples the loop builds from a few plain typed buffers
-(:class:`ConfigBuffers`, :class:`StateBuffers`; a tuple argument would cost ~1.5 µs per call to
-type). The output of a block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`,
-:data:`IROWS`), and ``counts`` (:data:`COUNTERS`). To extend the loop (e.g. online β
-estimation), add fields to these.
+(:class:`ConfigBuffers`, :class:`StateBuffers`: numba types each array of a tuple argument on every
+call), generated from one field list each (:data:`CONFIG_SPEC`, :data:`STATE_SPEC`). The output of a
+block is ``rows``/``irows``, one named row per quantity (:data:`ROWS`, :data:`IROWS`), and ``counts``
+(:data:`COUNTERS`). To extend the loop, add fields to these lists.
 
 Sequence numbers and time
 -------------------------
@@ -98,6 +98,7 @@ from . import beta_tracker as bt
 from . import health as hl
 from ._krlst_simd import view
 from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
+from .layout import Field, Layout, Record
 
 __all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REORDER_WINDOW", "MODES", "OnlineConfig",
            "ConfigBuffers", "config_of", "new_config", "set_tracker_input", "new_search", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows",
@@ -130,34 +131,35 @@ REORDER_WINDOW = 256
 _FIRST, _NEXT, _GAP, _RESET, _DUPLICATE, _LATE = range(6)
 
 
-class OnlineConfig(NamedTuple):
-    """What the loop reads of the axis model (SI units): named values of :class:`ConfigBuffers`
-    (:func:`config_of`)."""
-
-    beta: np.ndarray        #: float64 (p,): β in the order of the model's ``beta_names``
-    coulomb: bool           #: β has the Coulomb columns −σ_p, −σ_n (β[2], β[3])
-    intercept: bool         #: β ends with the constant column "one"
-    omega: float            #: Coulomb dead band Ω (m/s)
-    inv_ts: float           #: 1/Ts (1/s)
-    v_max: float            #: |v_m| beyond which a sample is absurd (m/s)
-    e_max: float            #: |v_ref| (m/s) or |u| (N) beyond which a sample is absurd
-    t_max: float            #: |t| beyond which a controller time is absurd (s)
-    stale_detection: bool   #: detect repeated measured velocities
-    warmup: int             #: rows flagged WARMUP while the tracker has learned ≤ this many samples
-    reorder_window: int     #: W ≥ 1 (samples), see the module docstring
-    mode: int               #: adaptation: MODE_OFF, MODE_TRACK, MODE_APPLY (:data:`MODES`)
-    spindle: bool           #: tracker input x = (t, θ) (spindle-phase kernel), else x = t
-    tick_min: int           #: samples at least between two health reports
-    theta_period: float     #: P (rad): period of the kernel in θ (2π or 2π/teeth)
-    rpm_nominal: float      #: the model's nominal spindle speed (rpm), used without spindle data
-    rpm_max: float          #: |spindle_rpm| beyond which a speed is unusable (rpm)
-    tick_period: float      #: s of data time between two health reports
+#: what the loop reads of the axis model (SI units), after β (float64 (p,), in the order of the model's
+#: ``beta_names``): booleans and integers live in :attr:`ConfigBuffers.ints`, floats in ``floats``
+CONFIG_SPEC = (
+    Field("coulomb", "bool", (), "setting", "β has the Coulomb columns −σ_p, −σ_n (β[2], β[3])"),
+    Field("intercept", "bool", (), "setting", "β ends with the constant column 'one'"),
+    Field("omega", "f8", (), "setting", "Coulomb dead band Ω (m/s)"),
+    Field("inv_ts", "f8", (), "setting", "1/Ts (1/s)"),
+    Field("v_max", "f8", (), "setting", "|v_m| beyond which a sample is absurd (m/s)"),
+    Field("e_max", "f8", (), "setting", "|v_ref| (m/s) or |u| (N) beyond which a sample is absurd"),
+    Field("t_max", "f8", (), "setting", "|t| beyond which a controller time is absurd (s)"),
+    Field("stale_detection", "bool", (), "setting", "detect repeated measured velocities"),
+    Field("warmup", "i8", (), "setting", "rows flagged WARMUP while the tracker has learned ≤ this many samples"),
+    Field("reorder_window", "i8", (), "setting", "W ≥ 1 (samples), see the module docstring"),
+    Field("mode", "i8", (), "setting", "adaptation: MODE_OFF, MODE_TRACK, MODE_APPLY (MODES)"),
+    Field("spindle", "bool", (), "setting", "tracker input x = (t, θ) (spindle-phase kernel), else x = t"),
+    Field("tick_min", "i8", (), "setting", "samples at least between two health reports"),
+    Field("theta_period", "f8", (), "setting", "P (rad): period of the kernel in θ (2π or 2π/teeth)"),
+    Field("rpm_nominal", "f8", (), "setting", "the model's nominal spindle speed (rpm), used without spindle data"),
+    Field("rpm_max", "f8", (), "setting", "|spindle_rpm| beyond which a speed is unusable (rpm)"),
+    Field("tick_period", "f8", (), "setting", "s of data time between two health reports"),
+)
+CONFIG = Record("OnlineConfig", __name__, CONFIG_SPEC, head=("beta",),
+                doc="What the loop reads of the axis model: named values of :class:`ConfigBuffers` (:data:`CONFIG_SPEC`).")
+OnlineConfig = CONFIG.tuple
 
 
 class ConfigBuffers(NamedTuple):
-    """The storage of an :class:`OnlineConfig`, as the compiled loop takes it: β, then the integer
-    (``coulomb, intercept, stale_detection, warmup, reorder_window, mode, spindle, tick_min``) and
-    float (``omega, inv_ts, v_max, e_max, t_max, theta_period, rpm_nominal, rpm_max, tick_period``) values."""
+    """The storage of an :class:`OnlineConfig`, as the compiled loop takes it: β, then the integer and
+    float values (:data:`CONFIG_SPEC`, slots ``CONFIG.int_slot`` / ``CONFIG.float_slot``)."""
 
     beta: np.ndarray
     ints: np.ndarray
@@ -178,11 +180,12 @@ def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: fl
     if not (math.isfinite(tick_period) and tick_period > 0.0):
         raise ValueError(f"tick_period must be a positive number of seconds, got {tick_period!r}")
     tick_min = max(1, int(round(0.5 * tick_period * inv_ts)))
-    return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64),
-                         np.array([coulomb, intercept, stale_detection, warmup, reorder_window, MODES.index(mode),
-                                   spindle, tick_min], dtype=np.int64),
-                         np.array([omega, inv_ts, v_max, e_max, t_max, theta_period, rpm_nominal, rpm_max,
-                                   tick_period], dtype=np.float64))
+    ints, floats = CONFIG.pack(coulomb=coulomb, intercept=intercept, omega=omega, inv_ts=inv_ts, v_max=v_max,
+                               e_max=e_max, t_max=t_max, stale_detection=stale_detection, warmup=warmup,
+                               reorder_window=reorder_window, mode=MODES.index(mode), spindle=spindle,
+                               tick_min=tick_min, theta_period=theta_period, rpm_nominal=rpm_nominal,
+                               rpm_max=rpm_max, tick_period=tick_period)
+    return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64), ints, floats)
 
 
 def set_tracker_input(cfg: ConfigBuffers, spindle: bool, theta_period: float, rpm_nominal: float | None = None) -> None:
@@ -191,49 +194,45 @@ def set_tracker_input(cfg: ConfigBuffers, spindle: bool, theta_period: float, rp
     without spindle data (rpm; None: keep)."""
     if not (math.isfinite(theta_period) and theta_period > 0.0):
         raise ValueError(f"theta_period must be a positive angle (rad), got {theta_period!r}")
-    cfg.ints[6] = int(bool(spindle))
-    cfg.floats[5] = float(theta_period)
+    ints, floats = CONFIG.int_slot, CONFIG.float_slot
+    cfg.ints[ints["spindle"]] = int(bool(spindle))
+    cfg.floats[floats["theta_period"]] = float(theta_period)
     if rpm_nominal is not None:
-        if not (math.isfinite(rpm_nominal) and 0.0 <= rpm_nominal <= cfg.floats[7]):
-            raise ValueError(f"rpm_nominal must be in [0, {cfg.floats[7]:g}] rpm, got {rpm_nominal!r}")
-        cfg.floats[6] = float(rpm_nominal)
+        rpm_max = cfg.floats[floats["rpm_max"]]
+        if not (math.isfinite(rpm_nominal) and 0.0 <= rpm_nominal <= rpm_max):
+            raise ValueError(f"rpm_nominal must be in [0, {rpm_max:g}] rpm, got {rpm_nominal!r}")
+        cfg.floats[floats["rpm_nominal"]] = float(rpm_nominal)
 
 
-@register_jitable
-def config_of(beta, ints, floats):
-    """The :class:`OnlineConfig` stored in ``(beta, ints, floats)``; works in Python and inside ``@njit``."""
-    return OnlineConfig(beta, ints[0] != 0, ints[1] != 0, floats[0], floats[1], floats[2], floats[3], floats[4],
-                        ints[2] != 0, ints[3], ints[4], ints[5], ints[6] != 0, ints[7], floats[5], floats[6],
-                        floats[7], floats[8])
+#: ``config_of(beta, ints, floats)``: the :class:`OnlineConfig` stored in ``(beta, ints, floats)``; works in
+#: Python and inside ``@njit``
+config_of = CONFIG.accessor("config_of", __file__)
 
-
-class OnlineState(NamedTuple):
-    """What links consecutive blocks of one axis, as named 1-element views (:func:`state_of`) of the
-    two buffers of :class:`StateBuffers`."""
-
-    seen: np.ndarray        #: int64: 1 once a sample was seen (``last_seq`` is valid)
-    last_seq: np.ndarray    #: int64: L, sequence number of the last sample seen (rejected ones included)
-    ref_seq: np.ndarray     #: int64: s_r, sequence number of the last sample seen with a usable time
-    run_seq: np.ndarray     #: int64: last sample of the current run of dropped samples that continue each other
-    run_len: np.ndarray     #: int64: length of that run (0: none)
-    chain: np.ndarray       #: int64: 1 when the last sample was accepted: the next one can form a residual
-    trained: np.ndarray     #: int64: samples the tracker learned from
-    tick_n: np.ndarray      #: int64: accepted samples since the last health report
-    ref_t: np.ndarray       #: float64: t_r, time of sample s_r (s); NaN: none
-    last_t: np.ndarray      #: float64: time of the last accepted sample (s); NaN: none
-    last_e: np.ndarray      #: float64: its exogenous input v_ref (m/s) or u (N)
-    last_v_raw: np.ndarray  #: float64: its measured velocity as received (m/s)
-    last_v_used: np.ndarray  #: float64: the velocity that entered its regressor (the model's for a stale one)
-    f_next: np.ndarray      #: float64: the prediction of f made at the last accepted sample (m/s)
-    f_next_var: np.ndarray  #: float64: its variance ((m/s)²)
-    theta: np.ndarray       #: float64: θ of the last accepted sample (rad, in [0, P)); NaN: none
-    theta_t: np.ndarray     #: float64: its time (s)
-    theta_rpm: np.ndarray   #: float64: the spindle speed used there (rpm); NaN: none
-    tick_t: np.ndarray      #: float64: data time of the last health report (s); NaN: none yet
-
-
-#: how many fields of :class:`OnlineState` live in :attr:`StateBuffers.ints` (the rest: ``floats``)
-_N_INT_FIELDS = 8
+#: what links consecutive blocks of one axis (one value each): the integers, then the floats
+STATE_SPEC = (
+    Field("seen", "i8", (1,), "state", "1 once a sample was seen (last_seq is valid)"),
+    Field("last_seq", "i8", (1,), "state", "L, sequence number of the last sample seen (rejected ones included)"),
+    Field("ref_seq", "i8", (1,), "state", "s_r, sequence number of the last sample seen with a usable time"),
+    Field("run_seq", "i8", (1,), "state", "last sample of the current run of dropped samples that continue each other"),
+    Field("run_len", "i8", (1,), "state", "length of that run (0: none)"),
+    Field("chain", "i8", (1,), "state", "1 when the last sample was accepted: the next one can form a residual"),
+    Field("trained", "i8", (1,), "state", "samples the tracker learned from"),
+    Field("tick_n", "i8", (1,), "state", "accepted samples since the last health report"),
+    Field("ref_t", "f8", (1,), "state", "t_r, time of sample s_r (s); NaN: none"),
+    Field("last_t", "f8", (1,), "state", "time of the last accepted sample (s); NaN: none"),
+    Field("last_e", "f8", (1,), "state", "its exogenous input v_ref (m/s) or u (N)"),
+    Field("last_v_raw", "f8", (1,), "state", "its measured velocity as received (m/s)"),
+    Field("last_v_used", "f8", (1,), "state", "the velocity that entered its regressor (the model's for a stale one)"),
+    Field("f_next", "f8", (1,), "state", "the prediction of f made at the last accepted sample (m/s)"),
+    Field("f_next_var", "f8", (1,), "state", "its variance ((m/s)²)"),
+    Field("theta", "f8", (1,), "state", "θ of the last accepted sample (rad, in [0, P)); NaN: none"),
+    Field("theta_t", "f8", (1,), "state", "its time (s)"),
+    Field("theta_rpm", "f8", (1,), "state", "the spindle speed used there (rpm); NaN: none"),
+    Field("tick_t", "f8", (1,), "state", "data time of the last health report (s); NaN: none yet"),
+)
+STATE = Layout("OnlineState", __name__, STATE_SPEC,
+               doc="What links consecutive blocks of one axis: named 1-element views of :class:`StateBuffers`.")
+OnlineState = STATE.tuple
 
 
 class StateBuffers(NamedTuple):
@@ -243,18 +242,15 @@ class StateBuffers(NamedTuple):
     floats: np.ndarray
 
 
-@register_jitable
-def state_of(i, f):
-    """The named views of the buffers ``(ints, floats)`` (:class:`StateBuffers`); works in Python and
-    inside ``@njit``."""
-    return OnlineState(i[0:1], i[1:2], i[2:3], i[3:4], i[4:5], i[5:6], i[6:7], i[7:8],
-                       f[0:1], f[1:2], f[2:3], f[3:4], f[4:5], f[5:6], f[6:7], f[7:8], f[8:9], f[9:10], f[10:11])
+#: ``state_of(ints, floats)``: the named views of the buffers of :class:`StateBuffers`; works in Python and
+#: inside ``@njit``
+state_of = STATE.sliced("state_of", __file__, ints_first=True)
 
 
 def new_state(trained: int = 0) -> StateBuffers:
     """State of an axis that has seen no sample (its tracker may have learned ``trained`` samples before)."""
-    n_float = len(OnlineState._fields) - _N_INT_FIELDS
-    buf = StateBuffers(np.zeros(_N_INT_FIELDS, dtype=np.int64), np.full(n_float, np.nan))
+    _, n_float, n_int = STATE.offsets()
+    buf = StateBuffers(np.zeros(n_int, dtype=np.int64), np.full(n_float, np.nan))
     state_of(*buf).trained[0] = trained
     return buf
 

@@ -1,4 +1,4 @@
-"""Finding the period of a disturbance in a residual: a harmonic-sum periodogram (issue 10 item 2).
+"""Finding the period of a disturbance in a residual: a harmonic-sum periodogram.
 
 A periodic disturbance of period ψ — whatever its shape (a sine, square pulses, cutting-force
 impulses) — puts spectral lines at the harmonics ``h/ψ``. The score of a candidate fundamental

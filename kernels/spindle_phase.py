@@ -1,4 +1,4 @@
-"""The spindle-phase kernel in batch identification (issue 11 item 1; method §5, "Spindle phase").
+"""The spindle-phase kernel in batch identification (method §5, "Spindle phase").
 
 The online tracker's spindle-phase kernel (:func:`spindle_phase_kernel`; ``[tracker] kernel =
 "spindle"``) works on ``x = (t, θ)``, θ the spindle angle (rad):
