@@ -191,14 +191,14 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
     input-health verdict merged into the health reports (:mod:`monitor.input_health`).
     """
-    from feedio.mcapio import TrialWriter, _Open
+    from feedio.mcapio import OpenTrial, TrialWriter
 
     trial, output = os.fspath(trial), os.fspath(output)
     if os.path.abspath(trial) == os.path.abspath(output):
         raise ValueError(f"output {output!r} would overwrite the input trial")
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise ValueError(f"jobs must be an integer ≥ 1, got {jobs!r}")
-    with _Open(trial) as f:
+    with OpenTrial(trial) as f:
         present = f.axes()
         metas = {key: f.meta(*key) for key in present if key in axes}
         starts = {f.start_ns(*key) for key in metas}

@@ -54,7 +54,7 @@ def test_contract_bounds_are_the_schemas():
 def test_estimator_uses_the_physical_limits_of_feedio_limits():
     from monitor.estimator import LIMITS
 
-    assert LIMITS == L.LIMITS == {"v": L.PHYSICAL.v_max, "u": L.PHYSICAL.u_max, "t": L.PHYSICAL.t_max}
+    assert LIMITS == L.LIMITS == {"v": L.SAMPLE_LIMITS.v_max, "u": L.SAMPLE_LIMITS.u_max, "t": L.SAMPLE_LIMITS.t_max}
 
 
 def test_limits_are_validated_with_their_ranges():
