@@ -208,30 +208,39 @@ def _struct_in(t: Any) -> type | None:
 
 
 def _walk(root: type, path: str) -> tuple[type | None, str | None]:
-    """``(Struct holding the last key, last key)`` of a msgspec error path such as ``.run.limits.queue_bytes``
-    or ``.axes.X.scale`` (a table of Structs; ``[i]`` of a list is skipped); ``(Struct, None)`` for a path
-    naming a Struct itself, ``(None, None)`` for one that leaves the Structs."""
-    parts = [p for p in re.split(r"\.|\[\d+\]", path) if p]
+    """``(Struct holding the last key, last key)`` of a msgspec error path such as ``.run.limits.queue_bytes``,
+    ``.axes[...].scale`` (a table of Structs) or ``.steps[1].mode`` (a list of them); ``(Struct, None)`` for a
+    path naming a Struct itself, ``(None, None)`` for one that leaves the Structs."""
     t: Any = root
-    i = 0
-    while i < len(parts):
-        fields = {f.name: f.type for f in msgspec.inspect.type_info(t).fields}
-        if parts[i] not in fields:
-            return None, None
-        ft = fields[parts[i]]
-        ft = ft.type if isinstance(ft, msgspec.inspect.Metadata) else ft
-        if isinstance(ft, msgspec.inspect.DictType):  # a table of tables: the next part is a key of it
-            i += 1
-            ft = ft.value_type
-        elif isinstance(ft, msgspec.inspect.ListType | msgspec.inspect.VarTupleType):
-            ft = ft.item_type
+    ft: Any = None
+    name: str | None = None
+    for key, _ in re.findall(r"\.([^.\[]+)|\[(\d+|\.\.\.)\]", path):
+        if key:
+            if name is not None:  # a key inside a value that is not a Struct
+                return None, None
+            fields = {f.name: f.type for f in msgspec.inspect.type_info(t).fields}
+            if key not in fields:
+                return None, None
+            ft = fields[key]
+        elif name is not None:  # an element of a list of numbers: the key is still the list's
+            continue
+        else:  # an element of a table or a list of Structs
+            inner = ft.type if isinstance(ft, msgspec.inspect.Metadata) else ft
+            ft = getattr(inner, "value_type", None) or getattr(inner, "item_type", None)
+            if ft is None:
+                return None, None
         nxt = _struct_in(ft)
-        if i >= len(parts) - 1:
-            return (nxt, None) if nxt is not None else (t, parts[-1] if i == len(parts) - 1 else None)
-        if nxt is None:
+        inner = ft.type if isinstance(ft, msgspec.inspect.Metadata) else ft
+        element = getattr(inner, "value_type", None) or getattr(inner, "item_type", None)
+        if nxt is not None:
+            t, name = nxt, None
+        elif key and element is not None and _struct_in(element) is not None:
+            name = None  # a table or list of Structs: an element follows
+        elif key:
+            name = key
+        else:
             return None, None
-        t, i = nxt, i + 1
-    return t, None
+    return t, name
 
 
 def explain(exc: msgspec.ValidationError, root: type) -> tuple[str, str]:
