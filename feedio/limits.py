@@ -48,6 +48,7 @@ __all__ = [
     "field_range",
     "range_text",
     "explain",
+    "error_path",
     "bounded_int",
     "bounded_float",
 ]
@@ -243,12 +244,18 @@ def _walk(root: type, path: str) -> tuple[type | None, str | None]:
     return t, name
 
 
+def error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
+    """``(path, message)`` of a msgspec validation error: ``(".tracker.gamma", "Expected `float` >= 0.0001")``;
+    the path is ``""`` for the document itself."""
+    m = _AT.match(str(exc))
+    return m.group("path") or "", m.group("msg")
+
+
 def explain(exc: msgspec.ValidationError, root: type) -> tuple[str, str]:
     """``(key, message)`` of a validation error of ``root`` (a msgspec Struct): the dotted key
     (``run.limits.queue_bytes``; ``(top level)``) and msgspec's message with the allowed range of the key
     (:func:`range_text`) or, for an unknown key, the keys known there — what a user needs to fix it."""
-    m = _AT.match(str(exc))
-    msg, path = m.group("msg"), (m.group("path") or "")
+    path, msg = error_path(exc)
     key = path.lstrip(".") or "(top level)"
     struct, name = _walk(root, path)
     if struct is not None and name is not None:

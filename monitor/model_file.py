@@ -57,7 +57,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from feedio.digest import file_sha256
-from feedio.limits import bounded_float, bounded_int
+from feedio.limits import bounded_float, bounded_int, error_path
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names, validity_problems
 
@@ -410,18 +410,6 @@ def truth_model(meta, *, period: float = 1 / 55, budget: int = 50, forgetting: f
 # ---------------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------------
-_PATH = re.compile(r"\$\.?(.*)$")
-
-
-def _key_of(message: str) -> tuple[str, str]:
-    """``("tracker.gamma", "Expected …")`` from a msgspec validation message."""
-    text, _, where = message.rpartition(" - at `")
-    if not text:
-        text, where = message, ""
-    key = _PATH.sub(r"\1", where.rstrip("`"))
-    return key, text
-
-
 def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     """Read and validate a model file; errors name the file and the key (never executes anything).
 
@@ -450,7 +438,8 @@ def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     try:
         f = msgspec.convert(doc, ModelFileV2, strict=True)
     except msgspec.ValidationError as exc:
-        key, text = _key_of(str(exc))
+        path_, text = error_path(exc)
+        key = path_.lstrip(".")
         if text.startswith("Object contains unknown field"):
             name = text.split("`")[1] if "`" in text else "?"
             full = f"{key}.{name}" if key else name
