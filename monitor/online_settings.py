@@ -90,7 +90,8 @@ def check_kernel_desc(desc: dict) -> Kernel:
         try:
             return msgspec.convert(body, SpindleKernel).build()
         except msgspec.ValidationError as exc:
-            raise ValueError(f"spindle kernel: {exc}") from None
+            key, msg = explain(exc, SpindleKernel)
+            raise ValueError(f"spindle kernel: key {key}: {msg}") from None
     return Kernel.from_dict(desc)
 
 
