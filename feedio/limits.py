@@ -16,7 +16,7 @@ Two kinds:
   axes, status queries. Each field documents its allowed range (``msgspec.Meta``), which decoding
   a config file checks.
 
-Per-sample physical limits (:data:`PHYSICAL`, :data:`LIMITS`): a value beyond them is physically
+Per-sample physical limits (:data:`SAMPLE_LIMITS`, :data:`LIMITS`): a value beyond them is physically
 absurd for a machine-tool axis; the estimator REJECTs that one sample (row emitted with NaN
 estimates) and counts ``rejected_out_of_range``; the rest of the block is used.
 
@@ -39,12 +39,18 @@ __all__ = [
     "T_MAX",
     "BLOCK_SAMPLES_MAX",
     "PhysicalLimits",
-    "PHYSICAL",
+    "SPINDLE_RPM_MAX",
+    "MAX_CONFIG_BYTES",
+    "SAMPLE_LIMITS",
     "LIMITS",
     "InputLimits",
     "DEFAULT",
     "field_range",
     "range_text",
+    "explain",
+    "error_path",
+    "bounded_int",
+    "bounded_float",
 ]
 
 # ---- contract bounds (schema) ---------------------------------------------------------------
@@ -55,6 +61,9 @@ NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")  # use with fullmatch 
 SEQ_MAX = 2**53 - 1
 T_MAX = 1e10  # s
 BLOCK_SAMPLES_MAX = 1_000_000
+#: fastest spindle (rpm) a model may name, a scenario may command and a sample may carry; a faster sample
+#: speed is unusable (the spindle tracker falls back to the model's nominal speed), an imported one refused
+SPINDLE_RPM_MAX = 100_000.0
 
 
 class PhysicalLimits(msgspec.Struct, frozen=True):
@@ -63,21 +72,30 @@ class PhysicalLimits(msgspec.Struct, frozen=True):
     v_max: float = 50.0  # |velocity| (m/s): v_ref, v_meas
     u_max: float = 1e7  # |force command| (N)
     t_max: float = T_MAX  # |controller time| (s)
-    spindle_rpm_max: float = 200_000.0  # |spindle speed| (rpm): faster is unusable (the tracker falls back)
+    spindle_rpm_max: float = SPINDLE_RPM_MAX  # |spindle speed| (rpm): faster is unusable (the tracker falls back)
 
 
-PHYSICAL = PhysicalLimits()
-#: the estimator's view of :data:`PHYSICAL` (``monitor.estimator`` uses it)
-LIMITS = {"v": PHYSICAL.v_max, "u": PHYSICAL.u_max, "t": PHYSICAL.t_max}
+SAMPLE_LIMITS = PhysicalLimits()
+#: the estimator's view of :data:`SAMPLE_LIMITS` (``monitor.estimator`` uses it)
+LIMITS = {"v": SAMPLE_LIMITS.v_max, "u": SAMPLE_LIMITS.u_max, "t": SAMPLE_LIMITS.t_max}
+
+
+#: largest config file (``feedmon run --config``, the LinuxCNC bridge's), bytes
+MAX_CONFIG_BYTES = 1 << 20
 
 
 # ---- resource limits (configurable) ---------------------------------------------------------
-def _int(lo: int, hi: int, doc: str) -> Any:
+def bounded_int(lo: int, hi: int, doc: str = "") -> Any:
+    """An int field in ``[lo, hi]`` described by ``doc``: the one way a settings Struct gives a range, from
+    which :func:`range_text`, :func:`explain` and the generated tables read it."""
     return Annotated[int, msgspec.Meta(ge=lo, le=hi, description=doc)]
 
 
-def _float(lo: float, hi: float, doc: str) -> Any:
-    return Annotated[float, msgspec.Meta(ge=lo, le=hi, description=doc)]
+def bounded_float(lo: float, hi: float, doc: str = "", *, open_low: bool = False) -> Any:
+    """A float field in ``[lo, hi]`` (``(lo, hi]`` when ``open_low``) described by ``doc``; NaN and ±inf are
+    outside (see :func:`bounded_int`)."""
+    meta = msgspec.Meta(gt=lo, le=hi, description=doc) if open_low else msgspec.Meta(ge=lo, le=hi, description=doc)
+    return Annotated[float, meta]
 
 
 class InputLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -86,33 +104,33 @@ class InputLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     Beyond a limit the input is refused and counted, never a crash, a stall or unbounded memory.
     """
 
-    max_message_bytes: _int(
+    max_message_bytes: bounded_int(
         1024, 1 << 30,
         "largest message payload accepted (bytes); checked in the Zenoh callback before anything "
         "else; beyond: refused, counted too_large") = 4 << 20
-    max_block_samples: _int(
+    max_block_samples: bounded_int(
         1, BLOCK_SAMPLES_MAX,
         "most samples in one block; beyond: the block is refused, counted too_large (bounds how "
         "long one message can hold the estimator, which all axes share)") = 10_000
-    queue_messages: _int(
+    queue_messages: bounded_int(
         1, 1_000_000,
         "input queue capacity (messages); when full: refused, counted queue_full") = 8192
-    queue_bytes: _int(
+    queue_bytes: bounded_int(
         1024, 1 << 34,
         "input queue capacity (payload bytes); when full: refused, counted queue_full; "
         "must be >= max_message_bytes") = 64 << 20
-    max_unknown_axes: _int(
+    max_unknown_axes: bounded_int(
         0, 100_000,
         "distinct axes without a model listed in the status (input.no_model); samples of further "
         "ones are counted in input.no_model_overflow") = 64
-    status_rate: _float(
+    status_rate: bounded_float(
         0.1, 100_000.0,
         "status replies per second (token bucket); queries beyond: not answered, counted "
         "status.refused") = 50.0
-    status_burst: _int(
+    status_burst: bounded_int(
         1, 1_000_000,
         "status replies allowed in a burst above status_rate") = 100
-    status_refresh_s: _float(
+    status_refresh_s: bounded_float(
         0.0, 60.0,
         "a status reply is at most this old (s): the document is rebuilt at most this often, on "
         "the query thread, never on the estimator thread") = 0.2
@@ -173,3 +191,77 @@ def range_text(struct: type, name: str) -> str | None:
                     return f"{lo}{name}{hi}" if lo or hi else None
             return None
     raise KeyError(f"{struct.__name__} has no field {name!r}")
+
+
+# ---- error explanation (every msgspec-validated settings file and option) --------------------
+_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
+
+
+def _struct_in(t: Any) -> type | None:
+    """The Struct class a field type holds (itself, behind ``Annotated``, or in an optional union)."""
+    t = t.type if isinstance(t, msgspec.inspect.Metadata) else t
+    if isinstance(t, msgspec.inspect.StructType):
+        return t.cls
+    if isinstance(t, msgspec.inspect.UnionType):
+        found = [s for s in map(_struct_in, t.types) if s is not None]
+        return found[0] if len(found) == 1 else None
+    return None
+
+
+def _walk(root: type, path: str) -> tuple[type | None, str | None]:
+    """``(Struct holding the last key, last key)`` of a msgspec error path such as ``.run.limits.queue_bytes``,
+    ``.axes[...].scale`` (a table of Structs) or ``.steps[1].mode`` (a list of them); ``(Struct, None)`` for a
+    path naming a Struct itself, ``(None, None)`` for one that leaves the Structs."""
+    t: Any = root
+    ft: Any = None
+    name: str | None = None
+    for key, _ in re.findall(r"\.([^.\[]+)|\[(\d+|\.\.\.)\]", path):
+        if key:
+            if name is not None:  # a key inside a value that is not a Struct
+                return None, None
+            fields = {f.name: f.type for f in msgspec.inspect.type_info(t).fields}
+            if key not in fields:
+                return None, None
+            ft = fields[key]
+        elif name is not None:  # an element of a list of numbers: the key is still the list's
+            continue
+        else:  # an element of a table or a list of Structs
+            inner = ft.type if isinstance(ft, msgspec.inspect.Metadata) else ft
+            ft = getattr(inner, "value_type", None) or getattr(inner, "item_type", None)
+            if ft is None:
+                return None, None
+        nxt = _struct_in(ft)
+        inner = ft.type if isinstance(ft, msgspec.inspect.Metadata) else ft
+        element = getattr(inner, "value_type", None) or getattr(inner, "item_type", None)
+        if nxt is not None:
+            t, name = nxt, None
+        elif key and element is not None and _struct_in(element) is not None:
+            name = None  # a table or list of Structs: an element follows
+        elif key:
+            name = key
+        else:
+            return None, None
+    return t, name
+
+
+def error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
+    """``(path, message)`` of a msgspec validation error: ``(".tracker.gamma", "Expected `float` >= 0.0001")``;
+    the path is ``""`` for the document itself."""
+    m = _AT.match(str(exc))
+    return m.group("path") or "", m.group("msg")
+
+
+def explain(exc: msgspec.ValidationError, root: type) -> tuple[str, str]:
+    """``(key, message)`` of a validation error of ``root`` (a msgspec Struct): the dotted key
+    (``run.limits.queue_bytes``; ``(top level)``) and msgspec's message with the allowed range of the key
+    (:func:`range_text`) or, for an unknown key, the keys known there — what a user needs to fix it."""
+    path, msg = error_path(exc)
+    key = path.lstrip(".") or "(top level)"
+    struct, name = _walk(root, path)
+    if struct is not None and name is not None:
+        allowed = range_text(struct, name)
+        if allowed:
+            msg += f" (allowed: {allowed})"
+    elif struct is not None and "unknown field" in msg:
+        msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
+    return key, msg

@@ -28,12 +28,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .mcapspec import MAGIC, OP_NAMES, RECORD_HEAD, Op
+
 __all__ = [
     "TrialFileError",
     "Limits",
     "DEFAULT_LIMITS",
-    "MAGIC",
-    "Op",
     "RecordError",
     "parse_record",
     "decompress",
@@ -64,7 +64,6 @@ MAX_METADATA_RECORDS = 40_000
 #: deepest nesting of JSON objects/arrays in metadata (TrialMeta needs 5; 50 000 crashed msgspec)
 MAX_JSON_DEPTH = 32
 
-MAGIC = b"\x89MCAP0\r\n"
 RECOVER_HINT = "salvage what is intact with 'feedmon recover {path} -o FIXED.mcap'"
 
 
@@ -91,28 +90,6 @@ class Limits:
 DEFAULT_LIMITS = Limits()
 
 
-class Op:
-    """MCAP opcodes."""
-
-    HEADER = 0x01
-    FOOTER = 0x02
-    SCHEMA = 0x03
-    CHANNEL = 0x04
-    MESSAGE = 0x05
-    CHUNK = 0x06
-    MESSAGE_INDEX = 0x07
-    CHUNK_INDEX = 0x08
-    ATTACHMENT = 0x09
-    ATTACHMENT_INDEX = 0x0A
-    STATISTICS = 0x0B
-    METADATA = 0x0C
-    METADATA_INDEX = 0x0D
-    SUMMARY_OFFSET = 0x0E
-    DATA_END = 0x0F
-
-
-OP_NAMES = {v: k.title().replace("_", "") for k, v in vars(Op).items() if k.isupper()}
-
 # field layout of each record (MCAP spec): B/H/I/Q little-endian ints, s u32-prefixed UTF-8,
 # b4/b8 u32/u64-prefixed bytes, m map<string,string> and mq map<uint16,uint64> (u32 byte length),
 # a16 array of 16-byte entries (u32 byte length), rest = the remaining bytes
@@ -135,7 +112,6 @@ _SPECS: dict[int, tuple[str, ...]] = {
 }
 _INT = {"B": struct.Struct("<B"), "H": struct.Struct("<H"), "I": struct.Struct("<I"), "Q": struct.Struct("<Q")}
 _U32, _U64 = _INT["I"], _INT["Q"]
-_HDR = struct.Struct("<BQ")
 _MSG_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 FOOTER_BYTES = 9 + 20
 DATA_END_BYTES = 9 + 4
@@ -401,7 +377,7 @@ def iter_inner(data, *, strict: bool = True) -> Iterator[tuple[int, int, memoryv
             if strict:
                 raise RecordError(f"record header at chunk byte {pos} is cut off")
             return
-        opcode, length = _HDR.unpack_from(buf, pos)
+        opcode, length = RECORD_HEAD.unpack_from(buf, pos)
         if length > n - pos - 9:
             if strict:
                 raise RecordError(f"record at chunk byte {pos} declares {length} bytes, {n - pos - 9} left")
@@ -489,7 +465,7 @@ class McapFile:
         """(opcode, body) of the record at ``offset`` that must end by ``end``."""
         if offset + 9 > end:
             raise self.error(offset, f"{what}: record header overruns its section")
-        opcode, length = _HDR.unpack(self._read_at(offset, 9))
+        opcode, length = RECORD_HEAD.unpack(self._read_at(offset, 9))
         if length > end - offset - 9:
             raise self.error(offset, f"{what}: {OP_NAMES.get(opcode, hex(opcode))} record declares {length} "
                                      f"bytes but its section has {end - offset - 9} left")
@@ -560,7 +536,7 @@ class McapFile:
         while pos < len(buf):
             if pos + 9 > len(buf):
                 raise self.error(base + pos, "summary record header cut off")
-            opcode, length = _HDR.unpack_from(buf, pos)
+            opcode, length = RECORD_HEAD.unpack_from(buf, pos)
             if length > len(buf) - pos - 9:
                 raise self.error(base + pos, f"summary record declares {length} bytes, {len(buf) - pos - 9} left")
             body = buf[pos + 9:pos + 9 + length]
@@ -590,7 +566,7 @@ class McapFile:
         while pos < self.data_end:
             if pos + 9 > self.data_end:
                 raise self.error(pos, "record header overruns the data section")
-            opcode, length = _HDR.unpack(self._read_at(pos, 9))
+            opcode, length = RECORD_HEAD.unpack(self._read_at(pos, 9))
             if length > self.data_end - pos - 9:
                 raise self.error(pos, f"{OP_NAMES.get(opcode, hex(opcode))} record declares {length} bytes, "
                                       f"the data section has {self.data_end - pos - 9} left")

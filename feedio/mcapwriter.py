@@ -25,7 +25,7 @@ everything from the magic to the end of the data section; the chunk CRC the unco
 records; the summary CRC the summary and the first fields of the footer.
 
 The stream receives complete records only, in the same pieces as ``mcap``'s writer writes them
-(each chunk record, then its message indexes, ...): :class:`feedio.mcapio._StagedFile` relies on
+(each chunk record, then its message indexes, ...): :class:`feedio.trialwriter._StagedFile` relies on
 that.
 """
 
@@ -37,14 +37,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-__all__ = ["McapWriter", "MAGIC", "MESSAGE_HEADER", "message_header"]
+from .mcapspec import MAGIC, Op
 
-MAGIC = b"\x89MCAP0\r\n"
-
-_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_MESSAGE_INDEX = 1, 2, 3, 4, 5, 6, 7
-_OP_CHUNK_INDEX, _OP_ATTACHMENT, _OP_ATTACHMENT_INDEX, _OP_STATISTICS, _OP_METADATA, _OP_METADATA_INDEX = \
-    8, 9, 10, 11, 12, 13
-_OP_SUMMARY_OFFSET, _OP_DATA_END = 14, 15
+__all__ = ["McapWriter", "MESSAGE_HEADER", "message_header"]
 
 #: bytes before a message's data: opcode, record length, channel id, sequence, log time, publish time
 MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8
@@ -53,7 +48,7 @@ _MSG = struct.Struct("<BQHIQQ")
 
 def message_header(channel_id: int, sequence: int, log_time: int, publish_time: int, data_len: int) -> bytes:
     """The 31 bytes that precede ``data`` in a message record."""
-    return _MSG.pack(_OP_MESSAGE, 22 + data_len, channel_id, sequence, log_time, publish_time)
+    return _MSG.pack(Op.MESSAGE, 22 + data_len, channel_id, sequence, log_time, publish_time)
 
 
 def _record(op: int, body: bytes) -> bytes:
@@ -96,7 +91,7 @@ class _ChannelIndex:
         self._seal()
         entries = np.concatenate(self.parts) if len(self.parts) > 1 else self.parts[0]
         data = np.ascontiguousarray(entries, dtype="<u8").tobytes()
-        return _record(_OP_MESSAGE_INDEX, struct.pack("<HI", channel_id, len(data)) + data)
+        return _record(Op.MESSAGE_INDEX, struct.pack("<HI", channel_id, len(data)) + data)
 
 
 class McapWriter:
@@ -170,13 +165,13 @@ class McapWriter:
         self._stream.write(MAGIC)
         if self._data_crcs:
             self._data_crc = zlib.crc32(MAGIC, self._data_crc)
-        self._emit(_record(_OP_HEADER, _string(profile) + _string(library)))
+        self._emit(_record(Op.HEADER, _string(profile) + _string(library)))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         offset = self._stream.tell()
         self._metadata_count += 1
-        rec = _record(_OP_METADATA, _string(name) + _string_map(data))
-        self._metadata_indexes.append(_record(_OP_METADATA_INDEX, struct.pack("<QQ", offset, len(rec)) + _string(name)))
+        rec = _record(Op.METADATA, _string(name) + _string_map(data))
+        self._metadata_indexes.append(_record(Op.METADATA_INDEX, struct.pack("<QQ", offset, len(rec)) + _string(name)))
         self._emit(rec)
 
     def add_attachment(self, create_time: int, log_time: int, name: str, media_type: str, data: bytes) -> None:
@@ -185,15 +180,15 @@ class McapWriter:
         self._attachment_count += 1
         body = struct.pack("<QQ", log_time, create_time) + _string(name) + _string(media_type) \
             + struct.pack("<Q", len(data)) + bytes(data)
-        rec = struct.pack("<BQ", _OP_ATTACHMENT, len(body) + 4) + body + struct.pack("<I", zlib.crc32(body))
+        rec = struct.pack("<BQ", Op.ATTACHMENT, len(body) + 4) + body + struct.pack("<I", zlib.crc32(body))
         self._attachment_indexes.append(_record(
-            _OP_ATTACHMENT_INDEX, struct.pack("<QQQQQ", offset, len(rec), log_time, create_time, len(data))
+            Op.ATTACHMENT_INDEX, struct.pack("<QQQQQ", offset, len(rec), log_time, create_time, len(data))
             + _string(name) + _string(media_type)))
         self._emit(rec)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         sid = len(self._schemas) + 1
-        rec = _record(_OP_SCHEMA, struct.pack("<H", sid) + _string(name) + _string(encoding)
+        rec = _record(Op.SCHEMA, struct.pack("<H", sid) + _string(name) + _string(encoding)
                       + struct.pack("<I", len(data)) + bytes(data))
         self._schemas.append(rec)
         self._chunk_add(rec)
@@ -203,7 +198,7 @@ class McapWriter:
     def register_channel(self, topic: str, message_encoding: str, schema_id: int,
                          metadata: Mapping[str, str] | None = None) -> int:
         cid = len(self._channels) + 1
-        rec = _record(_OP_CHANNEL, struct.pack("<HH", cid, schema_id) + _string(topic) + _string(message_encoding)
+        rec = _record(Op.CHANNEL, struct.pack("<HH", cid, schema_id) + _string(topic) + _string(message_encoding)
                       + _string_map(metadata or {}))
         self._channels.append(rec)
         self._chunk_add(rec)
@@ -212,7 +207,7 @@ class McapWriter:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
         """One message (``mcap.writer.Writer.add_message``)."""
-        header = _MSG.pack(_OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+        header = _MSG.pack(Op.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
         if self._message_count == 0:
             self._start_time = log_time
         elif log_time < self._start_time:
@@ -300,7 +295,7 @@ class McapWriter:
         offset = self._stream.tell()
         head = struct.pack("<QQQI", self._chunk_start, self._chunk_end, len(chunk_data), crc) \
             + _string(self._compression) + struct.pack("<Q", len(compressed))
-        chunk = struct.pack("<BQ", _OP_CHUNK, len(head) + len(compressed)) + head + compressed
+        chunk = struct.pack("<BQ", Op.CHUNK, len(head) + len(compressed)) + head + compressed
         self._emit(chunk)
         index_start = self._stream.tell()
         offsets = []
@@ -315,7 +310,7 @@ class McapWriter:
         self._emit(indexes)
         offs = b"".join(offsets)
         self._chunk_indexes.append(_record(
-            _OP_CHUNK_INDEX,
+            Op.CHUNK_INDEX,
             struct.pack("<QQQQI", self._chunk_start, self._chunk_end, offset, len(chunk), len(offs)) + offs
             + struct.pack("<Q", len(indexes)) + _string(self._compression)
             + struct.pack("<QQ", len(compressed), len(chunk_data))))
@@ -333,7 +328,7 @@ class McapWriter:
     def finish(self) -> None:
         """Close the open chunk, write the data end, the summary and the footer."""
         self._finalize_chunk()
-        self._emit(_record(_OP_DATA_END, struct.pack("<I", self._data_crc)))
+        self._emit(_record(Op.DATA_END, struct.pack("<I", self._data_crc)))
         summary_start = self._stream.tell()
         groups: list[tuple[int, bytes]] = []
         stats = struct.pack("<QHIIIIQQ", self._message_count, len(self._schemas), len(self._channels),
@@ -341,22 +336,22 @@ class McapWriter:
                             self._metadata_count, self._chunk_count, self._start_time, self._end_time)
         counts = b"".join(struct.pack("<HQ", cid, n) for cid, n in self._channel_counts.items())
         stats += struct.pack("<I", len(counts)) + counts
-        for op, recs in ((_OP_SCHEMA, self._schemas), (_OP_CHANNEL, self._channels),
-                         (_OP_STATISTICS, [_record(_OP_STATISTICS, stats)]), (_OP_CHUNK_INDEX, self._chunk_indexes),
-                         (_OP_ATTACHMENT_INDEX, self._attachment_indexes),
-                         (_OP_METADATA_INDEX, self._metadata_indexes)):
+        for op, recs in ((Op.SCHEMA, self._schemas), (Op.CHANNEL, self._channels),
+                         (Op.STATISTICS, [_record(Op.STATISTICS, stats)]), (Op.CHUNK_INDEX, self._chunk_indexes),
+                         (Op.ATTACHMENT_INDEX, self._attachment_indexes),
+                         (Op.METADATA_INDEX, self._metadata_indexes)):
             groups.append((op, b"".join(recs)))
         body = []
         pos = summary_start
         offsets = []
         for op, data in groups:
-            offsets.append(_record(_OP_SUMMARY_OFFSET, struct.pack("<BQQ", op, pos, len(data))))
+            offsets.append(_record(Op.SUMMARY_OFFSET, struct.pack("<BQQ", op, pos, len(data))))
             body.append(data)
             pos += len(data)
         summary_offset_start = pos
         summary = b"".join(body) + b"".join(offsets)
         summary_crc = zlib.crc32(summary)
-        footer_start = struct.pack("<BQQQ", _OP_FOOTER, 20, summary_start if summary else 0, summary_offset_start)
+        footer_start = struct.pack("<BQQQ", Op.FOOTER, 20, summary_start if summary else 0, summary_offset_start)
         summary_crc = zlib.crc32(footer_start, summary_crc)
         self._stream.write(summary)
         self._emit(footer_start + struct.pack("<I", summary_crc))

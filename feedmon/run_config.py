@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
 
-from feedio.limits import InputLimits, range_text
+from feedio.limits import MAX_CONFIG_BYTES, InputLimits, explain
 from monitor import online_settings as OS
 from monitor.input_health import InputHealthSettings
 from monitor.sinks.child import Priority
@@ -40,7 +39,6 @@ __all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args"
 #: keys whose values are paths (relative to the config file's directory)
 PATH_KEYS = ("model", "mcap", "rrd", "state_dir", "zenoh_config")
 #: a larger file is refused before it is parsed
-MAX_CONFIG_BYTES = 1 << 20
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -85,44 +83,6 @@ class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     run: RunConfig = RunConfig()
 
 
-# ---- error messages ----------------------------------------------------------------------------
-_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
-
-
-def _walk(root: type, path: str) -> tuple[type | None, str | None]:
-    """(Struct type holding the last key, last key) of a msgspec error path such as
-    ``.run.limits.queue_bytes``; ``(Struct, None)`` for a path naming a Struct itself."""
-    parts = [p for p in re.split(r"\.|\[\d+\]", path) if p]
-    t: Any = root
-    for i, name in enumerate(parts):
-        fields = {f.name: f.type for f in msgspec.inspect.type_info(t).fields}
-        if name not in fields:
-            return None, None
-        nxt = getattr(fields[name], "cls", None)  # a nested Struct
-        if i == len(parts) - 1:
-            return (nxt, None) if nxt is not None else (t, name)
-        if nxt is None:
-            return None, None
-        t = nxt
-    return t, None
-
-
-def _explain(exc: msgspec.ValidationError, root: type) -> tuple[str, str]:
-    """``(key, message)`` of a validation error, with the allowed range of a numeric key or the
-    known keys of a table with an unknown key."""
-    m = _AT.match(str(exc))
-    msg, path = m.group("msg"), (m.group("path") or "")
-    key = path.lstrip(".") or "(top level)"
-    struct, name = _walk(root, path)
-    if struct is not None and name is not None:
-        allowed = range_text(struct, name)
-        if allowed:
-            msg += f" (allowed: {allowed})"
-    elif struct is not None and "unknown field" in msg:
-        msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
-    return key, msg
-
-
 # ---- the file ----------------------------------------------------------------------------------
 def _as_list(value: Any) -> Any:
     return [value] if isinstance(value, str) else value
@@ -163,7 +123,7 @@ def load_config_file(path: str | Path) -> ConfigFile:
     try:
         return msgspec.convert(doc, ConfigFile)
     except msgspec.ValidationError as exc:
-        key, msg = _explain(exc, ConfigFile)
+        key, msg = explain(exc, ConfigFile)
         hint = " (the options of feedmon run go in a [run] table)" if key == "(top level)" else ""
         raise ValueError(f"config file {path}: key {key}: {msg}{hint}") from None
 
@@ -203,7 +163,7 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         try:
             msgspec.convert({name: value}, RunConfig)
         except msgspec.ValidationError as exc:
-            _, msg = _explain(exc, RunConfig)
+            _, msg = explain(exc, RunConfig)
             raise ValueError(f"option --{name.replace('_', '-')}: {msg}") from None
     given: dict[str, tuple[Any, str]] = {}  # limit -> (value, option that gave it)
     if getattr(args, "queue", None) is not None:
@@ -217,11 +177,11 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         try:
             msgspec.convert({k: v}, InputLimits)
         except msgspec.ValidationError as exc:
-            raise ValueError(f"option {opt}: {_explain(exc, InputLimits)[1]}") from None
+            raise ValueError(f"option {opt}: {explain(exc, InputLimits)[1]}") from None
     try:
         merged = msgspec.convert({**msgspec.to_builtins(cfg.limits), **{k: v for k, (v, _) in given.items()}},
                                  InputLimits)
     except msgspec.ValidationError as exc:  # a cross-field rule (queue_bytes >= max_message_bytes)
         where = f"config file {args.config} and options" if getattr(args, "config", None) else "options"
-        raise ValueError(f"limits ({where}): {_explain(exc, InputLimits)[1]}") from None
+        raise ValueError(f"limits ({where}): {explain(exc, InputLimits)[1]}") from None
     return msgspec.structs.replace(cfg, limits=merged, **cli)

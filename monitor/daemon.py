@@ -78,8 +78,11 @@ from feedio.limits import DEFAULT, InputLimits
 from .axes import AxisRuntime
 from .input_health import InputHealthSettings
 from .pipeline import Pipeline
+from .sinks.frames import Tag
+from .sinks.protocols import ClosingSink, EncodedSink, HealthSink, Sink, TruthSink
 from .state import StateStore
 from .status import StageRing
+from .status_doc import InputInfo, Latency, MonitorInfo, Percentiles, Served, StatusDoc, to_builtins
 
 __all__ = ["Monitor", "INLINE_BYTES", "sink_losses"]
 
@@ -155,7 +158,7 @@ class Monitor:
         session,
         *,
         prefix: str = "feedmon",
-        sinks: Sequence[Any] = (),
+        sinks: Sequence[Sink] = (),
         limits: InputLimits = DEFAULT,
         record_truth: bool = False,
         state: StateStore | None = None,
@@ -195,10 +198,10 @@ class Monitor:
         self.handled = 0  # messages taken by an estimating thread
         self.truth_blocks = 0
         self.publish_errors = 0
-        self._encoded = [s for s in self.sinks if hasattr(s, "offer_encoded")]
-        self._plain = [s for s in self.sinks if not hasattr(s, "offer_encoded")]
-        self._health_offers = [s.offer_health for s in self.sinks if hasattr(s, "offer_health")]
-        self._truth_offers = [s.offer_truth for s in self._plain if hasattr(s, "offer_truth")]
+        self._encoded = [s for s in self.sinks if isinstance(s, EncodedSink)]
+        self._plain = [s for s in self.sinks if not isinstance(s, EncodedSink)]
+        self._health_offers = [s.offer_health for s in self.sinks if isinstance(s, HealthSink)]
+        self._truth_offers = [s.offer_truth for s in self._plain if isinstance(s, TruthSink)]
         # status queryable (Zenoh threads), under _status_lock
         self._status_lock = threading.Lock()
         self._status_doc: bytes | None = None
@@ -382,9 +385,9 @@ class Monitor:
             t4 = time.perf_counter()
             ax.status.latency.record(t4 - t_recv)
         for sink in self._encoded:
-            sink.offer_encoded(b"S", payload, rx_ns)
+            sink.offer_encoded(Tag.SAMPLES, payload, rx_ns)
             if data is not None:
-                sink.offer_encoded(b"E", data, rx_ns)
+                sink.offer_encoded(Tag.ESTIMATES, data, rx_ns)
         for sink in self._plain:
             sink.offer(block)
             if est is not None:
@@ -425,7 +428,7 @@ class Monitor:
         self.truth_blocks += 1
         m, a = ax.model.machine, ax.model.axis
         for sink in self._encoded:
-            sink.offer_encoded(b"T", payload, rx_ns, f"{m}\0{a}".encode())
+            sink.offer_encoded(Tag.TRUTH, payload, rx_ns, f"{m}\0{a}".encode())
         for offer in self._truth_offers:
             offer(m, a, block)
 
@@ -550,7 +553,7 @@ class Monitor:
         deadline = time.monotonic() + timeout
         for sink in self.sinks:
             try:
-                if hasattr(sink, "begin_close"):  # (a sink of the plain protocol has close only)
+                if isinstance(sink, ClosingSink):  # (a sink of the plain protocol has close only)
                     sink.begin_close(timeout)
             except Exception as exc:  # noqa: BLE001
                 self._problem("closing sink %s failed: %s: %s", getattr(sink, "name", sink), type(exc).__name__, exc)
@@ -580,16 +583,15 @@ class Monitor:
             totals[reason] += n
             if name:
                 per_axis.setdefault(name, {})[_CALLBACK_REASONS[reason]] = n
-        axes = {ax.status.name: {**ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
-                                                    per_axis.get(ax.status.name)),
-                                 "input": p.input_health[ax.key].status()}
+        axes = {ax.status.name: ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
+                                                 per_axis.get(ax.status.name), p.input_health[ax.key].status())
                 for ax in self.axes.values()}
         all_lat = [ax.status.latency.values() for ax in self.axes.values()]
         lat = np.concatenate(all_lat) if all_lat else np.zeros(0)
-        latency = {"p50": None, "p99": None, "count": int(lat.size)}
+        latency = Latency(count=int(lat.size))
         if lat.size:
             p50, p99 = np.percentile(lat, [50.0, 99.0])
-            latency.update(p50=round(float(p50), 1), p99=round(float(p99), 1))
+            latency.p50, latency.p99 = round(float(p50), 1), round(float(p99), 1)
         all_st = [ax.status.stages.values() for ax in self.axes.values()]
         stages = StageRing.summarize(np.concatenate(all_st, axis=1) if all_st else np.zeros((6, 0)))
         pc = dict(p.counters)
@@ -598,32 +600,32 @@ class Monitor:
             return sum(int(ax.status.counters.get(reason, 0)) for ax in self.axes.values())
 
         lim = self.limits
-        return {
-            "monitor": {
-                "version": __version__, "pid": os.getpid(), "host": socket.gethostname(), "prefix": self.prefix,
-                "state": self.state, "started_unix": self._started_wall,
-                "uptime_s": round(time.monotonic() - self._started_mono, 3), "endpoints": self.endpoints,
-            },
-            "input": {
-                "received": received, "inline": self.inline, "handled": self.handled, "pending": len(self._queue),
-                "capacity": lim.queue_messages,
-                "pending_bytes": max(0, bytes_in - self._bytes_out), "capacity_bytes": lim.queue_bytes,
-                "queue_full": int(totals["queue_full"]),
-                "too_large": int(totals["too_large"]) + axis_sum("too_large"),
-                "malformed": int(pc.get("malformed", 0)),
-                "key_mismatch": p.key_mismatch.to_dict(), "key_mismatch_overflow": p.key_mismatch.overflow,
-                "key_mismatch_total": int(pc.get("key_mismatch", 0)) + axis_sum("key_mismatch"),
-                "no_model": p.no_model.to_dict(), "no_model_overflow": p.no_model.overflow,
-                "no_model_blocks": int(pc.get("no_model_blocks", 0)),
-                "shutdown_discarded": int(totals["shutdown_discarded"]),
-                "truth_blocks": self.truth_blocks, "malformed_truth": int(pc.get("malformed_truth", 0)),
-                "truth_no_model": int(pc.get("truth_no_model", 0)),
-                "publish_errors": self.publish_errors, "internal_errors": int(pc.get("internal_error", 0)),
-            },
-            "limits": {f: getattr(lim, f) for f in lim.__struct_fields__},
-            "status": {"served": self.status_served, "refused": self.status_refused},
-            "latency_us": latency,
-            "stages_us": stages,
-            "axes": axes,
-            "sinks": [dict(s.status()) for s in self.sinks],
-        }
+        return to_builtins(StatusDoc(
+            monitor=MonitorInfo(
+                version=__version__, pid=os.getpid(), host=socket.gethostname(), prefix=self.prefix,
+                state=self.state, started_unix=self._started_wall,
+                uptime_s=round(time.monotonic() - self._started_mono, 3), endpoints=self.endpoints,
+            ),
+            input=InputInfo(
+                received=received, inline=self.inline, handled=self.handled, pending=len(self._queue),
+                capacity=lim.queue_messages,
+                pending_bytes=max(0, bytes_in - self._bytes_out), capacity_bytes=lim.queue_bytes,
+                queue_full=int(totals["queue_full"]),
+                too_large=int(totals["too_large"]) + axis_sum("too_large"),
+                malformed=int(pc.get("malformed", 0)),
+                key_mismatch=p.key_mismatch.to_dict(), key_mismatch_overflow=p.key_mismatch.overflow,
+                key_mismatch_total=int(pc.get("key_mismatch", 0)) + axis_sum("key_mismatch"),
+                no_model=p.no_model.to_dict(), no_model_overflow=p.no_model.overflow,
+                no_model_blocks=int(pc.get("no_model_blocks", 0)),
+                shutdown_discarded=int(totals["shutdown_discarded"]),
+                truth_blocks=self.truth_blocks, malformed_truth=int(pc.get("malformed_truth", 0)),
+                truth_no_model=int(pc.get("truth_no_model", 0)),
+                publish_errors=self.publish_errors, internal_errors=int(pc.get("internal_error", 0)),
+            ),
+            limits={f: getattr(lim, f) for f in lim.__struct_fields__},
+            status=Served(served=self.status_served, refused=self.status_refused),
+            latency_us=latency,
+            stages_us={k: Percentiles(**v) for k, v in stages.items()},
+            axes=axes,
+            sinks=[dict(s.status()) for s in self.sinks],
+        ))

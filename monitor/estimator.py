@@ -50,7 +50,7 @@ Robustness (each reason is counted in :attr:`AxisEstimator.counters`):
   start over from the model file (``tracker_restarts``), and :class:`TrackerBreakdown` (or the
   error) is raised for the caller to count and log (``estimator_error`` in the monitor).
 
-Online β and health (issue 11, :mod:`monitor.online_settings`): β̂ and its covariance run beside
+Online β and health (:mod:`monitor.online_settings`): β̂ and its covariance run beside
 the tracker (:class:`kernels.beta_tracker.OnlineBeta`, mode ``[adaptation] mode``), the health
 statistics on every learned sample (:class:`kernels.health.HealthMonitor`); the compiled loop
 writes a health report about once a second of data time, and :meth:`AxisEstimator.take_health`
@@ -68,7 +68,7 @@ from numbers import Integral
 import msgspec
 import numpy as np
 
-from feedio.limits import LIMITS, PHYSICAL, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
+from feedio.limits import LIMITS, SAMPLE_LIMITS, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
 from feedio.schema import CONTEXT_COLUMNS, REASON_CHARS_MAX, REASONS_MAX, EstimateBlock, Health, SampleBlock
 from kernels import KRLST, online
 from kernels import disturbance_search as ds
@@ -247,7 +247,7 @@ class AxisEstimator:
             inv_ts=1.0 / float(model.Ts), v_max=LIMITS["v"], e_max=float(e_max), t_max=LIMITS["t"],
             stale_detection=bool(stale_detection), warmup=int(self.warmup), reorder_window=int(reorder_window),
             mode=self.mode, spindle=sp is not None, theta_period=sp.period if sp else 2.0 * math.pi,
-            rpm_nominal=sp.spindle_rpm if sp else 0.0, rpm_max=PHYSICAL.spindle_rpm_max,
+            rpm_nominal=sp.spindle_rpm if sp else 0.0, rpm_max=SAMPLE_LIMITS.spindle_rpm_max,
             tick_period=self.settings.health.period)
         self._spindle_seen = False
         if self.searching:
@@ -609,7 +609,7 @@ class AxisEstimator:
     def _spindle_appeared(self, rpm: np.ndarray) -> None:
         """The first samples with spindle data: the spindle-phase kernel from now on (whatever the
         model file's tracker was), with the speed seen as the nominal one where the model has none."""
-        finite = rpm[np.isfinite(rpm) & (np.abs(rpm) > 0) & (np.abs(rpm) <= PHYSICAL.spindle_rpm_max)]
+        finite = rpm[np.isfinite(rpm) & (np.abs(rpm) > 0) & (np.abs(rpm) <= SAMPLE_LIMITS.spindle_rpm_max)]
         if finite.size and not online.config_of(*self._cfg).rpm_nominal > 0.0:
             online.set_tracker_input(self._cfg, online.config_of(*self._cfg).spindle,
                                      online.config_of(*self._cfg).theta_period, rpm_nominal=float(np.median(np.abs(finite))))

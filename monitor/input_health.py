@@ -31,16 +31,16 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import Annotated
 
 import msgspec
 import numpy as np
 
+from feedio.limits import bounded_float
 from kernels import online
+from kernels.health import LEVELS
 
 __all__ = ["InputHealthSettings", "InputHealth", "LEVELS", "BUCKETS", "REPORT_PERIOD"]
 
-LEVELS = ("ok", "warn", "alarm")
 #: the window is kept as this many partial sums (its resolution: window / BUCKETS)
 BUCKETS = 10
 #: s of samples between two reports the pipeline makes of its own while the verdict is not ok and the
@@ -52,21 +52,17 @@ _DT_KEEP = 64
 _C = {name: online.COUNTERS.index(name) for name in ("stale", "interval_mismatch", "trained")}
 
 
-def _frac(lo: float, hi: float, doc: str):
-    return Annotated[float, msgspec.Meta(ge=lo, le=hi, description=doc)]
-
-
 class InputHealthSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``[run.input_health]`` of ``feedmon run --config``: thresholds of the input-health verdict (module
     docstring). Fractions are of the samples in the window; seconds are of data (samples × Ts)."""
 
-    window: _frac(0.5, 600.0, "s of samples over which the fractions are judged (delay vs noise)") = 5.0
-    stale_warn: _frac(0.001, 1.0, "fraction of samples stale (v_meas repeated while moving) for warn") = 0.2
-    stale_alarm: _frac(0.001, 1.0, "fraction of samples stale for alarm") = 0.8
-    interval_warn: _frac(0.001, 1.0, "fraction of samples at another interval than Ts for warn") = 0.05
-    interval_alarm: _frac(0.001, 1.0, "fraction of samples at another interval than Ts for alarm") = 0.5
-    learn_warn: _frac(1.0, 86400.0, "s of samples in a row with none learned for warn") = 30.0
-    learn_alarm: _frac(1.0, 86400.0, "s of samples in a row with none learned for alarm") = 120.0
+    window: bounded_float(0.5, 600.0, "s of samples over which the fractions are judged (delay vs noise)") = 5.0
+    stale_warn: bounded_float(0.001, 1.0, "fraction of samples stale (v_meas repeated while moving) for warn") = 0.2
+    stale_alarm: bounded_float(0.001, 1.0, "fraction of samples stale for alarm") = 0.8
+    interval_warn: bounded_float(0.001, 1.0, "fraction of samples at another interval than Ts for warn") = 0.05
+    interval_alarm: bounded_float(0.001, 1.0, "fraction of samples at another interval than Ts for alarm") = 0.5
+    learn_warn: bounded_float(1.0, 86400.0, "s of samples in a row with none learned for warn") = 30.0
+    learn_alarm: bounded_float(1.0, 86400.0, "s of samples in a row with none learned for alarm") = 120.0
 
     def __post_init__(self) -> None:
         for a, b in (("stale_warn", "stale_alarm"), ("interval_warn", "interval_alarm"), ("learn_warn", "learn_alarm")):

@@ -57,6 +57,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from feedio.digest import file_sha256
+from feedio.limits import bounded_float, bounded_int, error_path
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names, validity_problems
 
@@ -89,24 +90,14 @@ class ModelFileError(ValueError):
 #: widest dead band Ω (m/s) a model may have (identify refuses a larger one before it runs)
 OMEGA_MAX = 10.0
 
-def _num(lo: float, hi: float, unit: str = "", *, open_low: bool = False):
-    """A float in ``[lo, hi]`` (``(lo, hi]`` when ``open_low``); NaN and ±inf are outside."""
-    kw = {"gt": lo} if open_low else {"ge": lo}
-    return Annotated[float, msgspec.Meta(le=hi, description=unit, **kw)]
-
-
-def _int(lo: int, hi: int, unit: str = ""):
-    return Annotated[int, msgspec.Meta(ge=lo, le=hi, description=unit)]
-
-
 _Name = Annotated[str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[^/*$?#\s]+$",
                                     description="no whitespace or / * $ ? # (Zenoh key characters)")]
 _Text = Annotated[str, msgspec.Meta(max_length=4096)]
 _Short = Annotated[str, msgspec.Meta(max_length=64)]
-_Coef = _num(-1e12, 1e12)
-_Se = _num(0.0, 1e12)
-_Value = _num(-1e12, 1e12)
-_Hyper = _num(1e-9, 1e9)
+_Coef = bounded_float(-1e12, 1e12)
+_Se = bounded_float(0.0, 1e12)
+_Value = bounded_float(-1e12, 1e12)
+_Hyper = bounded_float(1e-9, 1e9)
 _Opts = {"forbid_unknown_fields": True, "kw_only": True}
 
 
@@ -117,33 +108,33 @@ class _AxisT(msgspec.Struct, **_Opts):
 
 class _ModelT(msgspec.Struct, **_Opts):
     form: Literal["velocity-loop", "force-input"]
-    Ts: _num(1e-6, 10.0, "s")
+    Ts: bounded_float(1e-6, 10.0, "s")
     beta: Annotated[list[_Coef], msgspec.Meta(min_length=2, max_length=6)]
-    omega: _num(0.0, OMEGA_MAX, "m/s")
+    omega: bounded_float(0.0, OMEGA_MAX, "m/s")
     coulomb: bool
     beta_se: Annotated[list[_Se], msgspec.Meta(min_length=2, max_length=6)] | None = None
     beta_names: Annotated[list[_Short], msgspec.Meta(min_length=2, max_length=6)] | None = None
-    loop_gain: _num(0.0, 1e10, "N·s/m", open_low=True) | None = None
+    loop_gain: bounded_float(0.0, 1e10, "N·s/m", open_low=True) | None = None
     method: _Short = "pl-lssvm"
-    noise: _num(0.0, 1e3, "m/s, std of the measurement part of the one-step residual", open_low=True) | None = None
+    noise: bounded_float(0.0, 1e3, "m/s, std of the measurement part of the one-step residual", open_low=True) | None = None
     offset_separated: bool | None = None
-    delay: _int(0, 16, "samples from a force command to the force") | None = None
+    delay: bounded_int(0, 16, "samples from a force command to the force") | None = None
 
 
 class _PhysicalT(msgspec.Struct, **_Opts):
-    inertia: _num(0.0, 1e9, "kg", open_low=True) | None = None
-    damping: _num(0.0, 1e12, "N·s/m", open_low=True) | None = None
-    coulomb: _num(-1e9, 1e9, "N") | None = None
-    coulomb_pos: _num(-1e9, 1e9, "N") | None = None
-    coulomb_neg: _num(-1e9, 1e9, "N") | None = None
-    offset: _num(-1e9, 1e9, "N") | None = None
-    gain: _num(0.0, 1e10, "N·s/m", open_low=True) | None = None  # version 1 files
-    inertia_over_gain: _num(0.0, 1e6, "s", open_low=True) | None = None
-    damping_over_gain: _num(0.0, 1e6, open_low=True) | None = None
-    coulomb_over_gain: _num(-1e6, 1e6, "m/s") | None = None
-    coulomb_pos_over_gain: _num(-1e6, 1e6, "m/s") | None = None
-    coulomb_neg_over_gain: _num(-1e6, 1e6, "m/s") | None = None
-    offset_over_gain: _num(-1e6, 1e6, "m/s") | None = None
+    inertia: bounded_float(0.0, 1e9, "kg", open_low=True) | None = None
+    damping: bounded_float(0.0, 1e12, "N·s/m", open_low=True) | None = None
+    coulomb: bounded_float(-1e9, 1e9, "N") | None = None
+    coulomb_pos: bounded_float(-1e9, 1e9, "N") | None = None
+    coulomb_neg: bounded_float(-1e9, 1e9, "N") | None = None
+    offset: bounded_float(-1e9, 1e9, "N") | None = None
+    gain: bounded_float(0.0, 1e10, "N·s/m", open_low=True) | None = None  # version 1 files
+    inertia_over_gain: bounded_float(0.0, 1e6, "s", open_low=True) | None = None
+    damping_over_gain: bounded_float(0.0, 1e6, open_low=True) | None = None
+    coulomb_over_gain: bounded_float(-1e6, 1e6, "m/s") | None = None
+    coulomb_pos_over_gain: bounded_float(-1e6, 1e6, "m/s") | None = None
+    coulomb_neg_over_gain: bounded_float(-1e6, 1e6, "m/s") | None = None
+    offset_over_gain: bounded_float(-1e6, 1e6, "m/s") | None = None
 
 
 class _PhysicalSeT(msgspec.Struct, **_Opts):
@@ -163,26 +154,26 @@ class _PhysicalSeT(msgspec.Struct, **_Opts):
 
 class _TrackerT(msgspec.Struct, **_Opts):
     kernel: Literal["locally_periodic", "locally_periodic_zero_mean", "periodic", "squared_exponential", "spindle"]
-    gamma: _num(1e-4, 1e8)
-    sigma1: _num(1e-6, 1e6, "s") | None = None
-    sigma2: _num(1e-3, 1e3) | None = None
-    period: _num(1e-6, 1e6, "s") | None = None
-    lengthscale: _num(1e-6, 1e6, "s") | None = None
+    gamma: bounded_float(1e-4, 1e8)
+    sigma1: bounded_float(1e-6, 1e6, "s") | None = None
+    sigma2: bounded_float(1e-3, 1e3) | None = None
+    period: bounded_float(1e-6, 1e6, "s") | None = None
+    lengthscale: bounded_float(1e-6, 1e6, "s") | None = None
     per: Literal["revolution", "tooth"] | None = None  # spindle kernel
-    teeth: _int(1, 1000, "cutting edges (spindle kernel)") | None = None
-    spindle_rpm: _num(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
-    forgetting: _num(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
-    budget: _int(*OS.BUDGET_RANGE, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
-    jitter: _num(*OS.JITTER_RANGE) = OS.TRACKER_DEFAULTS["jitter"]
+    teeth: bounded_int(1, 1000, "cutting edges (spindle kernel)") | None = None
+    spindle_rpm: bounded_float(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
+    forgetting: bounded_float(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
+    budget: bounded_int(*OS.BUDGET_RANGE, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
+    jitter: bounded_float(*OS.JITTER_RANGE) = OS.TRACKER_DEFAULTS["jitter"]
     search: bool = True
 
 
 class _CandidateT(msgspec.Struct, **_Opts):
     method: Literal["ls", "pl_lssvm"]
     kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean", "spindle"] = "none"
-    period: _num(1e-6, 1e6, "s") | None = None
+    period: bounded_float(1e-6, 1e6, "s") | None = None
     per: Literal["revolution", "tooth"] | None = None  # spindle-phase candidate
-    log_evidence: _num(-1e15, 1e15) | None = None
+    log_evidence: bounded_float(-1e15, 1e15) | None = None
     valid: bool = True
     why_not: _Text = ""
 
@@ -190,19 +181,19 @@ class _CandidateT(msgspec.Struct, **_Opts):
 class _IdentificationT(msgspec.Struct, **_Opts):
     chosen: Literal["ls", "pl_lssvm"] | None = None
     kernel: Literal["none", "squared_exponential", "locally_periodic", "locally_periodic_zero_mean", "spindle"] | None = None
-    period: _num(1e-6, 1e6, "s") | None = None
+    period: bounded_float(1e-6, 1e6, "s") | None = None
     period_source: Literal["given", "spindle", "detected", "none"] | None = None
-    log_evidence: _num(-1e15, 1e15) | None = None
-    log_likelihood: _num(-1e15, 1e15) | None = None
+    log_evidence: bounded_float(-1e15, 1e15) | None = None
+    log_likelihood: bounded_float(-1e15, 1e15) | None = None
     sigma1: _Hyper | None = None
     sigma2: _Hyper | None = None
     lengthscale: _Hyper | None = None
     gamma: _Hyper | None = None
     tuned: bool | None = None
-    evaluations: _int(0, 10**9) | None = None
-    tune_seconds: _num(0.0, 1e7, "s") | None = None
-    segment: _int(0, 10**9, "samples") | None = None
-    order: _int(0, 10**9, "lags of the likelihood (≥ samples − 1: exact)") | None = None
+    evaluations: bounded_int(0, 10**9) | None = None
+    tune_seconds: bounded_float(0.0, 1e7, "s") | None = None
+    segment: bounded_int(0, 10**9, "samples") | None = None
+    order: bounded_int(0, 10**9, "lags of the likelihood (≥ samples − 1: exact)") | None = None
     offset_note: _Text | None = None
     adequacy: _Text | None = None
     self_check: _Text | None = None
@@ -295,7 +286,7 @@ __doc__ = (__doc__ or "") + ranges_table() + "\n"
 
 
 # ---------------------------------------------------------------------------------------------
-# the model seen by the monitor (CONTRACTS.md)
+# the model seen by the monitor
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class TrackerConfig:
@@ -323,7 +314,7 @@ def _layouts(form: str, coulomb: bool) -> list[tuple[str, ...]]:
 
 @dataclass
 class AxisModel:
-    """Everything the monitor needs for one axis (attributes of CONTRACTS.md).
+    """Everything the monitor needs for one axis.
 
     ``beta_names`` defaults to the form's layout matching ``len(beta)``: the velocity-loop form may
     end with the constant column ``one`` (:attr:`intercept`), whose coefficient the online residual
@@ -419,18 +410,6 @@ def truth_model(meta, *, period: float = 1 / 55, budget: int = 50, forgetting: f
 # ---------------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------------
-_PATH = re.compile(r"\$\.?(.*)$")
-
-
-def _key_of(message: str) -> tuple[str, str]:
-    """``("tracker.gamma", "Expected …")`` from a msgspec validation message."""
-    text, _, where = message.rpartition(" - at `")
-    if not text:
-        text, where = message, ""
-    key = _PATH.sub(r"\1", where.rstrip("`"))
-    return key, text
-
-
 def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     """Read and validate a model file; errors name the file and the key (never executes anything).
 
@@ -459,7 +438,8 @@ def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     try:
         f = msgspec.convert(doc, ModelFileV2, strict=True)
     except msgspec.ValidationError as exc:
-        key, text = _key_of(str(exc))
+        path_, text = error_path(exc)
+        key = path_.lstrip(".")
         if text.startswith("Object contains unknown field"):
             name = text.split("`")[1] if "`" in text else "?"
             full = f"{key}.{name}" if key else name

@@ -35,6 +35,7 @@ block's last sample) — in :meth:`_Encoder.samples`, the one place both paths g
 
 from __future__ import annotations
 
+import enum
 import heapq
 import io
 import json
@@ -191,14 +192,14 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
     input-health verdict merged into the health reports (:mod:`monitor.input_health`).
     """
-    from feedio.mcapio import TrialWriter, _Open
+    from feedio.mcapio import OpenTrial, TrialWriter
 
     trial, output = os.fspath(trial), os.fspath(output)
     if os.path.abspath(trial) == os.path.abspath(output):
         raise ValueError(f"output {output!r} would overwrite the input trial")
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise ValueError(f"jobs must be an integer ≥ 1, got {jobs!r}")
-    with _Open(trial) as f:
+    with OpenTrial(trial) as f:
         present = f.axes()
         metas = {key: f.meta(*key) for key in present if key in axes}
         starts = {f.start_ns(*key) for key in metas}
@@ -426,14 +427,23 @@ class _WriterThread:
 
 
 # ---- several processes ------------------------------------------------------------------------------
-# frames child -> parent, one pipe message holding several: tag byte, then
-#   b"I" item:  key (t f8, axis i4, j i8), entry count u4, entries
-#   b"D" drain: axis i4, key present u1 (+ key), entry count u4, entries
-#   b"F" final: JSON length u4, JSON (counters), then per axis: npz length u8, npz bytes (tracker state)
-#   b"E" error: JSON {"type", "message"}
-# entries: b"B" kind u1, seq i8, n i8, t0 f8, t1 f8, log_time i8, data length u4, data
-#          b"C" count u4, records length u8, sizes i8[count], log_ns i8[count], t f8[count], seq i8[count], records
-#          b"H" log_time i8, data length u4, data (the JSON of a Health report)
+class _Frame(bytes, enum.Enum):
+    """Frames child → parent, one pipe message holding several: the tag byte, then the frame."""
+
+    ITEM = b"I"  #: key (t f8, axis i4, j i8), entry count u4, entries
+    DRAIN = b"D"  #: axis i4, key present u1 (+ key), entry count u4, entries
+    FINAL = b"F"  #: JSON length u4, JSON (counters), then per axis: npz length u8, npz bytes (tracker state)
+    ERROR = b"E"  #: JSON {"type", "message"}
+
+
+class _Entry(bytes, enum.Enum):
+    """The entries of an item or a drain: the tag byte, then the entry."""
+
+    BLOCK = b"B"  #: kind u1, seq i8, n i8, t0 f8, t1 f8, log_time i8, data length u4, data
+    SCALARS = b"C"  #: count u4, records length u8, sizes i8[count], log_ns i8[count], t f8[count], seq i8[count], records
+    HEALTH = b"H"  #: log_time i8, data length u4, data (the JSON of a Health report)
+
+
 _KEY = struct.Struct("<dqi")
 _B = struct.Struct("<BqqddqI")
 _C = struct.Struct("<IQ")
@@ -446,15 +456,15 @@ def _pack_entries(entries: list[tuple], buf: list[bytes]) -> None:
     for e in entries:
         if e[0] == "B":
             _, kind, _m, _a, data, seq, n, t0, t1, lt = e
-            buf += (b"B", _B.pack(_KINDS.index(kind), seq, n, t0, t1, lt, len(data)), data)
+            buf += (_Entry.BLOCK, _B.pack(_KINDS.index(kind), seq, n, t0, t1, lt, len(data)), data)
         elif e[0] == "C":
             _, _m, _a, records, sizes, log_ns, t, seq = e
-            buf += (b"C", _C.pack(sizes.size, records.size), sizes.astype("<i8").tobytes(),
+            buf += (_Entry.SCALARS, _C.pack(sizes.size, records.size), sizes.astype("<i8").tobytes(),
                     log_ns.astype("<i8").tobytes(), t.astype("<f8").tobytes(), seq.astype("<i8").tobytes(),
                     records.tobytes())
         else:
             _, _m, _a, data, lt = e
-            buf += (b"H", _H.pack(lt, len(data)), data)
+            buf += (_Entry.HEALTH, _H.pack(lt, len(data)), data)
 
 
 def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple], int]:
@@ -465,12 +475,12 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
     for _ in range(count):
         tag = view[pos:pos + 1].tobytes()
         pos += 1
-        if tag == b"B":
+        if tag == _Entry.BLOCK:
             kind, seq, n, t0, t1, lt, size = _B.unpack_from(view, pos)
             pos += _B.size
             out.append(("B", _KINDS[kind], m, a, view[pos:pos + size].tobytes(), seq, n, t0, t1, lt))
             pos += size
-        elif tag == b"H":
+        elif tag == _Entry.HEALTH:
             lt, size = _H.unpack_from(view, pos)
             pos += _H.size
             out.append(("H", m, a, view[pos:pos + size].tobytes(), lt))
@@ -522,13 +532,13 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                 while pos < len(view):
                     tag = view[pos:pos + 1].tobytes()
                     pos += 1
-                    if tag == b"I":
+                    if tag == _Frame.ITEM:
                         key = _KEY.unpack_from(view, pos)
                         pos += _KEY.size
                         name = names[key[1]]
                         entries, pos = _unpack_entries(view, pos, name)
                         yield key, name, entries
-                    elif tag == b"D":
+                    elif tag == _Frame.DRAIN:
                         idx, has_key = struct.unpack_from("<iB", view, pos)
                         pos += 5
                         key = None
@@ -537,7 +547,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                             pos += _KEY.size
                         entries, pos = _unpack_entries(view, pos, names[idx])
                         drains[names[idx]] = (key, entries)
-                    elif tag == b"F":
+                    elif tag == _Frame.FINAL:
                         results.append(_read_final(view, pos, axes))
                         return
                     else:
@@ -626,7 +636,7 @@ def _child_main(conn, spec_json: str, axes: dict | None = None) -> None:
         _child(conn, json.loads(spec_json), axes)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
         try:
-            conn.send_bytes(b"E" + json.dumps({"type": type(exc).__name__, "message": str(exc)}).encode())
+            conn.send_bytes(_Frame.ERROR + json.dumps({"type": type(exc).__name__, "message": str(exc)}).encode())
         except (OSError, ValueError):
             pass
     finally:
@@ -662,7 +672,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
             size[0] = 0
 
     def item(key, entries) -> None:
-        part = [b"I", _KEY.pack(*key)]
+        part = [_Frame.ITEM, _KEY.pack(*key)]
         _pack_entries(entries, part)
         send(part)
 
@@ -673,7 +683,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
             drained = enc.drain()
             for name in spec["axes"]:
                 key = enc.touched.get(name)
-                part = [b"D", struct.pack("<iB", index[name], key is not None)]
+                part = [_Frame.DRAIN, struct.pack("<iB", index[name], key is not None)]
                 if key is not None:
                     part.append(_KEY.pack(*key))
                 _pack_entries(drained.get(name, []), part)
@@ -692,7 +702,7 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
                     np.savez(z, **snap)
                 snaps.append(z.getvalue())
             body = json.dumps(doc).encode()
-            part = [b"F", struct.pack("<I", len(body)), body]
+            part = [_Frame.FINAL, struct.pack("<I", len(body)), body]
             for snap in snaps:
                 part += (struct.pack("<Q", len(snap)), snap)
             send(part, force=True)

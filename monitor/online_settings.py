@@ -28,15 +28,17 @@ identification when it tuned them (``feedmon identify --tune``), else the thesis
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import msgspec
 
+from feedio.limits import SPINDLE_RPM_MAX, bounded_float, bounded_int, explain, field_range
 from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel
 from kernels.disturbance_search import SIGMA1_RANGE, TrackerChoice
 from kernels.errors import ParameterError
 from kernels.health import HealthConfig
+from kernels.online import MODES
 from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
@@ -55,27 +57,19 @@ BUDGET_RANGE = (4, 2000)
 JITTER_RANGE = (1e-8, 0.1)
 SPINDLE = "spindle"
 PER = ("revolution", "tooth")
-MODES = ("off", "track", "apply")
-#: fastest spindle a model may name (rpm); matches the simulator's bound
-SPINDLE_RPM_MAX = 100_000.0
 
 _OPTS = dict(frozen=True, forbid_unknown_fields=True, kw_only=True)
-
-
-def _num(lo: float, hi: float, doc: str, *, open_lo: bool = False) -> Any:
-    meta = msgspec.Meta(gt=lo, le=hi, description=doc) if open_lo else msgspec.Meta(ge=lo, le=hi, description=doc)
-    return Annotated[float, meta]
 
 
 class SpindleKernel(msgspec.Struct, **_OPTS):
     """The spindle-phase kernel of ``[tracker] kernel = "spindle"`` (see the module docstring)."""
 
-    sigma1: _num(0.0, 1e4, "s, length scale of the slow (time) factor", open_lo=True)
-    sigma2: _num(0.0, 1e3, "smoothness of the periodic factor (as in the time kernel)", open_lo=True)
+    sigma1: bounded_float(0.0, 1e4, "s, length scale of the slow (time) factor", open_low=True)
+    sigma2: bounded_float(0.0, 1e3, "smoothness of the periodic factor (as in the time kernel)", open_low=True)
     per: Literal["revolution", "tooth"] = "revolution"
-    teeth: Annotated[int, msgspec.Meta(ge=1, le=1000, description="cutting edges of the tool")] = 1
-    spindle_rpm: _num(0.0, SPINDLE_RPM_MAX, "rpm, nominal speed: the fallback without spindle data",
-                      open_lo=True)
+    teeth: bounded_int(1, 1000, "cutting edges of the tool") = 1
+    spindle_rpm: bounded_float(0.0, SPINDLE_RPM_MAX, "rpm, nominal speed: the fallback without spindle data",
+                      open_low=True)
 
     @property
     def period(self) -> float:
@@ -96,7 +90,8 @@ def check_kernel_desc(desc: dict) -> Kernel:
         try:
             return msgspec.convert(body, SpindleKernel).build()
         except msgspec.ValidationError as exc:
-            raise ValueError(f"spindle kernel: {exc}") from None
+            key, msg = explain(exc, SpindleKernel)
+            raise ValueError(f"spindle kernel: key {key}: {msg}") from None
     return Kernel.from_dict(desc)
 
 
@@ -134,7 +129,7 @@ def choice_of(tracker) -> TrackerChoice:
 
 
 def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) -> dict:
-    """The ``[tracker]`` settings ``feedmon identify`` writes (decision of issue 11): λ, M, jitter from
+    """The ``[tracker]`` settings ``feedmon identify`` writes: λ, M, jitter from
     :data:`TRACKER_DEFAULTS`; σ1, σ2, γ the REML-tuned values when identification tuned them, else
     the thesis'; the spindle-phase kernel when the trial has spindle data (``spindle``: ``teeth``,
     the median ``spindle_rpm`` and ``per``, default "revolution"), else the time kernel with ψ = ``period`` (s). Returns the
@@ -159,27 +154,27 @@ class Adaptation(msgspec.Struct, **_OPTS):
     #: covariance are estimated and reported (health, drift alarms), the disturbance uses the
     #: model file's β; apply: the disturbance uses β̂ (unbiased under drift, but β̂ may take up
     #: a disturbance that moves with the motion)
-    mode: Literal["off", "track", "apply"] = "track"
+    mode: Literal[MODES] = "track"
     #: T_β of the friction parameters (damping, Coulomb, offset), s of learning samples: a drift of ṙ
     #: per second lags by ≈ 1.5 ṙ·T_β; standard errors ∝ 1/√T_β
-    memory: _num(0.5, 3600.0, "s, β memory T_β of damping, Coulomb, offset (drift lag vs noise)") = 5.0
+    memory: bounded_float(0.5, 3600.0, "s, β memory T_β of damping, Coulomb, offset (drift lag vs noise)") = 5.0
     #: T_J, the inertia's: excited only while the axis accelerates, so it needs a longer memory to
     #: rest on several accelerations (a payload step is followed within ≈ 2 T_J)
-    inertia_memory: _num(0.5, 3600.0, "s, β memory T_J of the inertia (step lag vs noise)") = 10.0
+    inertia_memory: bounded_float(0.5, 3600.0, "s, β memory T_J of the inertia (step lag vs noise)") = 10.0
     #: ρ, relative drift allowance of the prior P₀ (bounds P; larger: faster start, farther wander
     #: of weakly determined parameters)
-    allowance: _num(0.01, 10.0, "relative drift allowance ρ of the prior") = 0.3
+    allowance: bounded_float(0.01, 10.0, "relative drift allowance ρ of the prior") = 0.3
     #: Huber threshold (standard deviations): smaller bounds outliers harder, larger is more efficient
-    huber: _num(1.0, 100.0, "Huber threshold c (standard deviations)") = 3.0
+    huber: bounded_float(1.0, 100.0, "Huber threshold c (standard deviations)") = 3.0
     #: the model's one-step velocity prediction as instrument of v_m (removes the closed-loop noise bias)
     instrument: bool = True
     #: |ν| beyond which a sample teaches nothing (None: off; delays learning after a real step)
-    reject: _num(1.0, 1000.0, "standard deviations, > huber; none = off") | None = None
+    reject: bounded_float(1.0, 1000.0, "standard deviations, > huber; none = off") | None = None
     #: s after a rejected sample that teach nothing either
-    hold: _num(0.0, 60.0, "s after a rejected sample") = 0.0
+    hold: bounded_float(0.0, 60.0, "s after a rejected sample") = 0.0
     #: m/s: β learns only above this speed, where the model's friction law holds (written by
     #: ``feedmon identify`` from its low-speed friction check, :mod:`kernels.low_speed`; 0: down to Ω)
-    min_speed: _num(0.0, MIN_SPEED_MAX, "m/s, β learns only above (friction law holds)") = 0.0
+    min_speed: bounded_float(0.0, MIN_SPEED_MAX, "m/s, β learns only above (friction law holds)") = 0.0
 
     def __post_init__(self) -> None:
         if self.reject is not None and not self.reject > self.huber:
@@ -192,21 +187,21 @@ _H = HealthConfig()
 class Health(msgspec.Struct, **_OPTS):
     """``[health]``: the health verdict (:mod:`kernels.health`; what each trades is documented there)."""
 
-    period: _num(0.1, 60.0, "s of data time between two health reports") = 1.0
-    tau: _num(0.05, 10.0, "s, EWMA time constant of ν² (detection delay vs noise)") = _H.tau
-    clip: _num(2.0, 20.0, "|ν| clip, standard deviations (one outlier's weight)") = _H.clip
-    warn: _num(1.0, 400.0, "EWMA level of ν² for warn (false alarms vs detection)") = _H.warn
-    alarm: _num(1.0, 400.0, "EWMA level of ν² for alarm") = _H.alarm
-    clear: _num(1.0, 400.0, "EWMA level below which warn clears (hysteresis)") = _H.clear
-    persist: _num(0.0, 10.0, "s above a level before it counts (bursts vs delay)") = _H.persist
-    hold: _num(0.0, 60.0, "s below before a level clears (flapping vs staying up)") = _H.hold
-    z_warn: _num(0.1, 1000.0, "drift: standard errors for warn") = _H.z_warn
-    z_alarm: _num(0.1, 1000.0, "drift: standard errors for alarm") = _H.z_alarm
-    z_clear: _num(0.1, 1000.0, "drift: standard errors below which warn clears") = _H.z_clear
-    rel_warn: _num(0.0, 10.0, "drift: relative change for warn") = _H.rel_warn
-    rel_alarm: _num(0.0, 10.0, "drift: relative change for alarm") = _H.rel_alarm
-    kappa: _num(0.0, 1.0, "determined: online s.e. ≤ kappa × prior s.e.", open_lo=True) = _H.kappa
-    warmup: _num(0.0, 3600.0, "s of innovations ignored after the start") = _H.warmup
+    period: bounded_float(0.1, 60.0, "s of data time between two health reports") = 1.0
+    tau: bounded_float(0.05, 10.0, "s, EWMA time constant of ν² (detection delay vs noise)") = _H.tau
+    clip: bounded_float(2.0, 20.0, "|ν| clip, standard deviations (one outlier's weight)") = _H.clip
+    warn: bounded_float(1.0, 400.0, "EWMA level of ν² for warn (false alarms vs detection)") = _H.warn
+    alarm: bounded_float(1.0, 400.0, "EWMA level of ν² for alarm") = _H.alarm
+    clear: bounded_float(1.0, 400.0, "EWMA level below which warn clears (hysteresis)") = _H.clear
+    persist: bounded_float(0.0, 10.0, "s above a level before it counts (bursts vs delay)") = _H.persist
+    hold: bounded_float(0.0, 60.0, "s below before a level clears (flapping vs staying up)") = _H.hold
+    z_warn: bounded_float(0.1, 1000.0, "drift: standard errors for warn") = _H.z_warn
+    z_alarm: bounded_float(0.1, 1000.0, "drift: standard errors for alarm") = _H.z_alarm
+    z_clear: bounded_float(0.1, 1000.0, "drift: standard errors below which warn clears") = _H.z_clear
+    rel_warn: bounded_float(0.0, 10.0, "drift: relative change for warn") = _H.rel_warn
+    rel_alarm: bounded_float(0.0, 10.0, "drift: relative change for alarm") = _H.rel_alarm
+    kappa: bounded_float(0.0, 1.0, "determined: online s.e. ≤ kappa × prior s.e.", open_low=True) = _H.kappa
+    warmup: bounded_float(0.0, 3600.0, "s of innovations ignored after the start") = _H.warmup
 
     def __post_init__(self) -> None:
         try:
@@ -243,13 +238,13 @@ class TrackerOverride(msgspec.Struct, **_OPTS):
     steady cutting), ``budget`` M (cost ∝ M², more detail), ``jitter`` ε_j (numerical floor),
     ``sigma1`` (s), ``sigma2``, ``gamma`` (kernel hyperparameters, method §5; γ = signal/noise)."""
 
-    forgetting: _num(0.5, 1.0, "λ per sample", open_lo=True) | None = None
-    budget: Annotated[int, msgspec.Meta(ge=BUDGET_RANGE[0], le=BUDGET_RANGE[1], description="dictionary size M")] \
+    forgetting: bounded_float(0.5, 1.0, "λ per sample", open_low=True) | None = None
+    budget: bounded_int(*BUDGET_RANGE, "dictionary size M") \
         | None = None
-    jitter: _num(*JITTER_RANGE, "ε_j") | None = None
-    sigma1: _num(0.0, 1e4, "s", open_lo=True) | None = None
-    sigma2: _num(0.0, 1e3, "", open_lo=True) | None = None
-    gamma: _num(0.0, 1e12, "γ", open_lo=True) | None = None
+    jitter: bounded_float(*JITTER_RANGE, "ε_j") | None = None
+    sigma1: bounded_float(0.0, 1e4, "s", open_low=True) | None = None
+    sigma2: bounded_float(0.0, 1e3, "", open_low=True) | None = None
+    gamma: bounded_float(0.0, 1e12, "γ", open_low=True) | None = None
     search: bool | None = None
 
 
@@ -260,29 +255,14 @@ HealthOverride = _override_of(Health)
 
 
 def _convert(table: Any, struct: type, where: str, name: str):
-    """``table`` as ``struct``; ``ValueError`` "<where>: key '<name>.<field>': <problem> (allowed: <range>)"."""
-    from feedio.limits import range_text
-
+    """``table`` as ``struct``; ``ValueError`` "<where>: key '<name>.<field>': <problem> (allowed: <range>)"
+    (:func:`feedio.limits.explain`)."""
     try:
         return msgspec.convert(table, struct)
     except msgspec.ValidationError as exc:
-        msg, _, path = str(exc).partition(" - at `$.")
-        field = path.rstrip("`").split(".")[0].split("[")[0]
-        allowed = None
-        if field:
-            try:
-                allowed = range_text(struct, field)
-            except KeyError:
-                allowed = None
-        if "enum value" in msg and field:
-            info = {f.name: f.type for f in msgspec.inspect.type_info(struct).fields}.get(field)
-            values = getattr(info, "values", None)
-            if values:
-                msg += f"; use one of {', '.join(map(str, values))}"
-        if "unknown field" in msg:
-            msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
-        key = f"{name}.{field}" if field else name
-        raise ValueError(f"{where}: key '{key}': {msg}" + (f" (allowed: {allowed})" if allowed else "")) from None
+        key, msg = explain(exc, struct)
+        key = name if key == "(top level)" else f"{name}.{key}"
+        raise ValueError(f"{where}: key '{key}': {msg}") from None
     except ValueError as exc:  # a cross-field rule in __post_init__
         raise ValueError(f"{where}: key '{name}': {exc}") from None
 
@@ -300,37 +280,44 @@ def parse_model_tables(doc: dict, path) -> OnlineSettings:
 
 
 #: the comment written next to each setting in a model file: unit and what it trades
+def _span(struct: type, name: str) -> str:
+    """``lo … hi`` of a field's range (:func:`feedio.limits.field_range`), for the comments a model file
+    carries beside its settings."""
+    lo, hi = field_range(struct, name)
+    return f"{lo:g} … {hi:g}"
+
+
 COMMENTS = {
     "adaptation": {
         "mode": "off | track (β estimated, disturbance with the file's β) | apply (disturbance with online β)",
         "memory": "s of learning samples, damping, Coulomb, offset: drift lag ≈ 1.5 × rate × memory vs. noise "
-                  "∝ 1/√memory (0.5 … 3600)",
+                  f"∝ 1/√memory ({_span(Adaptation, 'memory')})",
         "inertia_memory": "s of learning samples, inertia (excited only while accelerating): step lag vs. noise "
-                          "(0.5 … 3600)",
-        "allowance": "relative drift the prior allows (0.01 … 10): bounds the covariance of β",
-        "huber": "standard deviations (1 … 100): a sample's largest influence",
+                          f"({_span(Adaptation, 'inertia_memory')})",
+        "allowance": f"relative drift the prior allows ({_span(Adaptation, 'allowance')}): bounds the covariance of β",
+        "huber": f"standard deviations ({_span(Adaptation, 'huber')}): a sample's largest influence",
         "instrument": "model's velocity prediction as instrument of v_m (closed-loop noise bias)",
         "reject": "standard deviations (> huber): larger innovations teach nothing; absent = off",
-        "hold": "s after a rejected sample that teach nothing (0 … 60)",
-        "min_speed": f"m/s: β learns only above it, where the friction law holds (0 … {MIN_SPEED_MAX:g}; identify's "
+        "hold": f"s after a rejected sample that teach nothing ({_span(Adaptation, 'hold')})",
+        "min_speed": f"m/s: β learns only above it, where the friction law holds ({_span(Adaptation, 'min_speed')}; identify's "
                      "low-speed check)",
     },
     "health": {
-        "period": "s of data time between two health reports (0.1 … 60)",
-        "tau": "s, EWMA of ν² (0.05 … 10): detection delay vs. noise",
-        "clip": "|ν| clip, standard deviations (2 … 20): one outlier's weight",
+        "period": f"s of data time between two health reports ({_span(Health, 'period')})",
+        "tau": f"s, EWMA of ν² ({_span(Health, 'tau')}): detection delay vs. noise",
+        "clip": f"|ν| clip, standard deviations ({_span(Health, 'clip')}): one outlier's weight",
         "warn": "EWMA of ν² for warn (clear < warn < alarm < clip²): false alarms vs. detection",
         "alarm": "EWMA of ν² for alarm",
         "clear": "EWMA of ν² below which warn clears (> 1): hysteresis",
-        "persist": "s above a level before it counts (0 … 10): bursts vs. delay",
-        "hold": "s below a level before it clears (0 … 60): flapping vs. staying up",
+        "persist": f"s above a level before it counts ({_span(Health, 'persist')}): bursts vs. delay",
+        "hold": f"s below a level before it clears ({_span(Health, 'hold')}): flapping vs. staying up",
         "z_warn": "drift: standard errors for warn (> z_clear)",
         "z_alarm": "drift: standard errors for alarm (≥ z_warn)",
         "z_clear": "drift: standard errors below which warn clears",
         "rel_warn": "drift: relative change for warn (practical significance)",
         "rel_alarm": "drift: relative change for alarm (≥ rel_warn)",
-        "kappa": "a parameter is tested once its s.e. ≤ kappa × prior s.e. (0 … 1]",
-        "warmup": "s of innovations ignored after the start (0 … 3600)",
+        "kappa": f"a parameter is tested once its s.e. ≤ kappa × prior s.e. ({_span(Health, 'kappa')}]",
+        "warmup": f"s of innovations ignored after the start ({_span(Health, 'warmup')})",
     },
 }
 

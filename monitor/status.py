@@ -30,6 +30,17 @@ from typing import Any
 
 import numpy as np
 
+from .status_doc import (
+    AxisLatency,
+    AxisModelRef,
+    AxisReport,
+    AxisStateRef,
+    InputInfo,
+    MonitorInfo,
+    Percentiles,
+    lenient,
+)
+
 __all__ = ["LatencyRing", "StageRing", "STAGES", "BurstLog", "BoundedCounter", "AxisStatus", "DROP_REASONS",
            "format_status", "safe_text", "EscapingFormatter"]
 
@@ -287,9 +298,10 @@ class AxisStatus:
         return None
 
     def report(self, estimator_counters: Counter, dict_size: int,
-               refused: dict[str, int] | None = None) -> dict[str, Any]:
+               refused: dict[str, int] | None = None, input_health: dict[str, Any] | None = None) -> AxisReport:
         """The axis' status; ``refused``: per-reason counts kept outside this object (the Zenoh
-        callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``.
+        callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``; ``input_health``:
+        the input-health verdict of the axis.
 
         Built on the status thread while the estimating thread runs: ``last_seq``/``last_t`` are read
         *before* the counters. The estimator counts a block before the pipeline sets ``last_seq`` to
@@ -302,29 +314,30 @@ class AxisStatus:
             for k, v in src.items():
                 c[k] = c.get(k, 0) + v
         drops = {r: int(c[r]) for r in DROP_REASONS if c.get(r)}
-        return {
-            "machine": self.machine,
-            "axis": self.axis,
-            "samples_in": int(c.get("samples_in", 0)),
-            "estimates_out": int(c.get("estimates_out", 0)),
-            "blocks": self.blocks,
-            "trained": int(c.get("trained", 0)),
-            "gaps": int(c.get("gaps", 0)),
-            "missing_samples": int(c.get("missing_samples", 0)),
-            "stale": int(c.get("stale", 0)),
-            "restarts": int(c.get("restarts", 0)),
-            "drops": drops,
-            "dropped_total": int(sum(drops.values())),
-            "counters": {k: int(v) for k, v in sorted(c.items())},
-            "latency_us": self.latency.summary(),
-            "stages_us": self.stages.summary(),
-            "dict_size": int(dict_size),
-            "last_seq": last_seq,
-            "last_t": last_t,
-            "model": {"path": self.model_path, "sha256": self.model_sha256},
-            "state": {"origin": self.state, "path": self.state_path},
-            "health": None if self.health is None else {**self.health, "changes": self.health_changes},
-        }
+        return AxisReport(
+            machine=self.machine,
+            axis=self.axis,
+            samples_in=int(c.get("samples_in", 0)),
+            estimates_out=int(c.get("estimates_out", 0)),
+            blocks=self.blocks,
+            trained=int(c.get("trained", 0)),
+            gaps=int(c.get("gaps", 0)),
+            missing_samples=int(c.get("missing_samples", 0)),
+            stale=int(c.get("stale", 0)),
+            restarts=int(c.get("restarts", 0)),
+            drops=drops,
+            dropped_total=int(sum(drops.values())),
+            counters={k: int(v) for k, v in sorted(c.items())},
+            latency_us=AxisLatency(**self.latency.summary()),
+            stages_us={k: Percentiles(**v) for k, v in self.stages.summary().items()},
+            dict_size=int(dict_size),
+            last_seq=last_seq,
+            last_t=last_t,
+            model=AxisModelRef(path=self.model_path, sha256=self.model_sha256),
+            state=AxisStateRef(origin=self.state, path=self.state_path),
+            health=None if self.health is None else {**self.health, "changes": self.health_changes},
+            input=input_health,
+        )
 
 
 def _is_num(v) -> bool:
@@ -344,12 +357,8 @@ def _cell(value: Any, limit: int = 200):
     return Text(safe_text("" if value is None else value, limit))
 
 
-def _dict(value: Any) -> dict:
-    return value if isinstance(value, dict) else {}
-
-
-def _counts(value: Any) -> str:
-    return ", ".join(f"{k}={v}" for k, v in _dict(value).items())
+def _counts(value: dict) -> str:
+    return ", ".join(f"{k}={v}" for k, v in value.items())
 
 
 def _num(v: Any) -> str:
@@ -373,74 +382,73 @@ def format_status(status: dict[str, Any], console=None) -> None:
     """Print a status dict (as answered by a monitor) as rich tables.
 
     Every value is shown as plain text (:func:`safe_text`, no markup): a machine named ``[/]``
-    or a name with ANSI escapes prints as itself. A document of an unexpected shape prints
-    what it can instead of raising.
+    or a name with ANSI escapes prints as itself. Each section is read as its Struct of
+    :mod:`monitor.status_doc` (:func:`~monitor.status_doc.lenient`): a section of an unexpected shape
+    prints as empty instead of raising.
     """
     from rich.console import Console
     from rich.table import Table
     from rich.text import Text
 
     console = console or Console()
-    status = _dict(status)
-    mon, inp = _dict(status.get("monitor")), _dict(status.get("input"))
-    up = mon.get("uptime_s")
-    up = f"{up:.1f}" if _is_num(up) else "?"
+    doc = status if isinstance(status, dict) else {}
+    mon, inp = lenient(doc.get("monitor"), MonitorInfo), lenient(doc.get("input"), InputInfo)
+    axes = {name: lenient(a, AxisReport) for name, a in doc.get("axes").items()} \
+        if isinstance(doc.get("axes"), dict) else {}
+    up = f"{mon.uptime_s:.1f}" if _is_num(mon.uptime_s) else "?"
     head = Text("feedmon monitor", style="bold")
     head.append(safe_text(
-        f" pid {mon.get('pid')} on {mon.get('host')}, prefix {mon.get('prefix')!r}, {mon.get('state')}, up {up} s; "
-        f"input: {inp.get('received', 0)} msgs, queue {inp.get('pending', 0)}/{inp.get('capacity', 0)}, "
-        f"refused: queue_full {inp.get('queue_full', 0)}, too_large {inp.get('too_large', 0)}, "
-        f"malformed {inp.get('malformed', 0)}, key_mismatch {inp.get('key_mismatch_total', 0)}", limit=2000))
+        f" pid {mon.pid} on {mon.host}, prefix {mon.prefix!r}, {mon.state}, up {up} s; "
+        f"input: {inp.received} msgs, queue {inp.pending}/{inp.capacity}, "
+        f"refused: queue_full {inp.queue_full}, too_large {inp.too_large}, "
+        f"malformed {inp.malformed}, key_mismatch {inp.key_mismatch_total}", limit=2000))
     console.print(head)
     t = Table(title="axes")
     for col in ("axis", "in", "out", "dropped", "gaps", "p50 µs", "p99 µs", "dict", "state", "health", "input"):
         t.add_column(col, justify="left" if col in ("axis", "dropped", "state", "health", "input") else "right")
-    axes = _dict(status.get("axes"))
     for name, a in axes.items():
-        a = _dict(a)
-        lat = _dict(a.get("latency_us"))
-        t.add_row(_cell(name), _cell(a.get("samples_in")), _cell(a.get("estimates_out")),
-                  _cell(_counts(a.get("drops")) or "0"), _cell(a.get("gaps")), _fmt_us(lat.get("p50")),
-                  _fmt_us(lat.get("p99")), _cell(a.get("dict_size")), _cell(_dict(a.get("state")).get("origin")),
-                  _cell(_dict(a.get("health")).get("state", "–")), _cell(_dict(a.get("input")).get("state", "–")))
+        t.add_row(_cell(name), _cell(a.samples_in), _cell(a.estimates_out), _cell(_counts(a.drops) or "0"),
+                  _cell(a.gaps), _fmt_us(a.latency_us.p50), _fmt_us(a.latency_us.p99), _cell(a.dict_size),
+                  _cell(a.state.origin), _cell((a.health or {}).get("state", "–")),
+                  _cell((a.input or {}).get("state", "–")))
     console.print(t)
-    if any(_dict(_dict(a).get("stages_us")) for a in axes.values()):
+    if any(a.stages_us for a in axes.values()):
         st = Table(title="latency by stage, µs (p50 / p99): queue, decode, estimate, encode, publish, then sinks")
         st.add_column("axis")
         for stage in STAGES:
             st.add_column(stage, justify="right")
         for name, a in axes.items():
-            stages = _dict(_dict(a).get("stages_us"))
-            st.add_row(_cell(name), *(f"{_fmt_us(_dict(stages.get(k)).get('p50'))} / "
-                                      f"{_fmt_us(_dict(stages.get(k)).get('p99'))}" for k in STAGES))
+            none = Percentiles()
+            st.add_row(_cell(name), *(f"{_fmt_us(a.stages_us.get(k, none).p50)} / "
+                                      f"{_fmt_us(a.stages_us.get(k, none).p99)}" for k in STAGES))
         console.print(st)
     for name, a in axes.items():
-        m = _dict(_dict(a).get("model"))
-        console.print(_cell(f"  {name}: model {m.get('path')} sha256 {m.get('sha256')}", 1000))
+        console.print(_cell(f"  {name}: model {a.model.path} sha256 {a.model.sha256}", 1000))
     for name, a in axes.items():
-        h = _dict(_dict(a).get("health"))
+        h = a.health
         if h:
             console.print(_cell(f"  {name}: health {str(h.get('state', '?')).upper()} since t = {_num(h.get('since_t'))} s "
                                 f"(seq {h.get('since_seq')}); last report t = {_num(h.get('t'))} s; "
                                 + _health_values(h), 2000))
-            for r in h.get("reasons") or []:
+            reasons = h.get("reasons")
+            for r in reasons if isinstance(reasons, list) else []:
                 console.print(_cell(f"    - {r}", 1000))
     for key, what in (("no_model", "samples of axes without a model (dropped)"),
                       ("key_mismatch", "messages whose payload names another axis than their key (refused)")):
-        table = _dict(inp.get(key))
-        over = inp.get(f"{key}_overflow") or 0
+        table = getattr(inp, key)
+        over = getattr(inp, f"{key}_overflow")
         if table or over:
             console.print(_cell(f"{what}: {_counts(table)}" + (f"; more names: {over}" if over else ""), 2000))
-    sinks = status.get("sinks") if isinstance(status.get("sinks"), list) else []
+    sinks = [s for s in doc.get("sinks") if isinstance(s, dict)] if isinstance(doc.get("sinks"), list) else []
     if sinks:
         st = Table(title="sinks")
         cols = ("name", "state", "accepted", "written", "dropped", "lost", "failures", "restarts", "pending")
         for col in cols:
             st.add_column("sink" if col == "name" else col)
-        for s in map(_dict, sinks):
+        for s in sinks:
             st.add_row(*(_cell(s.get(c, 0 if c in ("lost", "restarts") else None)) for c in cols))
         console.print(st)
-        for s in map(_dict, sinks):
+        for s in sinks:
             where = [x for x in (s.get("current_file"), s.get("rrd_path"), s.get("server_uri")) if x]
             if where:
                 console.print(_cell(f"  {s.get('name')}: {', '.join(map(str, where))}", 1000))

@@ -15,7 +15,7 @@ import numpy as np
 
 from feedio import schema as S
 from feedio.digest import file_sha256
-from feedio.limits import PHYSICAL
+from feedio.limits import SAMPLE_LIMITS
 from feedio.mcapio import MAX_TRIAL_SAMPLES
 from kernels.errors import ParameterError
 
@@ -191,7 +191,7 @@ UNIT_FACTORS: dict[str, tuple[str, float]] = {
     "rpm": ("speed", 1.0), "rev/s": ("speed", 60.0),
 }
 #: dimension → (|value| beyond which a sample is absurd for a machine-tool axis, SI unit); feedio.limits
-_ABSURD = {"velocity": (PHYSICAL.v_max, "m/s"), "force": (PHYSICAL.u_max, "N"), "speed": (PHYSICAL.spindle_rpm_max, "rpm")}
+_ABSURD = {"velocity": (SAMPLE_LIMITS.v_max, "m/s"), "force": (SAMPLE_LIMITS.u_max, "N"), "speed": (SAMPLE_LIMITS.spindle_rpm_max, "rpm")}
 
 FIELD_DIMENSION = {
     "t": "time", "v_ref": "velocity", "v_meas": "velocity", "u": "force",
@@ -244,24 +244,8 @@ def _float(cell: str) -> float | None:
     return float(cell)
 
 
-def read_csv_trial(
-    path,
-    mapping: dict[str, str] | str,
-    units: dict[str, str] | str | None = None,
-    *,
-    form: str = "velocity-loop",
-    machine: str = "machine",
-    axis: str = "X",
-    loop_gain: float | None = None,
-    Ts: float | None = None,
-) -> ImportedTrial:
-    """Read a CSV export (header row; delimiter sniffed) into a trial.
-
-    ``mapping`` feedmon field → CSV column (``t`` and ``v_meas`` required, ``v_ref`` for the
-    velocity-loop form, ``u`` for the force-input form); ``units`` feedmon field → unit of the
-    column (default SI). ``Ts`` defaults to the median time step.
-    """
-    path = Path(path)
+def _checked_arguments(mapping, units, form: str, loop_gain) -> tuple[dict[str, str], dict[str, str]]:
+    """``(mapping, units)`` of :func:`read_csv_trial` as dicts, checked against the form and the known units."""
     mapping = _parse_pairs(mapping, "mapping") if isinstance(mapping, str) else dict(mapping)
     units = _parse_pairs(units, "units") if isinstance(units, str) or units is None else dict(units)
     if form not in ("velocity-loop", "force-input"):
@@ -289,6 +273,12 @@ def read_csv_trial(
         if UNIT_FACTORS[unit][0] != FIELD_DIMENSION[field]:
             raise ParameterError(f"units {field}={unit}: {unit} is a {UNIT_FACTORS[unit][0]} unit, {field} needs a "
                                  f"{FIELD_DIMENSION[field]} unit", "units")
+    return mapping, units
+
+
+def _read_columns(path: Path, mapping: dict[str, str]) -> tuple[dict[str, list], list[int]]:
+    """The mapped columns of a CSV file as lists of numbers (NaN for an empty cell) and the file line of
+    each data row; ``ValueError`` naming the file, line and column of what cannot be read."""
     try:
         fh = open(path, newline="", encoding="utf-8-sig")
     except OSError as exc:
@@ -334,8 +324,12 @@ def read_csv_trial(
     except (csv.Error, UnicodeDecodeError) as exc:  # a binary file, a field beyond csv.field_size_limit
         where = f", line {reader.line_num}" if reader is not None and reader.line_num else ""
         raise ValueError(f"CSV file {path}{where}: not a readable CSV text file ({exc})") from None
-    if len(data["t"]) < 3:
-        raise ValueError(f"CSV file {path} has {len(data['t'])} data rows; a trial needs at least 3")
+    return data, lines
+
+
+def _si_arrays(path: Path, data: dict[str, list], lines: list[int], mapping: dict[str, str],
+               units: dict[str, str]) -> dict[str, np.ndarray]:
+    """The columns in SI units; a value beyond the limits of any machine-tool axis is refused (units)."""
     arrays = {}
     for f, vals in data.items():
         factor = UNIT_FACTORS[units.get(f, {"time": "s", "velocity": "m/s", "force": "N", "current": "A",
@@ -349,7 +343,13 @@ def read_csv_trial(
                                  f"({arrays[f][k]:.6g} {limit[1]}) is beyond the {limit[0]:g} {limit[1]} of any "
                                  f"machine-tool axis ({len(over)} such value(s)): check the units, or remove the faulty "
                                  "rows", "units")
-    t = arrays["t"]
+    return arrays
+
+
+def _sampling_time(path: Path, t: np.ndarray, lines: list[int], mapping: dict[str, str], units: dict[str, str],
+                   Ts: float | None) -> float:
+    """``Ts`` (s; default the median step) after checking that the times are finite, increasing, ≥ 0 and
+    sampled at that one rate."""
     if not np.all(np.isfinite(t)):
         raise ValueError(f"CSV file {path}: column {mapping['t']!r} (t) has empty or non-numeric times at rows {np.flatnonzero(~np.isfinite(t))[:5] + 2}")
     dts = np.diff(t)
@@ -369,6 +369,34 @@ def read_csv_trial(
                              f"not the sampling time Ts = {Ts_:.6g} s ({off.size} such step(s)): the file has a gap or is "
                              "not sampled at one rate; split it at the gap, resample it to one rate, or give the right Ts",
                              "Ts")
+    return Ts_
+
+
+def read_csv_trial(
+    path,
+    mapping: dict[str, str] | str,
+    units: dict[str, str] | str | None = None,
+    *,
+    form: str = "velocity-loop",
+    machine: str = "machine",
+    axis: str = "X",
+    loop_gain: float | None = None,
+    Ts: float | None = None,
+) -> ImportedTrial:
+    """Read a CSV export (header row; delimiter sniffed) into a trial.
+
+    ``mapping`` feedmon field → CSV column (``t`` and ``v_meas`` required, ``v_ref`` for the
+    velocity-loop form, ``u`` for the force-input form); ``units`` feedmon field → unit of the
+    column (default SI). ``Ts`` defaults to the median time step.
+    """
+    path = Path(path)
+    mapping, units = _checked_arguments(mapping, units, form, loop_gain)
+    data, lines = _read_columns(path, mapping)
+    if len(data["t"]) < 3:
+        raise ValueError(f"CSV file {path} has {len(data['t'])} data rows; a trial needs at least 3")
+    arrays = _si_arrays(path, data, lines, mapping, units)
+    t = arrays["t"]
+    Ts_ = _sampling_time(path, t, lines, mapping, units, Ts)
     n = t.size
     meta = S.TrialMeta(
         Ts=Ts_,

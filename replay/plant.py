@@ -33,10 +33,10 @@ import numpy as np
 from numba import njit
 from scipy.linalg import expm
 
-__all__ = ["Structure", "structure_of", "discretise", "closed_loop_radius", "structured_loop", "friction", "KINDS",
+__all__ = ["Structure", "structure_of", "discretise", "closed_loop_radius", "structured_loop", "friction", "STRUCTURE_KINDS",
            "VELOCITY"]
 
-KINDS = ("rigid", "two-mass")
+STRUCTURE_KINDS = ("rigid", "two-mass")
 VELOCITY = ("sensor", "encoder")
 
 

@@ -254,6 +254,70 @@ def _pass_stream(path: str, scan: TrialScan, block: int | None, k: int,
 
 
 # ---- replay ----------------------------------------------------------------------------------
+def _checked(rate, block, loop, progress) -> tuple[float | None, int | None]:
+    """``(rate, passes)`` of :func:`replay`'s arguments (None: as fast as possible / forever), checked."""
+    if rate is not None and math.isinf(rate):
+        rate = None
+    if rate is not None and not rate > 0:
+        raise ParameterError(f"rate must be > 0 (or None: as fast as possible), got {rate}", "rate")
+    if block is not None and block < 1:
+        raise ParameterError(f"block must be at least 1 sample, got {block}", "block")
+    if loop is True:
+        passes: int | None = None
+    elif loop is False:
+        passes = 1
+    else:
+        passes = int(loop)
+        if passes < 1:
+            raise ParameterError(f"loop must be True/False or a number of passes ≥ 1, got {loop}", "loop")
+    if progress is not None and not callable(progress):
+        raise ParameterError(f"progress must be a callable progress(sent, total) or None, got {progress!r}",
+                             "progress")
+    return rate, passes
+
+
+def _declare(session: zenoh.Session, scan, prefix: str, truth: bool):
+    """The publishers of every axis' samples (and truth): ``({(axis, kind): publisher}, all declared)``."""
+    pubs: dict[tuple[str, str], zenoh.Publisher] = {}
+    declared: list[zenoh.Publisher] = []
+    cc = zenoh.CongestionControl.BLOCK
+    enc = zenoh.Encoding.APPLICATION_JSON
+    for name in scan.axes:
+        machine, ax = name.split("/", 1)
+        pubs[(name, "samples")] = session.declare_publisher(
+            samples_key(prefix, machine, ax), congestion_control=cc, encoding=enc,
+            priority=zenoh.Priority.DATA_HIGH,
+        )
+        declared.append(pubs[(name, "samples")])
+        if truth:
+            pubs[(name, "truth")] = session.declare_publisher(
+                truth_key(prefix, machine, ax), congestion_control=cc, encoding=enc,
+            )
+            declared.append(pubs[(name, "truth")])
+
+    return pubs, declared
+
+
+def _wait_for_subscribers(pubs, scan, truth: bool, wait: float, stop, stats: ReplayStats) -> None:
+    """Wait up to ``wait`` s for a subscriber of every axis' samples (``stats.matched``), then briefly for
+    the truth subscribers."""
+    deadline = time.monotonic() + max(0.0, wait)
+    sample_pubs = [pubs[(a, "samples")] for a in scan.axes]
+    while True:
+        stats.matched = all(p.matching_status.matching for p in sample_pubs)
+        if stats.matched or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+            break
+        time.sleep(0.01)
+    if stats.matched and truth:
+        # truth subscribers are optional (a monitor records truth only with --record-truth), so do
+        # not wait for them the full time; but a recorder that is there usually matches within
+        # milliseconds of the samples subscriber: give it a moment before the first put
+        truth_pubs = [pubs[(a, "truth")] for a in scan.axes]
+        grace = min(deadline, time.monotonic() + 0.5)
+        while not all(p.matching_status.matching for p in truth_pubs) and time.monotonic() < grace:
+            time.sleep(0.01)
+
+
 def replay(
     path: str | os.PathLike,
     session: zenoh.Session,
@@ -287,63 +351,17 @@ def replay(
     file or arguments, ``OSError`` if it cannot be read.
     """
     path = os.fspath(path)
-    if rate is not None and math.isinf(rate):
-        rate = None
-    if rate is not None and not rate > 0:
-        raise ParameterError(f"rate must be > 0 (or None: as fast as possible), got {rate}", "rate")
-    if block is not None and block < 1:
-        raise ParameterError(f"block must be at least 1 sample, got {block}", "block")
-    if loop is True:
-        passes: int | None = None
-    elif loop is False:
-        passes = 1
-    else:
-        passes = int(loop)
-        if passes < 1:
-            raise ParameterError(f"loop must be True/False or a number of passes ≥ 1, got {loop}", "loop")
-    if progress is not None and not callable(progress):
-        raise ParameterError(f"progress must be a callable progress(sent, total) or None, got {progress!r}",
-                             "progress")
+    rate, passes = _checked(rate, block, loop, progress)
     if not os.path.exists(path):
         raise FileNotFoundError(f"trial file {path!r} does not exist")
 
     scan = scan_trial(path, axis)
     stats = ReplayStats(path=path, axes=list(scan.axes), rate=rate)
 
-    pubs: dict[tuple[str, str], zenoh.Publisher] = {}
-    declared: list[zenoh.Publisher] = []
-    cc = zenoh.CongestionControl.BLOCK
-    enc = zenoh.Encoding.APPLICATION_JSON
-    for name in scan.axes:
-        machine, ax = name.split("/", 1)
-        pubs[(name, "samples")] = session.declare_publisher(
-            samples_key(prefix, machine, ax), congestion_control=cc, encoding=enc,
-            priority=zenoh.Priority.DATA_HIGH,
-        )
-        declared.append(pubs[(name, "samples")])
-        if truth:
-            pubs[(name, "truth")] = session.declare_publisher(
-                truth_key(prefix, machine, ax), congestion_control=cc, encoding=enc,
-            )
-            declared.append(pubs[(name, "truth")])
-
+    pubs, declared = _declare(session, scan, prefix, truth)
     kinds = _KINDS if truth else ("samples",)
     try:
-        deadline = time.monotonic() + max(0.0, wait_for_subscriber)
-        sample_pubs = [pubs[(a, "samples")] for a in scan.axes]
-        while True:
-            stats.matched = all(p.matching_status.matching for p in sample_pubs)
-            if stats.matched or time.monotonic() >= deadline or (stop is not None and stop.is_set()):
-                break
-            time.sleep(0.01)
-        if stats.matched and truth:
-            # truth subscribers are optional (a monitor records truth only with --record-truth), so do
-            # not wait for them the full time; but a recorder that is there usually matches within
-            # milliseconds of the samples subscriber: give it a moment before the first put
-            truth_pubs = [pubs[(a, "truth")] for a in scan.axes]
-            grace = min(deadline, time.monotonic() + 0.5)
-            while not all(p.matching_status.matching for p in truth_pubs) and time.monotonic() < grace:
-                time.sleep(0.01)
+        _wait_for_subscribers(pubs, scan, truth, wait_for_subscriber, stop, stats)
 
         total = None if passes is None else scan.total_samples * passes
         if progress is not None:

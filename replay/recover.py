@@ -50,23 +50,20 @@ import numpy as np
 
 from feedio.mcapfile import (
     DEFAULT_LIMITS,
-    MAGIC,
-    OP_NAMES,
     Chunk,
     Limits,
-    Op,
     RecordError,
     check_chunk_size,
     decompress,
     iter_inner,
     parse_record,
 )
+from feedio.mcapspec import MAGIC, OP_NAMES, RECORD_HEAD, Op
 
 __all__ = ["RECOVER_METADATA_NAME", "ChannelStats", "Skipped", "RecoverReport", "recover", "MAX_SKIPPED_LISTED"]
 
 RECOVER_METADATA_NAME = "feedmon.recover"
 _COMPRESSIONS = ("zstd", "lz4", "none")
-_HDR = struct.Struct("<BQ")
 _KNOWN = frozenset(OP_NAMES)
 #: skipped ranges listed one by one in the report (the rest are counted)
 MAX_SKIPPED_LISTED = 100
@@ -331,7 +328,7 @@ class _Source:
     def header_at(self, pos: int) -> tuple[int, int] | None:
         if pos + 9 > self.size:
             return None
-        return _HDR.unpack_from(self.mm, pos)
+        return RECORD_HEAD.unpack_from(self.mm, pos)
 
     def plausible_next(self, pos: int, *, strict: bool) -> bool:
         """Could a record (or the end of the file) start at ``pos``?"""
@@ -415,7 +412,7 @@ def _summary_declarations(mm, size: int, limits: Limits) -> tuple[dict, dict]:
     foot = size - 8 - 29
     if foot < 8 or mm[size - 8:size] != MAGIC:
         return schemas, channels
-    opcode, length = _HDR.unpack_from(mm, foot)
+    opcode, length = RECORD_HEAD.unpack_from(mm, foot)
     if opcode != Op.FOOTER or length != 20:
         return schemas, channels
     footer = parse_record(Op.FOOTER, mm[foot + 9:foot + 29])

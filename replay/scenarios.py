@@ -53,10 +53,10 @@ from pathlib import Path
 
 import numpy as np
 
-from feedio.limits import PHYSICAL
+from feedio.limits import SAMPLE_LIMITS, SPINDLE_RPM_MAX
 from feedio.mcapio import MAX_TRIAL_SAMPLES
 
-_V_MAX = PHYSICAL.v_max  # m/s
+_V_MAX = SAMPLE_LIMITS.v_max  # m/s
 
 __all__ = [
     "SCENARIOS",
@@ -89,8 +89,6 @@ SCENARIOS = (
 
 #: drive constants that may vary over a trial (``[drive_drift]``, ``[drive_step]``)
 VARYING = ("inertia", "damping", "coulomb_pos", "coulomb_neg")
-#: the highest spindle speed a scenario may command (rpm); beyond it the angular step count explodes
-MAX_SPINDLE_RPM = 100_000.0
 #: the most samples one simulated trial holds (at the controller rate, and at fine_rate with --fine): the
 #: simulation keeps every sample in memory (~140 bytes each: 10 M ≈ 1.4 GB, 8 h at 333 Hz), and
 #: ``read_trial`` (identify) reads no more
@@ -268,11 +266,11 @@ def _check_variation(sc: dict) -> None:
 
 def _check_structure(sc: dict) -> None:
     """``[structure]`` and the Stribeck constants of ``[drive]`` (:mod:`replay.plant`)."""
-    from .plant import KINDS, VELOCITY
+    from .plant import STRUCTURE_KINDS, VELOCITY
 
     st = sc["structure"]
-    if st["kind"] not in KINDS:
-        raise ValueError(f"structure.kind must be one of {', '.join(KINDS)}, got {st['kind']!r}")
+    if st["kind"] not in STRUCTURE_KINDS:
+        raise ValueError(f"structure.kind must be one of {', '.join(STRUCTURE_KINDS)}, got {st['kind']!r}")
     if st["velocity"] not in VELOCITY:
         raise ValueError(f"structure.velocity must be one of {', '.join(VELOCITY)}, got {st['velocity']!r}")
     for p in ("structure.resonance", "structure.resonance_damping", "structure.encoder_resolution",
@@ -293,8 +291,8 @@ def _check_structure(sc: dict) -> None:
 def _check_spindle(sc: dict) -> None:
     d, sp = sc["disturbance"], sc["spindle"]
     rpm0 = _pos(sc, "disturbance.spindle_rpm", allow_zero=True)
-    if rpm0 > MAX_SPINDLE_RPM:
-        raise ValueError(f"disturbance.spindle_rpm must be ≤ {MAX_SPINDLE_RPM:g} rpm, got {rpm0!r}")
+    if rpm0 > SPINDLE_RPM_MAX:
+        raise ValueError(f"disturbance.spindle_rpm must be ≤ {SPINDLE_RPM_MAX:g} rpm, got {rpm0!r}")
     _pos(sc, "spindle.accel", allow_zero=True)
     if sp["feed"] not in ("per-tooth", "rate"):
         raise ValueError(f"spindle.feed must be per-tooth or rate, got {sp['feed']!r}")
@@ -314,8 +312,8 @@ def _check_spindle(sc: dict) -> None:
                 f"spindle.schedule[{i}]: time {t_s!r} s must be ≥ 0, after the previous entry and inside the trial "
                 f"(duration {sc['duration']!r} s); shorten the schedule or lengthen the trial"
             )
-        if not 0.0 < rpm <= MAX_SPINDLE_RPM:
-            raise ValueError(f"spindle.schedule[{i}]: speed must be in (0, {MAX_SPINDLE_RPM:g}] rpm, got {rpm!r}")
+        if not 0.0 < rpm <= SPINDLE_RPM_MAX:
+            raise ValueError(f"spindle.schedule[{i}]: speed must be in (0, {SPINDLE_RPM_MAX:g}] rpm, got {rpm!r}")
         prev = t_s
     if sched and (rpm0 <= 0 or not d.get("cutting", True)):
         raise ValueError("spindle.schedule needs a turning spindle while cutting (disturbance.spindle_rpm > 0, "

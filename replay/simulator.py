@@ -48,6 +48,7 @@ import numpy as np
 from numba import njit
 
 from feedio import schema as S
+from feedio.limits import SPINDLE_RPM_MAX
 from kernels.errors import ParameterError
 from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_beta
 
@@ -84,7 +85,7 @@ PLAUSIBLE = {
     "position": (1e6, "m"),
     "force": (1e7, "N"),
     "dynamometer": (1e7, "N"),
-    "spindle_rpm": (SC.MAX_SPINDLE_RPM, "rpm"),
+    "spindle_rpm": (SPINDLE_RPM_MAX, "rpm"),
     "spindle_angle": (1e12, "rad"),
 }
 
@@ -467,14 +468,59 @@ def _check_plausible(columns: dict, dt: float, path: str) -> None:
 # ---------------------------------------------------------------------------------------------
 # simulate
 # ---------------------------------------------------------------------------------------------
+def _trial_meta(sc: dict, *, Ts: float, seed: int, fine: bool, created: str | None, structure, par: dict, K: float, omega: float,
+                spindle, betas: np.ndarray, coulomb: bool) -> S.TrialMeta:
+    """The metadata of a simulated trial: provenance, and the truth (β at t = 0, the physical constants,
+    the scenario) that ``identify`` and the tests score against."""
+    from feedio import __version__
+
+    d = sc["disturbance"]
+    milling = d["kind"] == "milling"
+    physical = {name: float(par[name][0]) for name in SC.VARYING}  # the values at t = 0
+    physical["loop_gain"] = K
+    physical["force_constant"] = float(sc["drive"]["force_constant"])
+    details = {"fine": bool(fine), "path": "fine 10 kHz + AA decimation" if fine else "exact ZOH"}
+    if not structure.rigid_model:
+        details["beyond_the_model"] = structure.describe()  # the truth's β is the rigid equivalent's
+    varying = [name for name in SC.VARYING if np.any(par[name] != par[name][0])]
+    if varying:
+        details["time_varying"] = varying  # the truth channel holds their values per sample
+    return S.TrialMeta(
+        Ts=Ts,
+        form=sc["form"],
+        machine=sc["machine"],
+        axis=sc["axis"],
+        units=dict(S.UNITS),
+        spindle_rpm=(float(spindle.rpm[0]) if spindle.constant else None) if spindle is not None else None,
+        teeth=int(d["teeth"]) if milling else None,
+        loop_gain=K,
+        provenance=S.Provenance(
+            source="simulated",
+            tool="feedmon simulate",
+            version=__version__,
+            seed=int(seed),
+            scenario=sc["name"],
+            created=created,
+            details=details,
+        ),
+        truth=S.TrialTruth(
+            beta=[float(b) for b in betas[0]],
+            omega=omega,
+            coulomb=coulomb,
+            physical=physical,
+            scenario=sc,
+            beta_names=list(beta_names(sc["form"], coulomb)),
+        ),
+        description=sc["description"],
+    )
+
+
 def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None = None) -> SimResult:
     """Simulate a scenario dict (from :func:`replay.scenarios.load_scenario`).
 
     Raises :class:`UnstableLoopError` before simulating when the closed loop is unstable at
     any sample, and :class:`SimulationError` when a sample comes out non-finite or absurd.
     """
-    from feedio import __version__
-
     SC.check(sc)
     if not (isinstance(seed, int) and seed >= 0):
         raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
@@ -541,7 +587,6 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
     betas, minus_b, run = _beta_runs(sc["form"], Ts, K, par, coulomb)
     f = tc * (minus_b[0] if minus_b.size == 1 else minus_b[run])  # f(k) = −b(k)·T_c(k) (force_to_disturbance)
     d = sc["disturbance"]
-    milling = d["kind"] == "milling"
     dyn = None
     if d["kind"] != "none":
         dyn = 0.0 - tc  # the force on the table in the +axis direction (no negative zeros)
@@ -556,43 +601,8 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
         Ts, "fine-path" if fine else "exact-ZOH",
     )
 
-    physical = {name: float(par[name][0]) for name in SC.VARYING}  # the values at t = 0
-    physical["loop_gain"] = K
-    physical["force_constant"] = float(sc["drive"]["force_constant"])
-    details = {"fine": bool(fine), "path": "fine 10 kHz + AA decimation" if fine else "exact ZOH"}
-    if not structure.rigid_model:
-        details["beyond_the_model"] = structure.describe()  # the truth's β is the rigid equivalent's
-    varying = [name for name in SC.VARYING if np.any(par[name] != par[name][0])]
-    if varying:
-        details["time_varying"] = varying  # the truth channel holds their values per sample
-    meta = S.TrialMeta(
-        Ts=Ts,
-        form=sc["form"],
-        machine=sc["machine"],
-        axis=sc["axis"],
-        units=dict(S.UNITS),
-        spindle_rpm=(float(spindle.rpm[0]) if spindle.constant else None) if spindle is not None else None,
-        teeth=int(d["teeth"]) if milling else None,
-        loop_gain=K,
-        provenance=S.Provenance(
-            source="simulated",
-            tool="feedmon simulate",
-            version=__version__,
-            seed=int(seed),
-            scenario=sc["name"],
-            created=created,
-            details=details,
-        ),
-        truth=S.TrialTruth(
-            beta=[float(b) for b in betas[0]],
-            omega=omega,
-            coulomb=coulomb,
-            physical=physical,
-            scenario=sc,
-            beta_names=list(beta_names(sc["form"], coulomb)),
-        ),
-        description=sc["description"],
-    )
+    meta = _trial_meta(sc, Ts=Ts, seed=seed, fine=fine, created=created, structure=structure, par=par, K=K, omega=omega,
+                       spindle=spindle, betas=betas, coulomb=coulomb)
     return SimResult(
         meta=meta, t=t, v_ref=v_ref, v_meas=v_rec, u=u, current=u / sc["drive"]["force_constant"],
         position=pos, spindle_rpm=rpm, force=tc, f=f, v_true=v_true, glitch=glitch,

@@ -313,12 +313,12 @@ def test_way_back_pins_follow_the_monitor_and_a_second_alarm_source_plugs_in(zen
     _wait(lambda: not wb.current()["X.alarm"], "the alarm clears when no source is in alarm")
     health.put(b'{"state": "alarm"}')                                       # malformed: counted, nothing changes
     _wait(lambda: wb.counters["malformed_health"] == 1, "the malformed report is counted")
-    limit, W.MAX_MESSAGE_BYTES = W.MAX_MESSAGE_BYTES, 100
+    limit, W.MAX_REPORT_BYTES = W.MAX_REPORT_BYTES, 100
     try:
         health.put(S.encode(_health("alarm")))                             # too large: refused unread
         _wait(lambda: wb.counters["too_large"] == 1, "the large report is counted")
     finally:
-        W.MAX_MESSAGE_BYTES = limit
+        W.MAX_REPORT_BYTES = limit
     assert not wb.current()["X.alarm"] and any(v.get("X.alarm") for v in sent)
     wb.tick(time.monotonic() + 10)                                          # no estimate for 10 s: not valid
     dist.put(S.encode(_estimates(7, 1.0)))

@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 from live_monitor import Live
@@ -30,6 +31,7 @@ from monitor.offline import run_offline
 from monitor.pipeline import Pipeline
 from monitor.sinks.mcap_sink import McapProcessSink, McapSink
 from monitor.status import STAGES, StageRing, format_status
+from monitor.status_doc import AxisReport, StatusDoc
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
@@ -112,6 +114,10 @@ def test_live_estimates_equal_the_pipeline_whether_in_the_callback_or_queued(wor
     assert set(got) == set(want)
     for k in want:
         np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    # the document is the typed StatusDoc, its keys in the Structs' order (what `feedmon status --json` prints)
+    typed = msgspec.convert(st, StatusDoc)
+    assert list(st) == list(StatusDoc.__struct_fields__) and typed.input.received == 300
+    assert list(st["axes"][AXIS]) == list(AxisReport.__struct_fields__)
     inp = st["input"]
     assert inp["received"] == inp["handled"] == 300 and inp["pending"] == 0
     if inline_bytes:

@@ -216,11 +216,11 @@ def test_slow_disk_mcap_sink_never_stalls_estimation(work, trial, monkeypatch):
     its drops are counted in the status; once the disk is fast again the file closes complete and readable."""
     import builtins
 
-    import feedio.mcapio as mcapio
+    import feedio.trialwriter as trialwriter
 
     fast = threading.Event()
     real_open = builtins.open
-    monkeypatch.setattr(mcapio, "open", lambda *a, **k: _SlowFile(real_open(*a, **k), 20_000.0, fast),
+    monkeypatch.setattr(trialwriter, "open", lambda *a, **k: _SlowFile(real_open(*a, **k), 20_000.0, fast),
                         raising=False)
     n = len(trial)
     axes = load_axes([work / "z.model.toml"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Literal
 
 import msgspec
 import pytest
@@ -55,7 +56,7 @@ def test_contract_bounds_are_the_schemas():
 def test_estimator_uses_the_physical_limits_of_feedio_limits():
     from monitor.estimator import LIMITS
 
-    assert LIMITS == L.LIMITS == {"v": L.PHYSICAL.v_max, "u": L.PHYSICAL.u_max, "t": L.PHYSICAL.t_max}
+    assert LIMITS == L.LIMITS == {"v": L.SAMPLE_LIMITS.v_max, "u": L.SAMPLE_LIMITS.u_max, "t": L.SAMPLE_LIMITS.t_max}
 
 
 def test_limits_are_validated_with_their_ranges():
@@ -65,3 +66,36 @@ def test_limits_are_validated_with_their_ranges():
         msgspec.convert({"queue_bytes": 4096, "max_message_bytes": 8192}, L.InputLimits)
     assert L.range_text(L.InputLimits, "queue_messages") == "1 ≤ queue_messages ≤ 1000000"
     assert L.range_text(L.InputLimits, "status_refresh_s") == "0 ≤ status_refresh_s ≤ 60"
+
+
+class _Axis(msgspec.Struct, forbid_unknown_fields=True):
+    scale: L.bounded_float(0.0, 1e9, "units per m", open_low=True) = 1.0
+    mode: Literal["a", "b"] = "a"
+
+
+class _Root(msgspec.Struct, forbid_unknown_fields=True):
+    axes: dict[str, _Axis] = {}
+    steps: list[_Axis] = []
+    limits: L.InputLimits = L.InputLimits()
+
+
+def test_explain_names_the_key_its_range_and_the_known_keys():
+    """One explainer for every settings file: through nested tables, a table of tables (msgspec names its
+    key ``[...]``) and a list, the key and the range derived from the Struct; an unknown key lists the keys
+    known there."""
+
+    def explained(doc):
+        with pytest.raises(msgspec.ValidationError) as info:
+            msgspec.convert(doc, _Root)
+        return L.explain(info.value, _Root)
+
+    key, msg = explained({"axes": {"X": {"scale": -1.0}}})
+    assert key == "axes[...].scale" and msg.endswith("(allowed: 0 < scale ≤ 1e+09)")
+    key, msg = explained({"steps": [{}, {"mode": "c"}]})
+    assert key == "steps[1].mode" and msg.endswith("(allowed: mode one of a, b)")
+    key, msg = explained({"limits": {"queue_bytes": 1}})
+    assert key == "limits.queue_bytes" and msg.endswith("(allowed: 1024 ≤ queue_bytes ≤ 17179869184)")
+    key, msg = explained({"axes": {"X": {"scal": 2.0}}})
+    assert key == "axes[...]" and msg.endswith("known keys here: scale, mode")
+    key, msg = explained({"axis": {}})
+    assert key == "(top level)" and msg.endswith("known keys here: axes, steps, limits")

@@ -1,4 +1,4 @@
-"""Hostile and damaged trial files through the real reader and the real CLI (issue 9 #7, #12, #13).
+"""Hostile and damaged trial files through the real reader and the real CLI.
 
 Every outcome is either a correct read or a clear :class:`TrialFileError` naming the file (and
 where useful the offset, channel and message) — never a traceback, a hang or unbounded memory.
@@ -24,12 +24,12 @@ from truth_models import model_from_truth
 from feedio import schema as S
 from feedio.mcapfile import MAX_CHANNELS, MAX_CHUNK_BYTES, MAX_JSON_DEPTH, MAX_METADATA_BYTES, Limits
 from feedio.mcapio import TrialFileError, read_trial
+from feedio.mcapspec import MAGIC
 from feedmon.cli import main
 from replay.recover import recover
 from replay.simulator import simulate_scenario, write_trial
 
 REPO = Path(__file__).resolve().parents[1]
-MAGIC = b"\x89MCAP0\r\n"
 CREATED = "2024-05-01T08:00:00Z"
 
 
@@ -121,7 +121,7 @@ def test_builder_makes_a_readable_file(tmp_path, index):
     assert read_trial(p).seq.tolist()[:3] == [0, 1, 2] and len(read_trial(p)) == 20
 
 
-# ---- integrity: CRCs (issue 9 #12) ---------------------------------------------------------------
+# ---- integrity: CRCs ---------------------------------------------------------------
 def test_every_bit_flip_is_detected(good, tmp_path):
     """feedmon files carry chunk, data-section and summary CRCs: a flipped bit anywhere (600 random
     positions and one in every record kind) is an error naming the file, never a changed value."""
@@ -188,7 +188,7 @@ def test_chunk_crc_checked_when_the_file_has_no_data_crc(good, tmp_path):
     _expect_clear_error(p, "chunk: CRC mismatch", "feedmon recover")
 
 
-# ---- absurd numbers (issue 9 #7) --------------------------------------------------------------------
+# ---- absurd numbers --------------------------------------------------------------------
 @pytest.mark.parametrize("seq", [2**64 + 5, 2**53, 10**30])
 def test_seq_beyond_the_schema_is_a_clear_error(tmp_path, seq):
     p = tmp_path / "seq.mcap"
@@ -214,10 +214,11 @@ def test_seq_2_64_through_identify_run_from_and_replay(tmp_path, good):
         assert "$.seq" in r.stderr and "9007199254740991" in r.stderr and "message 1" in r.stderr, r.stderr
 
 
-# ---- hostile content (issue 9 #13): limits, counted and clear ----------------------------------------
+# ---- hostile content limits, counted and clear ----------------------------------------
 _PEAK_RSS = """
 import json, sys
 from feedio.mcapio import TrialFileError, read_trial
+from feedio.mcapspec import MAGIC
 from replay.recover import recover
 out = {}
 try:

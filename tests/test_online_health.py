@@ -19,7 +19,7 @@ import pytest
 from trial_edit import rewrite_samples
 
 from feedio import schema as S
-from feedio.mcapio import _Open, iter_blocks, read_trial
+from feedio.mcapio import OpenTrial, iter_blocks, read_trial
 from feedmon.cli import main
 from monitor.model_file import ModelFileError, load_model, save_model
 
@@ -132,7 +132,7 @@ def test_health_reports_about_once_a_second_with_values_and_schema(spindle_chang
     assert h.offset is not None and h.offset_se > 0  # the intercept column "one" (model file version 2)
     assert any("coulomb" in r and "no such column" in r for r in h.reasons)
     assert any(r.startswith("not determined by the data") and "damping" in r for r in h.reasons)
-    with _Open(out) as f:                               # a JSON Schema on the channel, written as null
+    with OpenTrial(out) as f:                               # a JSON Schema on the channel, written as null
         ch = f.channels["/cnc-mill/X/health"]
         schema = json.loads(f.file.schemas[ch.schema_id].data)
     assert schema["title"] == "Health" and "coulomb" in schema["properties"]

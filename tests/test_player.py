@@ -294,13 +294,13 @@ def test_replay_of_many_axes_reads_the_file_once(tmp_path, sessions, monkeypatch
                 w.write_samples(S.SampleBlock(machine="mill", axis=f"A{i}", seq=seq, t=t, v_ref=[0.0] * 5,
                                               v_meas=[0.001 * i] * 5))
     opens = []
-    real_init = mcapio._Open.__init__
+    real_init = mcapio.OpenTrial.__init__
 
     def counting_init(self, *a, **k):
         opens.append(a[0] if a else k.get("path"))
         real_init(self, *a, **k)
 
-    monkeypatch.setattr(mcapio._Open, "__init__", counting_init)
+    monkeypatch.setattr(mcapio.OpenTrial, "__init__", counting_init)
     mon, pub, _ = sessions
     got: list[str] = []
     sub = mon.declare_subscriber("feedmon/mill/*/samples", lambda s: got.append(str(s.key_expr)))

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from feedio.mcapio import TrialWriter, _Open, iter_blocks
+from feedio.mcapio import OpenTrial, TrialWriter, iter_blocks
 from feedio.schema import SampleBlock
 
 
 def rewrite_samples(src, dst, edit: Callable[[SampleBlock], SampleBlock]):
     """``src`` → ``dst`` with every sample block replaced by ``edit(block)``; returns ``dst``."""
-    with _Open(src) as f:
+    with OpenTrial(src) as f:
         ((m, a),) = f.axes()
         meta, start = f.meta(m, a), f.start_ns(m, a)
     with TrialWriter(dst, [meta], start=start) as w:

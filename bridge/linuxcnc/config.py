@@ -28,20 +28,18 @@ e.g. a truth logged alongside); every HAL name an axis uses is one of ``columns`
 from __future__ import annotations
 
 import math
-import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
 import msgspec
 
-from feedio.limits import NAME_PATTERN, range_text
+from feedio.limits import MAX_CONFIG_BYTES, NAME_PATTERN, explain
 from feedio.schema import check_name
 
 __all__ = ["AxisConfig", "Publish", "HalSide", "BridgeConfig", "load_config", "PIN_FIELDS", "LINK_PINS",
            "MAX_CONFIG_BYTES", "ConfigError"]
 
-MAX_CONFIG_BYTES = 1 << 20
 #: a HAL pin or signal name (halcmd allows letters, digits and ``. _ - :``; at most 47 characters)
 _HAL_NAME = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.:-]{1,47}$")]
 _Scale = Annotated[float, msgspec.Meta(gt=0.0, le=1e9)]
@@ -165,24 +163,10 @@ class BridgeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
         return self
 
 
-_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
-
-
 def _explain(exc: msgspec.ValidationError) -> str:
     """``key <path>: <message>``, with the allowed range of a numeric key or the known keys of a table."""
-    m = _AT.match(str(exc))
-    msg, path = m.group("msg"), (m.group("path") or "").lstrip(".")
-    parts = path.split(".") if path else []
-    unknown = "unknown field" in msg
-    table = parts if unknown else parts[:-1]  # the table the key is in
-    struct = {"axes": AxisConfig, "publish": Publish, "hal": HalSide}.get(table[0], BridgeConfig) if table \
-        else BridgeConfig
-    if unknown:
-        msg += f"; known keys here: {', '.join(struct.__struct_fields__)}"
-    elif parts and parts[-1] in struct.__struct_fields__:
-        allowed = range_text(struct, parts[-1])
-        msg += f" (allowed: {allowed})" if allowed else ""
-    return f"key {path or '(top level)'}: {msg}"
+    key, msg = explain(exc, BridgeConfig)
+    return f"key {key}: {msg}"
 
 
 def load_config(path: str | Path) -> BridgeConfig:

@@ -32,7 +32,8 @@ import time
 
 HAL_KEY = 0x48414C32  # the HAL shared memory segment ("HAL2"); its shmid identifies the HAL session
 TYPE_CODES = {"float": "HAL_FLOAT", "bit": "HAL_BIT", "s32": "HAL_S32", "u32": "HAL_U32"}
-_DATA = struct.Struct("<dIII")
+#: the head of a ``D`` frame: read time (s, CLOCK_MONOTONIC), FIFO overruns, rows, columns (the helper reads it)
+DATA_HEAD = struct.Struct("<dIII")
 
 
 def shm_ids():
@@ -150,7 +151,7 @@ def loop(hal, comp, stream, spec, stop, key, fifo):
             rows.append(row)
         if rows:
             flat = [float(x) for row in rows for x in row]
-            frame("D", _DATA.pack(time.monotonic(), stream.num_overruns, len(rows), ncol)
+            frame("D", DATA_HEAD.pack(time.monotonic(), stream.num_overruns, len(rows), ncol)
                   + struct.pack(f"<{len(flat)}d", *flat))
         now = time.monotonic()
         if now >= next_check:

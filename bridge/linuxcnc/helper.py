@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from .config import BridgeConfig
+from .halio import DATA_HEAD
 
 __all__ = ["HalHelper", "HalUnavailable", "HalError", "Hello", "Frame"]
 
 _HEAD = struct.Struct("<IB")
-_DATA = struct.Struct("<dIII")
 #: helper exit codes that mean "HAL is not (or no longer) there": wait and attach again
 WAIT_CODES = (4, 5)
 MAX_FRAME = 1 << 26
@@ -133,8 +133,8 @@ class HalHelper:
         payload = bytes(self._buf[_HEAD.size:end])
         del self._buf[:end]
         if kind == ord("D"):
-            t_read, overruns, n, m = _DATA.unpack_from(payload)
-            rows = np.frombuffer(payload, dtype="<f8", offset=_DATA.size, count=n * m).reshape(n, m)
+            t_read, overruns, n, m = DATA_HEAD.unpack_from(payload)
+            rows = np.frombuffer(payload, dtype="<f8", offset=DATA_HEAD.size, count=n * m).reshape(n, m)
             return Frame(t_read, overruns, rows)
         doc = json.loads(payload)
         if kind == ord("H"):

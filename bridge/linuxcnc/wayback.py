@@ -20,7 +20,7 @@ Per axis the component (``[hal] component``, default ``feedmon``) has the output
 Alarm sources (:data:`ALARM_SOURCES`): each is a Zenoh key per axis and a function deciding, from
 one message, whether that source is in alarm (and which further pins it sets). The health reports
 (``<prefix>/<machine>/<axis>/health``, ``state == "alarm"``) are the first; another source plugs in
-with one more entry. A message that cannot be decoded, or is larger than :data:`MAX_MESSAGE_BYTES`, is
+with one more entry. A message that cannot be decoded, or is larger than :data:`MAX_REPORT_BYTES`, is
 counted and changes nothing.
 """
 
@@ -39,7 +39,7 @@ from feedio import transport as T
 
 from .config import LINK_PINS, BridgeConfig
 
-__all__ = ["AlarmSource", "ALARM_SOURCES", "WayBack", "HEALTH_CODES", "MAX_MESSAGE_BYTES"]
+__all__ = ["AlarmSource", "ALARM_SOURCES", "WayBack", "HEALTH_CODES", "MAX_REPORT_BYTES"]
 
 log = logging.getLogger("bridge.linuxcnc")
 
@@ -47,7 +47,7 @@ log = logging.getLogger("bridge.linuxcnc")
 HEALTH_CODES = {state: i for i, state in enumerate(S.HEALTH_STATES)}
 #: a larger message from the monitor's side is refused unread (counted ``too_large``): the monitor's
 #: estimate blocks are ~800 bytes per row, its health reports a few kB
-MAX_MESSAGE_BYTES = 1 << 24
+MAX_REPORT_BYTES = 1 << 24
 _NOT_LEARNED = S.REJECTED | S.GAP | S.WARMUP
 
 
@@ -127,7 +127,7 @@ class WayBack:
 
     def estimate(self, axis: str, payload: bytes) -> None:
         """An estimate block: the pins show its newest row."""
-        if len(payload) > MAX_MESSAGE_BYTES:
+        if len(payload) > MAX_REPORT_BYTES:
             self.counters["too_large"] += 1
             return
         try:
@@ -151,7 +151,7 @@ class WayBack:
 
     def alarm(self, axis: str, source: str, payload: bytes) -> None:
         """A message of an alarm source."""
-        if len(payload) > MAX_MESSAGE_BYTES:
+        if len(payload) > MAX_REPORT_BYTES:
             self.counters["too_large"] += 1
             return
         try:

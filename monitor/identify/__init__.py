@@ -15,11 +15,11 @@ package, top to bottom (imports point down only):
 
 from kernels.feed_drive import COULOMB_Z
 
+from ..online_settings import TRACKER_DEFAULTS
 from .candidates import (
     EFFICIENCY_KEYS,
     SUGGEST_MARGIN,
     THESIS_DEFAULTS,
-    TRACKER_DEFAULTS,
     UNDETERMINED_RSE,
     VIF_FLAG,
     Candidate,

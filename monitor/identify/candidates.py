@@ -23,11 +23,7 @@ from kernels.likelihood import PERIODIC_KINDS, _make_kernel, default_bounds, log
 from kernels.likelihood import tune as tune_hyperparameters
 from kernels.pl_lssvm import pl_lssvm, prepare_regression
 
-from .. import online_settings as OS
-
 THESIS_DEFAULTS = {"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3}
-#: online KRLS-T defaults (one definition: monitor.online_settings)
-TRACKER_DEFAULTS = OS.TRACKER_DEFAULTS
 #: samples needed beyond ±Ω on each side before the Coulomb columns are identifiable
 MIN_REVERSAL_SAMPLES = 20
 #: samples at rest needed before the Coulomb asymmetry is told from the offset

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from feedio.limits import PHYSICAL
+from feedio.limits import SAMPLE_LIMITS
 from kernels.adequacy import adequacy
 from kernels.errors import ParameterError
 from kernels.feed_drive import disturbance_to_force
@@ -198,13 +198,13 @@ def _signals(trial, form: str | None, method: str) -> tuple[str, np.ndarray, str
     if bad.any():
         raise ValueError(f"{trial.path}: {int(bad.sum())} sample(s) with missing or non-finite v_meas/{exo_name}, "
                          f"first at seq {int(trial.seq[np.argmax(bad)])}; identification needs a contiguous record")
-    exo_max, exo_unit = (PHYSICAL.u_max, "N") if exo_name == "u" else (PHYSICAL.v_max, "m/s")
-    absurd = (np.abs(v) > PHYSICAL.v_max) | (np.abs(exo) > exo_max)
+    exo_max, exo_unit = (SAMPLE_LIMITS.u_max, "N") if exo_name == "u" else (SAMPLE_LIMITS.v_max, "m/s")
+    absurd = (np.abs(v) > SAMPLE_LIMITS.v_max) | (np.abs(exo) > exo_max)
     if absurd.any():  # (least squares would call such a column "collinear")
         k = int(np.argmax(absurd))
         raise ValueError(f"{trial.path}: {int(absurd.sum())} sample(s) with an absurd magnitude, first at seq "
                          f"{int(trial.seq[k])} (v_meas = {v[k]:.6g} m/s, {exo_name} = {exo[k]:.6g} {exo_unit}; limits "
-                         f"{PHYSICAL.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
+                         f"{SAMPLE_LIMITS.v_max:g} m/s, {exo_max:g} {exo_unit}): a recording or unit fault; identify a window "
                          "without it (trial.window(start, end)) or fix the file")
     Ts = float(trial.meta.Ts)
     steps = np.diff(trial.seq)

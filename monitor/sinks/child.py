@@ -5,7 +5,7 @@ supervision and restart, finishing — and of the child's status reporter.
 Protocol: the parent spawns ``target(conn, *args)``; the child answers first with a JSON object
 (``{"error": …}`` when it could not start), then sends JSON status reports whenever its status
 changed and at least every ``heartbeat`` seconds, and a last one with ``"final": true`` after the
-parent's ``b"Q"``.
+parent's :attr:`~monitor.sinks.frames.Tag.QUIT`.
 
 Supervision (the parent's worker thread, :meth:`ChildProcessSink.tick` and every send): the
 child is taken for **stalled** when no report came for ``stall_seconds`` (stopped, hung), when it
@@ -41,6 +41,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any, Literal, get_args
 
+from .frames import Tag
 from .queued import QueuedSink
 
 __all__ = ["ChildProcessSink", "ChildGone", "cpu_state", "STARVED_STALLS", "start_reporter", "send_final", "background_priority", "leave_idle",
@@ -512,7 +513,7 @@ class ChildProcessSink(QueuedSink):
         leave_idle(gen.proc.pid)  # the queue must drain and the file close, however busy the machine
         why = None
         try:
-            gen.writer.send(b"Q", min(deadline, time.monotonic() + self.stall_seconds))
+            gen.writer.send(Tag.QUIT, min(deadline, time.monotonic() + self.stall_seconds))
             while not self._take_reports(gen, 0.1) and gen.proc.is_alive():
                 quiet, stuck = time.monotonic() - gen.last_msg, float(gen.report.get("stuck_s") or 0.0)
                 if time.monotonic() >= deadline:

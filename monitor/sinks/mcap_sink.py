@@ -99,6 +99,7 @@ from feedio.mcapio import TrialWriter
 from feedio.scalars import HOLD_NS, ScalarsPairer, warm_up
 
 from .child import STALL_SECONDS, ChildProcessSink, background_priority, check_priority, send_final, start_reporter
+from .frames import Tag
 from .queued import QueuedSink
 
 __all__ = ["McapSink", "McapProcessSink", "infer_meta"]
@@ -569,9 +570,10 @@ class McapProcessSink(ChildProcessSink):
         return [cur] if cur else []
 
     # ---- producer side ---------------------------------------------------------------------
-    def offer_encoded(self, tag: bytes, payload: bytes, received_ns: int, head: bytes = b"") -> bool:
-        """Queue one encoded message: ``tag`` ``b"S"`` (a SampleBlock as received), ``b"E"`` (an
-        EstimateBlock as published) or ``b"T"`` (a TruthBlock, ``head`` = ``b"machine\\0axis"``);
+    def offer_encoded(self, tag: Tag, payload: bytes, received_ns: int, head: bytes = b"") -> bool:
+        """Queue one encoded message: ``tag`` ``SAMPLES`` (a SampleBlock as received), ``ESTIMATES`` (an
+        EstimateBlock as published), ``HEALTH`` (a Health report) or ``TRUTH`` (a TruthBlock, ``head`` =
+        ``b"machine\\0axis"``);
         ``received_ns`` its log time (ns since the epoch). Refused and counted (``dropped``) when the
         queue holds ``maxsize`` items or ``max_bytes`` payload bytes."""
         return QueuedSink.offer(self, (tag, int(received_ns), head, payload), len(payload) + len(head))
@@ -580,17 +582,17 @@ class McapProcessSink(ChildProcessSink):
         """Queue a :class:`SampleBlock`, :class:`EstimateBlock` or :class:`Health` (encoded here)."""
         rx = time.time_ns() if received_ns is None else int(received_ns)
         if isinstance(item, S.SampleBlock):
-            return self.offer_encoded(b"S", S.encode(item), rx)
+            return self.offer_encoded(Tag.SAMPLES, S.encode(item), rx)
         if isinstance(item, S.EstimateBlock):
-            return self.offer_encoded(b"E", S.encode(item), rx)
+            return self.offer_encoded(Tag.ESTIMATES, S.encode(item), rx)
         if isinstance(item, S.Health):
-            return self.offer_encoded(b"H", S.encode(item), rx)
+            return self.offer_encoded(Tag.HEALTH, S.encode(item), rx)
         raise TypeError(f"McapProcessSink accepts SampleBlock, EstimateBlock or Health, got {type(item).__name__}")
 
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock, received_ns: int | None = None) -> bool:
         """Queue a :class:`TruthBlock` of ``machine/axis``."""
         rx = time.time_ns() if received_ns is None else int(received_ns)
-        return self.offer_encoded(b"T", S.encode(block), rx, f"{machine}\0{axis}".encode())
+        return self.offer_encoded(Tag.TRUTH, S.encode(block), rx, f"{machine}\0{axis}".encode())
 
     def offer_health(self, machine: str, axis: str, report: S.Health, received_ns: int | None = None) -> bool:
         """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; see
@@ -647,7 +649,7 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
             msg = conn.recv_bytes()
         except (EOFError, OSError):  # the monitor is gone: finish the file anyway
             break
-        if msg == b"Q":
+        if msg == Tag.QUIT:
             break
         view, pos, end = memoryview(msg), 0, len(msg)
         while pos < end:
@@ -661,14 +663,14 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
             pos += frame + nh + npl
             size = nh + npl
             try:
-                if tag == b"S":
+                if tag == Tag.SAMPLES:
                     sink.offer(S.decode_samples(payload), rx, size)
-                elif tag == b"E":
+                elif tag == Tag.ESTIMATES:
                     sink.offer(S.decode_estimates(payload), rx, size)
-                elif tag == b"T":
+                elif tag == Tag.TRUTH:
                     machine, axis = head.decode().split("\0", 1)
                     sink.offer_truth(machine, axis, S.decode_truth(payload), rx, size)
-                elif tag == b"H":
+                elif tag == Tag.HEALTH:
                     sink.offer(S.decode_health(payload), rx, size)
                 else:
                     counts["undecodable"] += 1

@@ -20,7 +20,7 @@ counted and reported in one line when that window closes, so a flood (a bridge s
 a network dropping every other message) costs a bounded number of lines. Windows run on the
 samples' own time, not wall time: a replay at any speed gives the same log.
 
-Other producers (the health monitor, issue 11) log through the same :class:`Event` type.
+Other producers (the health monitor) log through the same :class:`Event` type.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ import numpy as np
 
 from feedio import schema as S
 
-__all__ = ["Event", "FlagDigest", "LEVELS"]
+__all__ = ["Event", "FlagDigest", "EVENT_LEVELS"]
 
 #: Rerun TextLog levels used, most severe first
-LEVELS = ("CRITICAL", "ERROR", "WARN", "INFO", "DEBUG")
+EVENT_LEVELS = ("CRITICAL", "ERROR", "WARN", "INFO", "DEBUG")
 
 _RUN_KINDS = {S.STALE: ("STALE", "INFO", "repeated measurement (recording glitch), not learned"),
               S.REJECTED: ("REJECTED", "WARN", "non-finite or absurd input, not learned")}

@@ -32,6 +32,7 @@ from feedio import schema as S
 from feedio.mcapio import held_bytes
 
 from .child import STALL_SECONDS, ChildProcessSink, background_priority, check_priority, send_final, start_reporter
+from .frames import Tag
 
 __all__ = ["RerunProcessSink", "check_outputs"]
 
@@ -135,13 +136,13 @@ class RerunProcessSink(ChildProcessSink):
     @staticmethod
     def _wire(item: Any) -> bytes:
         if isinstance(item, S.SampleBlock):
-            return b"S" + S.encode(item)
+            return Tag.SAMPLES + S.encode(item)
         if isinstance(item, S.EstimateBlock):
-            return b"E" + S.encode(item)
+            return Tag.ESTIMATES + S.encode(item)
         if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
-            return b"T" + f"{item[0]}\0{item[1]}\0".encode() + S.encode(item[2])
+            return Tag.TRUTH + f"{item[0]}\0{item[1]}\0".encode() + S.encode(item[2])
         if isinstance(item, tuple) and len(item) == 2 and item[0] in ("event", "health"):
-            return (b"V" if item[0] == "event" else b"H") + json.dumps(item[1], allow_nan=False).encode()
+            return (Tag.EVENT if item[0] == "event" else Tag.HEALTH) + json.dumps(item[1], allow_nan=False).encode()
         raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
                         f"events and health reports, got {type(item).__name__}")
 
@@ -189,19 +190,19 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interv
             break
         tag, body = msg[:1], msg[1:]
         try:
-            if tag == b"Q":
+            if tag == Tag.QUIT:
                 break
-            if tag == b"S":
+            if tag == Tag.SAMPLES:
                 sink.offer(S.decode_samples(body), len(body))
-            elif tag == b"E":
+            elif tag == Tag.ESTIMATES:
                 sink.offer(S.decode_estimates(body), len(body))
-            elif tag == b"T":
+            elif tag == Tag.TRUTH:
                 machine, axis, payload = body.split(b"\0", 2)
                 sink.offer_truth(machine.decode(), axis.decode(), S.decode_truth(payload))
-            elif tag == b"V":
+            elif tag == Tag.EVENT:
                 e = json.loads(body)
                 sink.offer_event(e["machine"], e["axis"], e["seq"], e["t"], e["level"], e["text"])
-            elif tag == b"H":
+            elif tag == Tag.HEALTH:
                 h = json.loads(body)
                 sink.offer_health(h["machine"], h["axis"], h["health"])
             else:

@@ -59,7 +59,7 @@ from feedio import schema as S
 
 from . import rerun_layout as L
 from .queued import QueuedSink
-from .rerun_events import LEVELS, Event, FlagDigest
+from .rerun_events import EVENT_LEVELS, Event, FlagDigest
 from .rerun_layout import AxisInfo, describe_model
 from .rerun_spectra import marker_frequencies, psd_above_floor
 
@@ -317,8 +317,8 @@ class RerunSink(QueuedSink):
         return self.offer(_EventItem(machine, axis, Event(int(seq), float(t), str(level), str(text))))
 
     def offer_health(self, machine: str, axis: str, health: Mapping[str, Any]) -> bool:
-        """Queue a health report (``{"seq", "t", "state": "ok"|"warn"|"alarm", "reasons": [...]}``,
-        issue 11): the event log gets a line when the state of the axis changes."""
+        """Queue a health report (``{"seq", "t", "state": "ok"|"warn"|"alarm", "reasons": [...]}``):
+        the event log gets a line when the state of the axis changes."""
         if isinstance(health, msgspec.Struct):  # a feedio.schema.Health message
             health = msgspec.to_builtins(health)
         return self.offer(_HealthItem(machine, axis, dict(health)))
@@ -364,8 +364,8 @@ class RerunSink(QueuedSink):
             self._axis(str(item[0]), str(item[1])).truth.append(item[2])
         elif isinstance(item, _EventItem):
             ev = item.event
-            if ev.level not in LEVELS:
-                raise ValueError(f"event level must be one of {', '.join(LEVELS)}, got {ev.level!r}")
+            if ev.level not in EVENT_LEVELS:
+                raise ValueError(f"event level must be one of {', '.join(EVENT_LEVELS)}, got {ev.level!r}")
             self._check_times("event", [ev.t])
             self._axis(item.machine, item.axis).events.append(
                 Event(ev.seq, ev.t, ev.level, ev.text[:MAX_EVENT_TEXT]))

@@ -26,18 +26,18 @@ from scipy.signal import welch
 
 __all__ = ["psd_above_floor", "marker_frequencies"]
 
-MIN_SAMPLES = 32  # fewer finite samples than this: no spectrum
+SPECTRUM_MIN_SAMPLES = 32  # fewer finite samples than this: no spectrum
 
 
 def psd_above_floor(x: np.ndarray, fs: float, nperseg: int = 512) -> tuple[np.ndarray, np.ndarray] | None:
     """Frequencies (Hz, DC left out) and Welch PSD of ``x`` in dB above its median, clipped at 0.
 
-    Non-finite samples are left out. ``None`` when fewer than :data:`MIN_SAMPLES` remain, ``fs``
+    Non-finite samples are left out. ``None`` when fewer than :data:`SPECTRUM_MIN_SAMPLES` remain, ``fs``
     is not a positive finite rate, or the signal is constant (no floor to refer to).
     """
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
-    if x.size < MIN_SAMPLES or not (math.isfinite(fs) and fs > 0):
+    if x.size < SPECTRUM_MIN_SAMPLES or not (math.isfinite(fs) and fs > 0):
         return None
     freq, pxx = welch(x - x.mean(), fs=fs, nperseg=min(int(nperseg), x.size), detrend="constant")
     freq, pxx = freq[1:], pxx[1:]
