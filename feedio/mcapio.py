@@ -100,8 +100,11 @@ SCALARS = "disturbance/scalars"
 HEALTH = "health"
 KINDS = {"samples": S.SampleBlock, "truth": S.TruthBlock, "disturbance": S.EstimateBlock,
          SCALARS: S.DisturbanceScalars, HEALTH: S.Health}
+#: the process monitors' alarms (:class:`feedio.schema.AlarmEvent`), channel ``/<machine>/<axis>/alarm``
+ALARM = "alarm"
+KINDS[ALARM] = S.AlarmEvent
 #: message types of one sample each (``t`` a number, not a column)
-_SINGLE = (S.DisturbanceScalars, S.Health)
+_SINGLE = (S.DisturbanceScalars, S.Health, S.AlarmEvent)
 
 #: largest log time, ns since the Unix epoch (int64, year 2262): what every MCAP tool can hold
 MAX_LOG_TIME_NS = 2**63 - 1
@@ -658,6 +661,17 @@ class TrialWriter:
                              "and the time must be finite")
         lt = self.log_time_of(report.t, what) if log_time is None else log_time
         self._add(cid, S.encode(report), lt, report.seq, report.t, report.t, "health")
+
+    def write_alarm(self, event: S.AlarmEvent, *, log_time: int | None = None) -> None:
+        """Append an :class:`AlarmEvent` on ``/<machine>/<axis>/alarm``; ``log_time`` (ns since the epoch)
+        defaults to ``start + t``."""
+        if type(event) is not S.AlarmEvent:
+            raise TypeError(f"write_alarm needs an AlarmEvent, got {type(event).__name__}")
+        self._check_open()
+        cid = self._channel(event.machine, event.axis, ALARM)
+        what = f"alarm seq {event.seq}"
+        lt = self.log_time_of(event.t, what) if log_time is None else log_time
+        self._add(cid, S.encode(event), lt, event.seq, event.t, event.t, ALARM)
 
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.
