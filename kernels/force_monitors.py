@@ -53,8 +53,11 @@ __all__ = ["IMPULSE_STATE", "new_impulse_state", "impulse_step", "ToothAccumulat
 # ---- collision / overload (M1, M2) ------------------------------------------------------------------------
 #: layout of the impulse monitor's float state: these slots, then a ring of |F| (``window`` values), then the
 #: angle profile (``bins`` values and ``bins`` hit counts)
-IMPULSE_STATE = ("window", "bins", "filled", "pos", "over_run", "holdoff")
-_I_W, _I_BINS, _I_FILLED, _I_POS, _I_OVER, _I_HOLD = range(len(IMPULSE_STATE))
+IMPULSE_STATE = ("window", "bins", "filled", "pos", "over_run", "holdoff", "sd_ew")
+_I_W, _I_BINS, _I_FILLED, _I_POS, _I_OVER, _I_HOLD, _I_SD = range(len(IMPULSE_STATE))
+#: weight of a new row's σ in the σ the limit uses: the tracker's σ grows on the very rows of an impulse
+#: (a surprise), so the limit takes the σ of the rows before it
+SD_WEIGHT = 0.05
 _I_SLOTS = len(IMPULSE_STATE)
 
 
@@ -91,7 +94,7 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
         if not math.isfinite(f):
             continue
         a = abs(f)
-        s = sd[i] if math.isfinite(sd[i]) else 0.0
+        s = state[_I_SD]
         th = theta[i]
         b = -1
         if math.isfinite(th):
@@ -130,6 +133,8 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
         state[_I_POS] = (pos + 1) % w
         if filled < w:
             state[_I_FILLED] = filled + 1
+        if math.isfinite(sd[i]) and out_kind[i] != 0 and state[_I_HOLD] <= 0.0:
+            state[_I_SD] = sd[i] if state[_I_SD] == 0.0 else state[_I_SD] + SD_WEIGHT * (sd[i] - state[_I_SD])
         if b >= 0 and out_kind[i] != 0:  # the profile follows the cut (not the impulse itself)
             if state[hits + b] == 0.0:
                 state[prof + b] = f
