@@ -425,6 +425,14 @@ def format_status(status: dict[str, Any], console=None) -> None:
                                 + _health_values(h), 2000))
             for r in h.get("reasons") or []:
                 console.print(_cell(f"    - {r}", 1000))
+    for name, a in axes.items():  # the process monitors (monitor.process_monitor): count and last alarm
+        pm = _dict(_dict(a).get("process"))
+        if pm:
+            last = _dict(pm.get("last"))
+            said = (f"; last {last.get('kind')} at t = {_num(last.get('t'))} s (seq {last.get('seq')}): "
+                    f"{_num(last.get('value'))} against {_num(last.get('limit'))} N") if last else ""
+            console.print(_cell(f"  {name}: process alarms {pm.get('alarms', 0)} "
+                                f"{_dict(pm.get('by_kind')) or ''}{said}", 1000))
     for key, what in (("no_model", "samples of axes without a model (dropped)"),
                       ("key_mismatch", "messages whose payload names another axis than their key (refused)")):
         table = _dict(inp.get(key))
