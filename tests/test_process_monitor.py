@@ -169,3 +169,45 @@ def test_reference_learned_from_good_runs_catches_a_missing_cut(mill, tmp_path):
         assert kinds == expect, [(a.kind, a.seq, a.value, a.limit, a.detail) for a in alarms]
         if expect:
             assert 0 < (alarms[0].seq - K_EVENT) / 333.0 <= 0.5
+
+
+def test_bridge_feed_hold_pin_follows_a_process_alarm_until_acknowledged():
+    """The LinuxCNC bridge's way back (without HAL): a process alarm raises the axis' ``alarm`` pin (wired to
+    feed hold); the operator's acknowledgement (``feedmon alarm ack``) clears it."""
+    import time
+
+    from bridge.linuxcnc import wayback as W
+    from bridge.linuxcnc.config import AxisConfig, BridgeConfig
+    from monitor.sinks.rerun_events import alarm_line
+
+    cfg = BridgeConfig(machine="m", servo_period=0.001, counter="c", columns=["c", "v", "x"],
+                       axes={"X": AxisConfig(v_ref="v", position="x", length_scale=0.001)}).check()
+    sent: list[dict] = []
+    wb = W.WayBack(cfg, "pm", lambda values: sent.append(values) or True)
+    port = T.free_tcp_port()
+    a = T.open_session(listen=f"tcp/127.0.0.1:{port}")
+    b = T.open_session(connect=f"tcp/127.0.0.1:{port}")
+    try:
+        wb.subscribe(b)
+        pub = a.declare_publisher(T.alarm_key("pm", "m", "X"))
+        assert T.wait_for_matching(pub, 10)
+        ev = S.AlarmEvent(machine="m", axis="X", seq=7, t=0.5, kind="collision", monitor="impulse", value=300.0,
+                          limit=150.0, sigma=2.0, tool=3)
+        pub.put(S.encode(ev))
+        deadline = time.monotonic() + 10
+        while not wb.current()["X.alarm"]:
+            assert time.monotonic() < deadline, "the process alarm reaches the pin"
+            time.sleep(0.01)
+        assert {"X.alarm": True} in sent
+        assert main(["alarm", "ack", "m/X", "--monitor", "impulse", "--prefix", "pm",
+                     "--connect", f"tcp/127.0.0.1:{port}"]) == 0
+        while wb.current()["X.alarm"]:
+            assert time.monotonic() < deadline + 10, "the acknowledgement clears the pin"
+            time.sleep(0.01)
+        assert wb.alarm_state("X") == {"process": False}
+    finally:
+        wb.close()
+        b.close()
+        a.close()
+    line = alarm_line(ev)
+    assert line.startswith("ALARM collision at t = 0.500 s: 300.0 against limit 150.0 N, σ 2.00 N, tool 3")
