@@ -11,7 +11,9 @@ process scenario (``[series]`` of ``replay/scenarios/_process.toml``) is the sce
   rate kept (the chip ``c/s_i`` changes, as on a machine programmed in mm/min);
 * feed override ``o_i ~ U(1 − feed_override_rel, 1 + feed_override_rel)``: the feed rate and chip ×
   ``o_i``, the time of every feed section ÷ ``o_i`` (the path is the same);
-* a random spindle angle at the start (``phase``) and its own noise seed.
+* a random spindle angle at the start (``phase``) and its own noise seed;
+* the scenario's process events (tooth break, runout growth, collision, missing stock) from part
+  ``events_from_part`` on; the parts before it are good parts (the event happens in a running series).
 
 Part i is drawn from its own random stream ``(seed, i)``: the first parts of a series of 20 are the
 first parts of a series of 200. One trial file per part, ``part-0000.mcap`` …, each with a ``part``
@@ -55,6 +57,7 @@ class PartVariation:
     """The constants that make part ``index`` differ from the programme (factors relative to it)."""
 
     index: int
+    events: bool  # the scenario's process events happen in this part (index ≥ events_from_part)
     material: float  # m_i, stock lot
     wear: float  # w_i = 1 + wear_per_part · i
     spindle: float  # s_i, spindle speed factor
@@ -79,6 +82,9 @@ def series_constants(sc: dict, wear_per_part: float | None = None) -> dict:
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo <= v <= hi):
             raise ValueError(f"series.{key} must be a number in [{lo:g}, {hi:g}], got {v!r}")
+    k = out["events_from_part"]
+    if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k <= MAX_PARTS:
+        raise ValueError(f"series.events_from_part must be a whole number 0 … {MAX_PARTS}, got {k!r}")
     if not isinstance(out["phase"], bool):
         raise ValueError(f"series.phase must be true or false, got {out['phase']!r}")
     return out
@@ -105,7 +111,8 @@ def part_variations(sc: dict, n_parts: int, *, seed: int = 0, wear_per_part: flo
         override = 1.0 + c["feed_override_rel"] * rng.uniform(-1.0, 1.0)
         phase = float(rng.uniform(0.0, 360.0)) if c["phase"] else float(sc["disturbance"]["phase"])
         sim_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        out.append(PartVariation(index=i, material=1.0 + c["material_std"] * z, wear=1.0 + c["wear_per_part"] * i,
+        out.append(PartVariation(index=i, events=i >= c["events_from_part"], material=1.0 + c["material_std"] * z,
+                                 wear=1.0 + c["wear_per_part"] * i,
                                  spindle=spindle, feed_override=override, phase_deg=phase, seed=sim_seed,
                                  start_s=start))
         start += part_duration(sc, override) + c["gap_s"]
@@ -121,7 +128,11 @@ def part_scenario(sc: dict, var: PartVariation) -> dict:
     # levels are mm per tooth at the scenario's speed: the feed rate follows the override only
     out["trajectory"]["levels"] = [x * var.feed_override / var.spindle for x in sc["trajectory"]["levels"]]
     out["duration"] = part_duration(sc, var.feed_override)
-    out["process"]["material"] = float(sc["process"]["material"]) * var.material * var.wear
+    p = out["process"]
+    p["material"] = float(sc["process"]["material"]) * var.material * var.wear
+    if not var.events:  # a good part: no breaks, runout growth, collisions or missing stock
+        p["breaks"], p["impulses"], p["missing"] = [], [], []
+        p["runout_growth_m_per_s"] = []
     SC.check(out)
     return out
 

@@ -357,3 +357,18 @@ def test_cli_part_series(tmp_path, capsys):
     assert "--wear belongs to a part series" in capsys.readouterr().err
     assert main(["simulate", "milling-incdec", "--parts", "2", "-o", str(out / "x")]) == 2
     assert "no [series] table" in capsys.readouterr().err
+
+
+def test_series_with_an_event_from_part_k(tmp_path):
+    """A running series in which tooth 1 breaks in part 2: parts 0, 1 are good parts."""
+    sc = SC.load_scenario("milling-tooth-break", {"series": {"events_from_part": 2}})
+    paths = PT.simulate_series(sc, 3, tmp_path, seed=1, created=CREATED)
+    kinds = [[e.kind for e in read_trial(p).truth_events] for p in paths]
+    assert kinds == [["part"], ["part"], ["part", "tooth_break"]]
+    good, broken = read_trial(paths[1]), read_trial(paths[2])
+    assert good.truth_events[0].detail["events"] is False and broken.truth_events[0].detail["events"] is True
+    late = lambda tr: tr.truth.force[(tr.t > 9.5) & (tr.t < 10.0)]  # noqa: E731 - after the break, same section
+    # a 2-tooth slot always has a tooth in the cut; with one tooth left, whole samples without force
+    assert np.all(late(good) != 0.0) and np.mean(late(broken) == 0.0) > 0.2
+    with pytest.raises(ValueError, match="series.events_from_part"):
+        PT.part_variations(SC.load_scenario("milling-part", {"series": {"events_from_part": -1}}), 2)
