@@ -9,8 +9,9 @@ cut by the per-tooth model (:func:`replay.cutting.feed_force_teeth`) and carries
   feed starts (:func:`replay.scenarios.reference_velocity`);
 * a tooth condition (:class:`replay.cutting.ToothCondition`): per-tooth runout offsets that grow,
   chipped or broken teeth, a material factor on the cutting coefficients;
-* collisions: a rectangular force pulse of ``factor`` × the cutting force (the mean simulated force
-  over the 0.1 s before it) over ``width_s``, averaged exactly over each interval;
+* collisions: a rectangular force pulse, resisting the feed, of ``factor`` × the cutting force (the
+  mean magnitude of the simulated force over the 0.1 s before it) over ``width_s``, averaged
+  exactly over each interval;
 * missing stock: engagement 0 inside ``[start_s, stop_s)`` (an air cut where the program cuts);
 * truth events (:class:`feedio.schema.TruthEvent`) at the time each of these begins, with the
   sample (seq) whose interval holds it, so a monitor's detection delay can be scored.
@@ -136,16 +137,16 @@ def missing_mask(sc: dict, t_mid: np.ndarray) -> np.ndarray:
 def impulse_force(sc: dict, cutting: np.ndarray, dt: float) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
     """Collision pulses (N) on the grid of ``cutting`` (intervals of dt), and per pulse
     ``(t_s, peak N, cutting force N)``. The pulse of ``factor × F_cut`` covers ``[t_s, t_s + width_s)``,
-    averaged exactly over each interval; ``F_cut`` is the mean of ``cutting`` over the
-    :data:`IMPULSE_REFERENCE_S` before ``t_s`` (the closed-form slot mean is not used: it would
-    not hold for partial immersion)."""
+    averaged exactly over each interval; ``F_cut`` is the mean of ``|cutting|`` over the
+    :data:`IMPULSE_REFERENCE_S` before ``t_s`` (the magnitude: in partial immersion the feed force
+    swings through zero and its plain mean can be ~0; the closed-form slot mean would not hold)."""
     out = np.zeros_like(cutting)
     info = []
     k = np.arange(cutting.size, dtype=np.float64)
     for t_s, factor, width in sc["process"]["impulses"]:
         i0 = int(t_s / dt)
         ref = cutting[max(0, i0 - max(1, int(round(IMPULSE_REFERENCE_S / dt)))):max(i0, 1)]
-        f_cut = float(np.mean(ref)) if ref.size else 0.0
+        f_cut = float(np.mean(np.abs(ref))) if ref.size else 0.0
         peak = factor * f_cut
         on, off = t_s / dt, (t_s + width) / dt
         out += peak * np.clip(np.minimum(k + 1.0, off) - np.maximum(k, on), 0.0, 1.0)
