@@ -14,7 +14,8 @@ cut by the per-tooth model (:func:`replay.cutting.feed_force_teeth`) and carries
   exactly over each interval;
 * missing stock: engagement 0 inside ``[start_s, stop_s)`` (an air cut where the program cuts);
 * truth events (:class:`feedio.schema.TruthEvent`) at the time each of these begins, with the
-  sample (seq) whose interval holds it, so a monitor's detection delay can be scored.
+  sample (seq) whose interval holds it and the spindle speed then (``detail.spindle_rpm``), so a
+  monitor's detection delay can be scored in seconds and in spindle revolutions.
 
 The runout event is the moment the chip imbalance between the teeth has grown by
 ``runout_event_fraction`` of the feed per tooth since the growth began,
@@ -200,5 +201,7 @@ def truth_events(sc: dict, tool: MillingTool, t: np.ndarray, v_ref: np.ndarray, 
     with np.errstate(divide="ignore", invalid="ignore"):
         c = np.where(spindle_rpm > 0, v_ref * 1e3 / (spindle_rpm / 60.0 * teeth), 0.0)
     events += _runout_event(sc, tool, cond, t, c, engaged, Ts, n)
+    for e in events:  # to score a delay in spindle revolutions: delay · n / 60
+        e.detail["spindle_rpm"] = float(spindle_rpm[e.seq])
     events.sort(key=lambda e: (e.t_s, e.kind))
     return events

@@ -170,6 +170,7 @@ def test_tooth_break_scenario(trials):
     (ev,) = tr.truth_events
     assert (ev.kind, ev.t_s, ev.value, ev.detail["next_tooth"]) == ("tooth_break", 9.0, 1.0, 0)
     assert ev.seq == int(9.0 / tr.Ts) and tr.t[ev.seq] <= 9.0 < tr.t[ev.seq] + tr.Ts
+    assert ev.detail["spindle_rpm"] == tr.spindle_rpm[ev.seq] == 3000.0
     line = tr.program_line[ev.seq]  # the section it breaks in
     after = (res.t > 9.0 + tr.Ts) & (tr.program_line == line)
     before = (res.t < 9.0) & (tr.program_line == line) & (res.t > 8.0)
