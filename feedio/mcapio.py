@@ -7,7 +7,8 @@ Layout of a trial file
   (:data:`feedio.schema.JSON_SCHEMAS`).
 * Channels per axis: ``/<machine>/<axis>/samples`` (:class:`SampleBlock`),
   ``/<machine>/<axis>/truth`` (:class:`TruthBlock`, simulated trials and pulse
-  ground truth), ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
+  ground truth), ``/<machine>/<axis>/truth/events`` (:class:`TruthEvent`, one known
+  process event per message, simulated process scenarios), ``/<machine>/<axis>/disturbance`` (:class:`EstimateBlock`,
   written by the monitor) and ``/<machine>/<axis>/disturbance/scalars``
   (:class:`DisturbanceScalars`, one message of plain numbers per sample, written by
   the monitor for other tools; see :mod:`feedio.scalars`) and ``/<machine>/<axis>/health``
@@ -85,6 +86,7 @@ __all__ = [
     "KINDS",
     "SCALARS",
     "HEALTH",
+    "TRUTH_EVENTS",
     "MAX_LOG_TIME_NS",
     "MAX_MESSAGE_BYTES",
     "MAX_PENDING_BYTES",
@@ -105,6 +107,10 @@ ALARM = "alarm"
 KINDS[ALARM] = S.AlarmEvent
 #: message types of one sample each (``t`` a number, not a column)
 _SINGLE = (S.DisturbanceScalars, S.Health, S.AlarmEvent)
+#: known process events of a simulated trial (:class:`~feedio.schema.TruthEvent`), one per message
+TRUTH_EVENTS = "truth/events"
+KINDS[TRUTH_EVENTS] = S.TruthEvent
+_SINGLE += (S.TruthEvent,)
 
 #: largest log time, ns since the Unix epoch (int64, year 2262): what every MCAP tool can hold
 MAX_LOG_TIME_NS = 2**63 - 1
@@ -673,6 +679,17 @@ class TrialWriter:
         lt = self.log_time_of(event.t, what) if log_time is None else log_time
         self._add(cid, S.encode(event), lt, event.seq, event.t, event.t, ALARM)
 
+    def write_truth_event(self, event: S.TruthEvent, machine: str, axis: str, *, log_time: int | None = None) -> None:
+        """Append a :class:`TruthEvent` on ``/<machine>/<axis>/truth/events``; ``log_time`` (ns since
+        the epoch) defaults to ``start + t_s``."""
+        if type(event) is not S.TruthEvent:
+            raise TypeError(f"write_truth_event needs a TruthEvent, got {type(event).__name__}")
+        self._check_open()
+        cid = self._channel(machine, axis, TRUTH_EVENTS)
+        what = f"truth event seq {event.seq}"
+        lt = self.log_time_of(event.t_s, what) if log_time is None else log_time
+        self._add(cid, S.encode(event), lt, event.seq, event.t_s, event.t_s, "truth event")
+
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.
         ``OSError`` when the disk refuses (the bytes are kept for the next flush)."""
@@ -726,12 +743,13 @@ class TrialWriter:
 
 
 def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = None, *, block: int = 100,
-                 start=None) -> None:
+                 start=None, events: Sequence[S.TruthEvent] = ()) -> None:
     """Write one axis given as arrays: ``samples`` maps :class:`SampleBlock` fields (``t``,
     ``v_ref``, ``v_meas`` and optional columns; ``None`` = absent) to arrays, ``truth`` maps
     :class:`TruthBlock` fields to arrays; both are cut into blocks of ``block`` samples with
-    ``seq`` from 0 (the one writer of the simulator and the importers). ``start``: the
-    trial's start time (default ``meta.provenance.created`` when set, else now)."""
+    ``seq`` from 0 (the one writer of the simulator and the importers). ``events``
+    (:class:`TruthEvent`, sorted by ``seq``) follow the block that holds their sample. ``start``:
+    the trial's start time (default ``meta.provenance.created`` when set, else now)."""
     n = len(samples["t"])
     if start is None and meta.provenance.created:
         start = parse_time(meta.provenance.created, what="provenance.created")
@@ -739,12 +757,19 @@ def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = No
     def cut(cols: dict, i: int, j: int) -> dict:
         return {k: None if a is None else np.asarray(a[i:j]).tolist() for k, a in cols.items()}
 
+    events = sorted(events, key=lambda ev: (ev.seq, ev.t_s))
+    e = 0
     with TrialWriter(os.fspath(path), meta, start=start) as w:
         for i in range(0, n, block):
             j = min(i + block, n)
             w.write_samples(S.SampleBlock(machine=meta.machine, axis=meta.axis, seq=i, **cut(samples, i, j)))
             if truth is not None:
                 w.write_truth(S.TruthBlock(seq=i, **cut(truth, i, j)), meta.machine, meta.axis)
+            while e < len(events) and events[e].seq < j:
+                w.write_truth_event(events[e], meta.machine, meta.axis)
+                e += 1
+        for event in events[e:]:  # beyond the last sample: kept, in order
+            w.write_truth_event(event, meta.machine, meta.axis)
 
 
 # ============================================================================================
@@ -788,6 +813,7 @@ class Trial:
     tool: np.ndarray | None = None  # tool number (float64: NaN where not known)
     truth: TruthArrays | None = None
     channels: list[str] = field(default_factory=list)
+    truth_events: list[S.TruthEvent] = field(default_factory=list)  # known process events (simulated trials)
     start_ns: int | None = None  # wall-clock time of controller time 0 (None: files without one)
 
     @property
@@ -829,7 +855,9 @@ class Trial:
             truth = dataclasses.replace(truth, **{f.name: None if getattr(truth, f.name) is None
                                                   else getattr(truth, f.name)[sel]
                                                   for f in dataclasses.fields(truth)})
-        return dataclasses.replace(self, **cols, truth=truth)
+        lo, hi = int(self.seq[idx[0]]), int(self.seq[idx[-1]])
+        events = [e for e in self.truth_events if lo <= e.seq <= hi]
+        return dataclasses.replace(self, **cols, truth=truth, truth_events=events)
 
 
 class _Open:
@@ -1153,13 +1181,17 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
         machine, ax = f.select(axis)
         meta = f.meta(machine, ax)
         start = f.start_ns(machine, ax)
-        t_s, t_t = topic(machine, ax, "samples"), topic(machine, ax, "truth")
-        topics = [t_s] + ([t_t] if t_t in f.channels else [])
-        samples, truths = [], []
-        held = {t_s: 0, t_t: 0}
+        t_s, t_t, t_e = topic(machine, ax, "samples"), topic(machine, ax, "truth"), topic(machine, ax, TRUTH_EVENTS)
+        topics = [t_s] + [x for x in (t_t, t_e) if x in f.channels]
+        samples, truths, events = [], [], []
+        held = {t_s: 0, t_t: 0, t_e: 0}
         for name, _, block in f.messages(topics):
-            (samples if name == t_s else truths).append(block)
-            held[name] += len(block.t)
+            if name == t_e:
+                events.append(block)
+                held[name] += 1
+            else:
+                (samples if name == t_s else truths).append(block)
+                held[name] += len(block.t)
             if held[name] > max_samples:
                 raise TrialTooLong(f"{f.path}: axis {machine}/{ax} holds more than {max_samples:,} samples, the most "
                                    "read into memory at once; identify a window of it or a shorter recording (the offline "
@@ -1185,6 +1217,7 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
             tool=_column(samples, "tool", n),
             channels=sorted(f.channels),
             start_ns=start,
+            truth_events=events,
         )
         if truths:
             m = sum(len(b.t) for b in truths)

@@ -599,3 +599,35 @@ def decode_alarm(data: bytes | str, *, what: str = "alarm event") -> AlarmEvent:
 __all__ += ["AlarmEvent", "ALARM_KINDS", "decode_alarm"]
 SCHEMA_NAMES[AlarmEvent] = "feedmon.AlarmEvent"
 JSON_SCHEMAS[SCHEMA_NAMES[AlarmEvent]] = json_schema(AlarmEvent)
+
+
+# ---- truth events of simulated process scenarios (appended: replay/process.py writes them) -----
+#: most characters of a truth event's kind
+TRUTH_KIND_MAX_LEN = 64
+
+
+class TruthEvent(msgspec.Struct, **_STRUCT_OPTS):
+    """A known process event of a simulated trial (topic ``<machine>/<axis>/truth/events``).
+
+    ``kind`` what happened (``tooth_break``, ``runout_growth``, ``runout``, ``collision``,
+    ``missing_cut``, ``missing_cut_end``, ``part``), ``t_s`` when (controller time, s), ``seq``
+    the sample whose interval ``[t_k, t_k + Ts)`` holds it, ``value`` the event's number (tooth
+    index, peak force in N, duration in s, chip-imbalance fraction, part index: see ``kind`` in
+    ``docs/process-monitoring-scenarios.md``), ``detail`` further constants. A monitor's delay
+    is its alarm time minus ``t_s``.
+    """
+
+    kind: Annotated[str, msgspec.Meta(min_length=1, max_length=TRUTH_KIND_MAX_LEN)]
+    t_s: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]
+    seq: Seq
+    value: float
+    detail: dict[str, Any] = {}
+
+
+def decode_truth_event(data: bytes | str, *, what: str = "truth event") -> TruthEvent:
+    return decode(data, TruthEvent, what=what)
+
+
+SCHEMA_NAMES[TruthEvent] = "feedmon.TruthEvent"
+JSON_SCHEMAS[SCHEMA_NAMES[TruthEvent]] = json_schema(TruthEvent)
+__all__ += ["TruthEvent", "decode_truth_event", "TRUTH_KIND_MAX_LEN"]
