@@ -52,12 +52,15 @@ __all__ = ["IMPULSE_STATE", "new_impulse_state", "impulse_step", "ToothAccumulat
 
 # ---- collision / overload (M1, M2) ------------------------------------------------------------------------
 #: layout of the impulse monitor's float state: these slots, then a ring of |F| (``window`` values), then the
-#: angle profile (``bins`` values and ``bins`` hit counts)
+#: angle profile (``bins`` values and ``bins`` hit counts), then the slow profile (``bins`` values)
 IMPULSE_STATE = ("window", "bins", "filled", "pos", "over_run", "holdoff", "sd_ew")
 _I_W, _I_BINS, _I_FILLED, _I_POS, _I_OVER, _I_HOLD, _I_SD = range(len(IMPULSE_STATE))
 #: weight of a new row's σ in the σ the limit uses: the tracker's σ grows on the very rows of an impulse
 #: (a surprise), so the limit takes the σ of the rows before it
 SD_WEIGHT = 0.05
+SLOW_WEIGHT = 0.005
+#: weight of a new sample in the slow angle profile (per hit of its bin: a time constant of seconds), which
+#: remembers the cut through an air cut — the return of the cut is not an impulse
 _I_SLOTS = len(IMPULSE_STATE)
 
 
@@ -67,7 +70,7 @@ def new_impulse_state(window: int, bins: int = 12) -> np.ndarray:
         raise ParameterError(f"window {window!r} samples out of range: 2 … 100000", "window")
     if not 4 <= int(bins) <= 720:
         raise ParameterError(f"bins {bins!r} out of range: 4 … 720", "bins")
-    st = np.zeros(_I_SLOTS + int(window) + 2 * int(bins))
+    st = np.zeros(_I_SLOTS + int(window) + 3 * int(bins))
     st[_I_W], st[_I_BINS] = window, bins
     return st
 
@@ -81,11 +84,13 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
     profile over angle bins (weight ``alpha`` per hit) and the test is on ``|F − P(θ)|`` against
     ``max(L_abs, ratio_angle·max|P| + k·σ)`` (the tooth-passing ripple is expected, not an impulse);
     without it on ``|F|`` against ``max(L_abs, ratio·B + k·σ)``, ``B`` the running peak of the last ``window``
-    rows (M1). ``force``, ``sd`` (N), NaN = no estimate (skipped). ``out_kind`` 0 collision, 1 overload,
+    rows (M1). A second, slow profile (:data:`SLOW_WEIGHT`) remembers the cut: the deviation is the smaller of
+    the two and the limit uses the larger profile, so the return of the cut after an air cut is expected.
+    ``force``, ``sd`` (N), NaN = no estimate (skipped). ``out_kind`` 0 collision, 1 overload,
     −1 none; ``out_value`` the tested magnitude, ``out_limit`` its limit (N). After a collision ``window``
     rows pass before the next (the impulse is in the peak and the profile)."""
     w, bins = int(state[_I_W]), int(state[_I_BINS])
-    ring, prof, hits = _I_SLOTS, _I_SLOTS + w, _I_SLOTS + w + bins
+    ring, prof, hits, slow = _I_SLOTS, _I_SLOTS + w, _I_SLOTS + w + bins, _I_SLOTS + w + 2 * bins
     two_pi = 2.0 * math.pi
     n_alarm = 0
     for i in range(force.size):
@@ -106,10 +111,10 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
             if b >= 0 and state[hits + b] >= 3.0:
                 pmax = 0.0
                 for j in range(bins):
-                    if state[hits + j] > 0.0 and abs(state[prof + j]) > pmax:
-                        pmax = abs(state[prof + j])
+                    if state[hits + j] > 0.0:
+                        pmax = max(pmax, abs(state[prof + j]), abs(state[slow + j]))
                 lim = max(limit_abs, ratio_angle * pmax + k_sigma * s)  # (M1), with the angle
-                d = abs(f - state[prof + b])
+                d = min(abs(f - state[prof + b]), abs(f - state[slow + b]))
             else:
                 peak = 0.0
                 for j in range(w):
@@ -138,8 +143,10 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
         if b >= 0 and out_kind[i] != 0:  # the profile follows the cut (not the impulse itself)
             if state[hits + b] == 0.0:
                 state[prof + b] = f
+                state[slow + b] = f
             else:
                 state[prof + b] += alpha * (f - state[prof + b])
+                state[slow + b] += SLOW_WEIGHT * (f - state[slow + b])
             state[hits + b] += 1.0
     return n_alarm
 

@@ -99,6 +99,7 @@ class AxisProcessMonitor:
         n = len(est)
         force = est.force[0]
         sd = np.sqrt(np.maximum(est.force[1], 0.0))
+        raw = self._raw_force(est)
         theta = self._angles(est, block)
         tool = est.context.get("tool")
         line = est.context.get("program_line")
@@ -111,12 +112,27 @@ class AxisProcessMonitor:
                 stop += 1
             if key != self._key or not math.isfinite(self._t0):
                 self._new_section(key, float(est.t[start]))
-            out += self._segment(est, start, stop, force, sd, theta, key)
+            out += self._segment(est, start, stop, force, sd, theta, key, raw)
             start = stop
         for a in out:
             self.counts[a.kind] = self.counts.get(a.kind, 0) + 1
             self.last = a
         return out
+
+    def _raw_force(self, est) -> np.ndarray:
+        """The measured force of each row (N): the one-step residual ``v(j−1) = v_m(j) − βᵀz(j−1)`` scaled like
+        the filtered force (``F = −f/b``, the row's own scale ``force/f``). It carries the force of sample
+        j − 1 plus the measurement noise; the tracker's filtered force smooths what its kernel does not
+        expect (a once-per-revolution component under a tooth-period kernel), the per-tooth fit needs it."""
+        from kernels.online import R_F, R_RESID
+
+        f = est.rows[R_F]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = est.force[0] / f
+        good = np.isfinite(scale) & (np.abs(f) > 0)
+        if not good.any():
+            return np.full(len(est), np.nan)
+        return est.rows[R_RESID] * float(np.median(scale[good]))
 
     def _angles(self, est, block: S.SampleBlock) -> np.ndarray:
         """Spindle angle (rad) of the sample each row's force describes (row j: sample j − 1)."""
@@ -164,7 +180,7 @@ class AxisProcessMonitor:
                 over = sec.overload_N if sec.overload_N is not None else over
         return floor, over
 
-    def _segment(self, est, a: int, b: int, force, sd, theta, key) -> list[S.AlarmEvent]:
+    def _segment(self, est, a: int, b: int, force, sd, theta, key, raw) -> list[S.AlarmEvent]:
         f, s, th = force[a:b], sd[a:b], theta[a:b]
         m = b - a
         ok = np.isfinite(f)
@@ -186,7 +202,7 @@ class AxisProcessMonitor:
                     out.append(self._event(est, a + i, _IMPULSE_KINDS[kind[i]], "impulse", value[i], limit[i],
                                            s[i] if kind[i] == 0 else None, "|F − expected|" if kind[i] == 0 else "|F|"))
         if self.s.tooth.enabled and np.isfinite(th).any():
-            out += self._tooth_rows(est, a, th, f, s)
+            out += self._tooth_rows(est, a, th, raw[a:b], s)
         ref = self._ref_sec
         if ref is not None:
             env = self.s.envelope

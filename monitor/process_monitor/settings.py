@@ -46,7 +46,7 @@ class ToothSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     sensitivity: _K = 6.0
     cut_min_N: _Newton = 5.0  # a revolution with a mean force below this is no cut
     broken_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.5  # of the mean cutting force
-    runout_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.15
+    runout_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.08
 
 
 class EnvelopeSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
