@@ -305,17 +305,20 @@ class ToothAccumulator:
 class ToothDetector:
     """Broken tooth (M4) and runout (M5) from the per-revolution records of :class:`ToothAccumulator`.
 
-    ``learn`` cutting revolutions (``a0 > cut_min`` N) set ``Ā1`` and its spread ``s1``; after that the
-    reference is fixed for the run (a slow growth is what the runout test is for). ``sensitivity`` is ``k``;
+    ``learn`` cutting revolutions (``a0 > cut_min`` N) set ``Ā1`` and its spread ``s1``, after ``settle``
+    cutting revolutions in a row (the tool's entry into the cut, where ``A1`` grows with the engagement);
+    after that the reference is fixed for the run (a slow growth is what the runout test is for). ``sensitivity`` is ``k``;
     ``widen`` (≥ 1) multiplies every threshold (an operator's false-alarm acknowledgement)."""
 
     def __init__(self, *, learn: int = 30, cut_min: float = 5.0, sensitivity: float = 6.0,
-                 broken_fraction: float = 0.5, runout_fraction: float = 0.15) -> None:
+                 broken_fraction: float = 0.5, runout_fraction: float = 0.1, settle: int = 25) -> None:
         if not 5 <= int(learn) <= 100_000:
             raise ParameterError(f"learn {learn!r} revolutions out of range: 5 … 100000", "learn")
         self.learn, self.cut_min, self.k = int(learn), float(cut_min), float(sensitivity)
         self.qb, self.qr = float(broken_fraction), float(runout_fraction)
         self.widen = 1.0
+        self.settle = int(settle)
+        self._cutting = 0  # cutting revolutions in a row
         self._a1: list[float] = []
         self.mean1 = math.nan
         self.sd1 = math.nan
@@ -332,8 +335,12 @@ class ToothDetector:
         if not (math.isfinite(a0) and math.isfinite(a1)) or a0 <= self.cut_min:
             self._recent.clear()
             self._over = 0
+            self._cutting = 0
             return []
+        self._cutting += 1
         if not self.learned:
+            if self._cutting <= self.settle:
+                return []
             self._a1.append(a1)
             if len(self._a1) >= self.learn:
                 x = np.array(self._a1)

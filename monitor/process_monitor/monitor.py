@@ -75,7 +75,8 @@ class AxisProcessMonitor:
     def _new_detector(self) -> fm.ToothDetector:
         ts = self.s.tooth
         return fm.ToothDetector(learn=ts.learn_revolutions, cut_min=ts.cut_min_N, sensitivity=ts.sensitivity,
-                                broken_fraction=ts.broken_fraction, runout_fraction=ts.runout_fraction)
+                                broken_fraction=ts.broken_fraction, runout_fraction=ts.runout_fraction,
+                                settle=ts.settle_revolutions)
 
     # ---- operator --------------------------------------------------------------------------------------
     def acknowledge(self, monitor: str) -> float:

@@ -43,10 +43,11 @@ class ToothSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     teeth: Annotated[int, msgspec.Meta(ge=1, le=32)] = 2
     bins: Annotated[int, msgspec.Meta(ge=4, le=720)] = 36  # angle profile (dashboard, per-tooth peaks)
     learn_revolutions: Annotated[int, msgspec.Meta(ge=5, le=100_000)] = 30
+    settle_revolutions: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 25  # of a cut's entry, before learning
     sensitivity: _K = 6.0
     cut_min_N: _Newton = 5.0  # a revolution with a mean force below this is no cut
     broken_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.5  # of the mean cutting force
-    runout_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.08
+    runout_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.1
 
 
 class EnvelopeSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
