@@ -8,10 +8,11 @@ milling scenarios do not have)."""
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
+from trial_edit import rewrite_samples
 
 from feedio.mcapio import read_trial
-from trial_edit import rewrite_samples
 
 
 def add_force(src, dst, delta_force: np.ndarray, *, context: dict[str, np.ndarray] | None = None):
@@ -29,8 +30,6 @@ def add_force(src, dst, delta_force: np.ndarray, *, context: dict[str, np.ndarra
         i0, m = block.seq, len(block.t)
         v = np.array(block.v_meas, dtype=np.float64) + dv[i0:i0 + m]
         extra = {k: [int(x) for x in c[i0:i0 + m]] for k, c in (context or {}).items()}
-        import msgspec
-
         return msgspec.structs.replace(block, v_meas=v.tolist(), **extra)
 
     return rewrite_samples(src, dst, edit)

@@ -11,7 +11,6 @@ import threading
 import msgspec
 import numpy as np
 import pytest
-import zenoh
 from live_monitor import Live
 from process_edit import add_force, tooth_share_force
 from truth_models import make_trial
