@@ -196,7 +196,8 @@ class AxisProcessMonitor:
         if imp.enabled:
             floor, over = self._limits(key)
             w = self.widen["impulse"]
-            if fm.impulse_step(self._impulse, th, f, s, imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w,
+            fi = raw[a:b] if imp.signal == "measured" else f
+            if fm.impulse_step(self._impulse, th, fi, s, imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w,
                                floor * w, over, imp.persist, imp.alpha, kind, value, limit):
                 for i in np.nonzero(kind >= 0)[0]:
                     self._tooth_quiet_until = float(est.t[a + i]) + 3 * imp.window_s

@@ -7,7 +7,7 @@ alarms). Units: N, s, revolutions, parts.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -25,6 +25,8 @@ class ImpulseSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Collision (impulse beyond the expected force) and overload (``|F|`` above ``overload_N``)."""
 
     enabled: bool = True
+    #: the force judged: "filtered" (the tracker's estimate) or "measured" (the one-step residual in N)
+    signal: Literal["filtered", "measured"] = "measured"
     limit_N: _Newton = 20.0  # floor of the collision limit (N): below it no impulse is a collision
     ratio: Annotated[float, msgspec.Meta(ge=1.0, le=100.0)] = 1.5  # × running peak |F| (no spindle angle)
     ratio_angle: Annotated[float, msgspec.Meta(ge=0.1, le=100.0)] = 1.0  # × max |profile| (with spindle angle)
