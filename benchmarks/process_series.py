@@ -41,9 +41,10 @@ def main() -> int:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "feedmon.cli", "simulate", "milling-part", "--parts", str(args.parts),
-                        "-o", str(work), "--seed", str(args.seed), "--created", "2024-05-01T08:00:00Z"],
-                       check=True, cwd=ROOT, capture_output=True)
+        if len(list(work.glob("part-*.mcap"))) != args.parts:  # a kept --work folder with the series: reused
+            subprocess.run([sys.executable, "-m", "feedmon.cli", "simulate", "milling-part", "--parts", str(args.parts),
+                            "-o", str(work), "--seed", str(args.seed), "--created", "2024-05-01T08:00:00Z"],
+                           check=True, cwd=ROOT, capture_output=True)
         parts = sorted(work.glob("part-*.mcap"))
         save_model(truth_model(read_trial(parts[0]).meta, period=1 / 50, budget=100), work / "m.model.toml")
         print(f"simulated {len(parts)} parts in {time.perf_counter() - t0:.0f} s", flush=True)
