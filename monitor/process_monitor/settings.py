@@ -27,7 +27,7 @@ class ImpulseSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     enabled: bool = True
     #: the force judged: "filtered" (the tracker's estimate) or "measured" (the one-step residual in N)
     signal: Literal["filtered", "measured"] = "measured"
-    limit_N: _Newton = 20.0  # floor of the collision limit (N): below it no impulse is a collision
+    limit_N: _Newton = 50.0  # floor of the collision limit (N): below it no impulse is a collision
     ratio: Annotated[float, msgspec.Meta(ge=1.0, le=100.0)] = 1.5  # × running peak |F| (no spindle angle)
     ratio_angle: Annotated[float, msgspec.Meta(ge=0.1, le=100.0)] = 1.0  # × max |profile| (with spindle angle)
     sensitivity: _K = 6.0
