@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from .mcapfile import Limits, TrialFileError
 from .trialformat import (
+    ALARM,
     CHANNEL_KINDS,
     HEALTH,
     MAX_LOG_TIME_NS,
@@ -15,6 +16,7 @@ from .trialformat import (
     MAX_READ_AHEAD_BYTES,
     METADATA_NAME,
     SCALARS,
+    TRUTH_EVENTS,
     ZSTD_LEVEL,
     format_time,
     parse_time,
@@ -56,6 +58,8 @@ __all__ = [
     "CHANNEL_KINDS",
     "SCALARS",
     "HEALTH",
+    "ALARM",
+    "TRUTH_EVENTS",
     "MAX_LOG_TIME_NS",
     "MAX_MESSAGE_BYTES",
     "MAX_PENDING_BYTES",

@@ -547,3 +547,87 @@ def json_schema(type_: type) -> dict:
 
 
 JSON_SCHEMAS = {SCHEMA_NAMES[t]: json_schema(t) for t in SCHEMA_NAMES}
+
+
+# ---- process alarms ----------------------------------------------------------------------------
+#: kinds of :class:`AlarmEvent` (what the process monitors of :mod:`monitor.process_monitor` detect)
+ALARM_KINDS = ("collision", "overload", "broken_tooth", "runout", "missing_cut", "over_band", "wear")
+#: bound of :attr:`AlarmEvent.detail`
+ALARM_DETAIL_CHARS_MAX = 500
+_Newton = Annotated[float, msgspec.Meta(description="N (for 'wear': the unit the detail names)")]
+
+
+class AlarmEvent(msgspec.Struct, forbid_unknown_fields=True):
+    """A process alarm of one axis (topic ``<machine>/<axis>/alarm``, MCAP channel ``/<machine>/<axis>/alarm``).
+
+    ``kind`` what was detected (:data:`ALARM_KINDS`), ``monitor`` the monitor that judged it (e.g.
+    ``impulse``, ``tooth``, ``envelope``, ``wear``), ``seq``/``t`` the estimate row (sequence number,
+    controller time s) it was decided on, ``program_line``/``tool`` that row's context (null: not known),
+    ``value`` the measured quantity and ``limit`` the limit it crossed (N), ``sigma`` the standard
+    deviation the limit was judged with (N; null: an absolute limit), ``detail`` one line for people.
+    """
+
+    machine: Name
+    axis: Name
+    seq: Seq
+    t: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX, description=f"controller time (s), 0 <= t <= {T_MAX:g}")]
+    kind: Literal["collision", "overload", "broken_tooth", "runout", "missing_cut", "over_band", "wear"]
+    monitor: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+    value: _Newton
+    limit: _Newton
+    sigma: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
+    program_line: Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)] | None = None
+    tool: Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)] | None = None
+    detail: Annotated[str, msgspec.Meta(max_length=ALARM_DETAIL_CHARS_MAX)] = ""
+
+    def __post_init__(self) -> None:
+        check_name(self.machine, "AlarmEvent field 'machine'")
+        check_name(self.axis, "AlarmEvent field 'axis'")
+        if not (math.isfinite(self.t) and 0.0 <= self.t <= T_MAX):
+            raise ValueError(f"AlarmEvent field 't' is {self.t!r}; controller time must be finite, 0 <= t <= {T_MAX:g} s")
+        for name in ("value", "limit", "sigma"):
+            v = getattr(self, name)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"AlarmEvent field '{name}' is {v!r}; give a finite number")
+
+
+def decode_alarm(data: bytes | str, *, what: str = "alarm event") -> AlarmEvent:
+    """Decode an :class:`AlarmEvent` (names, bounds and finiteness checked)."""
+    return decode(data, AlarmEvent, what=what)
+
+
+__all__ += ["AlarmEvent", "ALARM_KINDS", "decode_alarm"]
+SCHEMA_NAMES[AlarmEvent] = "feedmon.AlarmEvent"
+JSON_SCHEMAS[SCHEMA_NAMES[AlarmEvent]] = json_schema(AlarmEvent)
+
+
+# ---- truth events of simulated process scenarios (appended: replay/process.py writes them) -----
+#: most characters of a truth event's kind
+TRUTH_KIND_MAX_LEN = 64
+
+
+class TruthEvent(msgspec.Struct, **_STRUCT_OPTS):
+    """A known process event of a simulated trial (topic ``<machine>/<axis>/truth/events``).
+
+    ``kind`` what happened (``tooth_break``, ``runout_growth``, ``runout``, ``collision``,
+    ``missing_cut``, ``missing_cut_end``, ``part``), ``t_s`` when (controller time, s), ``seq``
+    the sample whose interval ``[t_k, t_k + Ts)`` holds it, ``value`` the event's number (tooth
+    index, peak force in N, duration in s, chip-imbalance fraction, part index: see ``kind`` in
+    ``docs/process-monitoring-scenarios.md``), ``detail`` further constants. A monitor's delay
+    is its alarm time minus ``t_s``.
+    """
+
+    kind: Annotated[str, msgspec.Meta(min_length=1, max_length=TRUTH_KIND_MAX_LEN)]
+    t_s: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]
+    seq: Seq
+    value: float
+    detail: dict[str, Any] = {}
+
+
+def decode_truth_event(data: bytes | str, *, what: str = "truth event") -> TruthEvent:
+    return decode(data, TruthEvent, what=what)
+
+
+SCHEMA_NAMES[TruthEvent] = "feedmon.TruthEvent"
+JSON_SCHEMAS[SCHEMA_NAMES[TruthEvent]] = json_schema(TruthEvent)
+__all__ += ["TruthEvent", "decode_truth_event", "TRUTH_KIND_MAX_LEN"]

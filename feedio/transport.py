@@ -71,6 +71,8 @@ __all__ = [
     "truth_key",
     "disturbance_key",
     "health_key",
+    "alarm_key",
+    "ack_key",
     "status_key",
     "parse_key",
     "free_tcp_port",
@@ -352,6 +354,16 @@ def disturbance_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str 
 def health_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
     """``<prefix>/<machine>/<axis>/health`` (the monitor's health reports, :class:`feedio.schema.Health`)."""
     return _axis_key(prefix, machine, axis, "health")
+
+
+def alarm_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
+    """``<prefix>/<machine>/<axis>/alarm`` (the process monitors' alarms, :class:`feedio.schema.AlarmEvent`)."""
+    return _axis_key(prefix, machine, axis, "alarm")
+
+
+def ack_key(prefix: str = DEFAULT_PREFIX, machine: str = "*", axis: str = "*") -> str:
+    """``<prefix>/<machine>/<axis>/ack``: an operator's false-alarm acknowledgement (JSON ``{"monitor": …}``)."""
+    return _axis_key(prefix, machine, axis, "ack")
 
 
 def status_key(prefix: str = DEFAULT_PREFIX) -> str:

@@ -43,15 +43,19 @@ from datetime import UTC, datetime
 
 from feedio import schema as S
 
-__all__ = ["METADATA_NAME", "SCALARS", "HEALTH", "CHANNEL_KINDS", "SINGLE_SAMPLE_TYPES", "MAX_LOG_TIME_NS", "MAX_MESSAGE_BYTES", "MAX_PENDING_BYTES", "ZSTD_LEVEL", "MAX_READ_AHEAD_BYTES", "topic", "split_topic", "check_name", "library", "parse_time", "format_time", "now_ns"]
+__all__ = ["METADATA_NAME", "SCALARS", "HEALTH", "ALARM", "TRUTH_EVENTS", "CHANNEL_KINDS", "SINGLE_SAMPLE_TYPES", "MAX_LOG_TIME_NS", "MAX_MESSAGE_BYTES", "MAX_PENDING_BYTES", "ZSTD_LEVEL", "MAX_READ_AHEAD_BYTES", "topic", "split_topic", "check_name", "library", "parse_time", "format_time", "now_ns"]
 
 METADATA_NAME = "feedmon.trial"
 SCALARS = "disturbance/scalars"
 HEALTH = "health"
+#: the process monitors' alarms (:class:`feedio.schema.AlarmEvent`), channel ``/<machine>/<axis>/alarm``
+ALARM = "alarm"
+#: known process events of a simulated trial (:class:`~feedio.schema.TruthEvent`), one per message
+TRUTH_EVENTS = "truth/events"
 CHANNEL_KINDS = {"samples": S.SampleBlock, "truth": S.TruthBlock, "disturbance": S.EstimateBlock,
-         SCALARS: S.DisturbanceScalars, HEALTH: S.Health}
+                 SCALARS: S.DisturbanceScalars, HEALTH: S.Health, ALARM: S.AlarmEvent, TRUTH_EVENTS: S.TruthEvent}
 #: message types of one sample each (``t`` a number, not a column)
-SINGLE_SAMPLE_TYPES = (S.DisturbanceScalars, S.Health)
+SINGLE_SAMPLE_TYPES = (S.DisturbanceScalars, S.Health, S.AlarmEvent, S.TruthEvent)
 
 #: largest log time, ns since the Unix epoch (int64, year 2262): what every MCAP tool can hold
 MAX_LOG_TIME_NS = 2**63 - 1

@@ -23,6 +23,7 @@ from .trialformat import (
     MAX_READ_AHEAD_BYTES,
     METADATA_NAME,
     SINGLE_SAMPLE_TYPES,
+    TRUTH_EVENTS,
     parse_time,
     split_topic,
     topic,
@@ -70,6 +71,7 @@ class Trial:
     tool: np.ndarray | None = None  # tool number (float64: NaN where not known)
     truth: TruthArrays | None = None
     channels: list[str] = field(default_factory=list)
+    truth_events: list[S.TruthEvent] = field(default_factory=list)  # known process events (simulated trials)
     start_ns: int | None = None  # wall-clock time of controller time 0 (None: files without one)
 
     @property
@@ -111,7 +113,9 @@ class Trial:
             truth = dataclasses.replace(truth, **{f.name: None if getattr(truth, f.name) is None
                                                   else getattr(truth, f.name)[sel]
                                                   for f in dataclasses.fields(truth)})
-        return dataclasses.replace(self, **cols, truth=truth)
+        lo, hi = int(self.seq[idx[0]]), int(self.seq[idx[-1]])
+        events = [e for e in self.truth_events if lo <= e.seq <= hi]
+        return dataclasses.replace(self, **cols, truth=truth, truth_events=events)
 
 
 class OpenTrial:
@@ -435,13 +439,17 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
         machine, ax = f.select(axis)
         meta = f.meta(machine, ax)
         start = f.start_ns(machine, ax)
-        t_s, t_t = topic(machine, ax, "samples"), topic(machine, ax, "truth")
-        topics = [t_s] + ([t_t] if t_t in f.channels else [])
-        samples, truths = [], []
-        held = {t_s: 0, t_t: 0}
+        t_s, t_t, t_e = topic(machine, ax, "samples"), topic(machine, ax, "truth"), topic(machine, ax, TRUTH_EVENTS)
+        topics = [t_s] + [x for x in (t_t, t_e) if x in f.channels]
+        samples, truths, events = [], [], []
+        held = {t_s: 0, t_t: 0, t_e: 0}
         for name, _, block in f.messages(topics):
-            (samples if name == t_s else truths).append(block)
-            held[name] += len(block.t)
+            if name == t_e:
+                events.append(block)
+                held[name] += 1
+            else:
+                (samples if name == t_s else truths).append(block)
+                held[name] += len(block.t)
             if held[name] > max_samples:
                 raise TrialTooLong(f"{f.path}: axis {machine}/{ax} holds more than {max_samples:,} samples, the most "
                                    "read into memory at once; identify a window of it or a shorter recording (the offline "
@@ -467,6 +475,7 @@ def read_trial(path, axis: str | None = None, *, limits: Limits = DEFAULT_LIMITS
             tool=_column(samples, "tool", n),
             channels=sorted(f.channels),
             start_ns=start,
+            truth_events=events,
         )
         if truths:
             m = sum(len(b.t) for b in truths)

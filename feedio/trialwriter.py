@@ -24,6 +24,7 @@ from feedio import schema as S
 from .mcapfile import TrialFileError
 from .mcapwriter import MESSAGE_HEADER, McapWriter
 from .trialformat import (
+    ALARM,
     CHANNEL_KINDS,
     HEALTH,
     MAX_LOG_TIME_NS,
@@ -31,6 +32,7 @@ from .trialformat import (
     MAX_PENDING_BYTES,
     METADATA_NAME,
     SCALARS,
+    TRUTH_EVENTS,
     ZSTD_LEVEL,
     check_name,
     format_time,
@@ -509,6 +511,28 @@ class TrialWriter:
         lt = self.log_time_of(report.t, what) if log_time is None else log_time
         self._add(cid, S.encode(report), lt, report.seq, report.t, report.t, "health")
 
+    def write_alarm(self, event: S.AlarmEvent, *, log_time: int | None = None) -> None:
+        """Append an :class:`AlarmEvent` on ``/<machine>/<axis>/alarm``; ``log_time`` (ns since the epoch)
+        defaults to ``start + t``."""
+        if type(event) is not S.AlarmEvent:
+            raise TypeError(f"write_alarm needs an AlarmEvent, got {type(event).__name__}")
+        self._check_open()
+        cid = self._channel(event.machine, event.axis, ALARM)
+        what = f"alarm seq {event.seq}"
+        lt = self.log_time_of(event.t, what) if log_time is None else log_time
+        self._add(cid, S.encode(event), lt, event.seq, event.t, event.t, ALARM)
+
+    def write_truth_event(self, event: S.TruthEvent, machine: str, axis: str, *, log_time: int | None = None) -> None:
+        """Append a :class:`TruthEvent` on ``/<machine>/<axis>/truth/events``; ``log_time`` (ns since
+        the epoch) defaults to ``start + t_s``."""
+        if type(event) is not S.TruthEvent:
+            raise TypeError(f"write_truth_event needs a TruthEvent, got {type(event).__name__}")
+        self._check_open()
+        cid = self._channel(machine, axis, TRUTH_EVENTS)
+        what = f"truth event seq {event.seq}"
+        lt = self.log_time_of(event.t_s, what) if log_time is None else log_time
+        self._add(cid, S.encode(event), lt, event.seq, event.t_s, event.t_s, "truth event")
+
     def flush(self) -> None:
         """Close the open chunk (if it has messages) and write everything to the file.
         ``OSError`` when the disk refuses (the bytes are kept for the next flush)."""
@@ -562,12 +586,13 @@ class TrialWriter:
 
 
 def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = None, *, block: int = 100,
-                 start=None) -> None:
+                 start=None, events: Sequence[S.TruthEvent] = ()) -> None:
     """Write one axis given as arrays: ``samples`` maps :class:`SampleBlock` fields (``t``,
     ``v_ref``, ``v_meas`` and optional columns; ``None`` = absent) to arrays, ``truth`` maps
     :class:`TruthBlock` fields to arrays; both are cut into blocks of ``block`` samples with
-    ``seq`` from 0 (the one writer of the simulator and the importers). ``start``: the
-    trial's start time (default ``meta.provenance.created`` when set, else now)."""
+    ``seq`` from 0 (the one writer of the simulator and the importers). ``events``
+    (:class:`TruthEvent`, sorted by ``seq``) follow the block that holds their sample. ``start``:
+    the trial's start time (default ``meta.provenance.created`` when set, else now)."""
     n = len(samples["t"])
     if start is None and meta.provenance.created:
         start = parse_time(meta.provenance.created, what="provenance.created")
@@ -575,9 +600,16 @@ def write_arrays(path, meta: S.TrialMeta, samples: dict, truth: dict | None = No
     def cut(cols: dict, i: int, j: int) -> dict:
         return {k: None if a is None else np.asarray(a[i:j]).tolist() for k, a in cols.items()}
 
+    events = sorted(events, key=lambda ev: (ev.seq, ev.t_s))
+    e = 0
     with TrialWriter(os.fspath(path), meta, start=start) as w:
         for i in range(0, n, block):
             j = min(i + block, n)
             w.write_samples(S.SampleBlock(machine=meta.machine, axis=meta.axis, seq=i, **cut(samples, i, j)))
             if truth is not None:
                 w.write_truth(S.TruthBlock(seq=i, **cut(truth, i, j)), meta.machine, meta.axis)
+            while e < len(events) and events[e].seq < j:
+                w.write_truth_event(events[e], meta.machine, meta.axis)
+                e += 1
+        for event in events[e:]:  # beyond the last sample: kept, in order
+            w.write_truth_event(event, meta.machine, meta.axis)

@@ -23,6 +23,8 @@ COMMANDS: dict[str, str] = {
     "status": "feedmon.status_cmd",
     "recover": "feedmon.recover_cmd",
     "bridge": "feedmon.bridge_cmd",
+    "reference": "feedmon.reference_cmd",
+    "alarm": "feedmon.alarm_cmd",
 }
 
 

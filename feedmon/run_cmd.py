@@ -99,6 +99,11 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="where tracker states are saved on exit and restored on start "
                         "(default: next to each model file, <model>.state.npz)")
     s.add_argument("--fresh", action="store_true", help="do not restore a saved tracker state")
+    pm = p.add_argument_group("process monitors (file: [monitors]; docs/process-monitoring.md)")
+    pm.add_argument("--monitors", action="store_true",
+                    help="run the process monitors on the force (collision, overload, broken tooth, runout)")
+    pm.add_argument("--reference", action="append", default=None, metavar="FILE",
+                    help="a reference envelope (feedmon reference learn) to compare with; implies --monitors")
     add_zenoh_arguments(p, role="listen")
     p.set_defaults(func=run, prefix=None)  # None: not given (the config file or the default applies)
     return p
@@ -176,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("-o/--output is for --from (offline); use --mcap for the live log")
     if cfg.jobs is not None:
         raise ValueError("--jobs is for --from (offline)")
-    return _run_live(cfg)
+    return _run_live(cfg, args)
 
 
 def _run_offline(args, cfg: RunConfig) -> int:
@@ -189,7 +194,10 @@ def _run_offline(args, cfg: RunConfig) -> int:
         if getattr(cfg, opt) is not None:
             raise ValueError(f"--{opt.replace('_', '-')} is for the live monitor; offline output goes to -o")
     axes = load_axes(cfg.model, cfg)
-    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs, input_health=cfg.input_health)
+    from .run_config import monitor_settings_from_args
+
+    res = run_offline(args.source, args.output, axes, limits=cfg.limits, jobs=cfg.jobs, input_health=cfg.input_health,
+                      monitors=monitor_settings_from_args(args))
     if res.skipped_axes:
         _say(f"no model for {', '.join(res.skipped_axes)}: not estimated, not copied")
     lost = 0
@@ -220,7 +228,7 @@ def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:
                               multicast=cfg.multicast, prefix=cfg.prefix, _zenoh_role="listen")
 
 
-def _run_live(cfg: RunConfig) -> int:
+def _run_live(cfg: RunConfig, args: argparse.Namespace | None = None) -> int:
     from feedio.transport import config_from_args, describe_config, limit_message_size, open_session
     from monitor.axes import load_axes, warm_up
     from monitor.daemon import Monitor
@@ -230,6 +238,11 @@ def _run_live(cfg: RunConfig) -> int:
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
     sys.setswitchinterval(0.0005)
     axes = load_axes(cfg.model, cfg)
+    from monitor.process_monitor import build_monitors
+
+    from .run_config import monitor_settings_from_args
+
+    process = None if args is None else build_monitors(axes, monitor_settings_from_args(args))
     # the outputs before anything slow: a directory that cannot take the files is refused at once
     mcap = _mcap_path(cfg.mcap, cfg) if cfg.mcap is not None else None
     if cfg.rrd is not None:
@@ -259,7 +272,8 @@ def _run_live(cfg: RunConfig) -> int:
         endpoints = [f"listen {e}" for e in listen] + [f"connect {e}" for e in connect]
         monitor = Monitor(axes, session, prefix=cfg.prefix, sinks=sinks, limits=cfg.limits,
                           record_truth=cfg.record_truth, state=store, endpoints=endpoints,
-                          drain_seconds=cfg.drain_seconds, input_health=cfg.input_health)
+                          drain_seconds=cfg.drain_seconds, input_health=cfg.input_health,
+                          monitors=process)
         stop = threading.Event()
         received = []
 

@@ -32,9 +32,11 @@ import msgspec
 from feedio.limits import MAX_CONFIG_BYTES, InputLimits, explain
 from monitor import online_settings as OS
 from monitor.input_health import InputHealthSettings
+from monitor.process_monitor.settings import MonitorSettings
 from monitor.sinks.child import Priority
 
-__all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option"]
+__all__ = ["RunConfig", "ConfigFile", "load_config_file", "run_config_from_args", "parse_limit_option",
+           "monitor_settings_from_args"]
 
 #: keys whose values are paths (relative to the config file's directory)
 PATH_KEYS = ("model", "mcap", "rrd", "state_dir", "zenoh_config")
@@ -81,6 +83,8 @@ class ConfigFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """The whole ``--config`` file: one table per concern."""
 
     run: RunConfig = RunConfig()
+    #: the process monitors ([monitors]; monitor.process_monitor, docs/process-monitoring.md)
+    monitors: MonitorSettings = MonitorSettings()
 
 
 # ---- the file ----------------------------------------------------------------------------------
@@ -120,6 +124,10 @@ def load_config_file(path: str | Path) -> ConfigFile:
                 run[key] = str(base / v)
             elif isinstance(v, list):
                 run[key] = [str(base / x) if isinstance(x, str) else x for x in v]
+    env = (doc.get("monitors") or {}).get("envelope") if isinstance(doc.get("monitors"), dict) else None
+    if isinstance(env, dict) and isinstance(env.get("reference"), (str, list)):  # paths relative to the file
+        base = path.resolve().parent
+        env["reference"] = [str(base / x) if isinstance(x, str) else x for x in _as_list(env["reference"])]
     try:
         return msgspec.convert(doc, ConfigFile)
     except msgspec.ValidationError as exc:
@@ -185,3 +193,14 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
         where = f"config file {args.config} and options" if getattr(args, "config", None) else "options"
         raise ValueError(f"limits ({where}): {explain(exc, InputLimits)[1]}") from None
     return msgspec.structs.replace(cfg, limits=merged, **cli)
+
+
+def monitor_settings_from_args(args: argparse.Namespace) -> MonitorSettings:
+    """The ``[monitors]`` table of ``--config`` with ``--monitors`` (switch them on) and ``--reference FILE``
+    (add a reference envelope; switches them on) on top."""
+    ms = load_config_file(args.config).monitors if getattr(args, "config", None) else MonitorSettings()
+    refs = getattr(args, "reference", None) or []
+    if getattr(args, "monitors", False) or refs:
+        env = msgspec.structs.replace(ms.envelope, reference=[*ms.envelope.reference, *refs])
+        ms = msgspec.structs.replace(ms, enabled=True, envelope=env)
+    return ms

@@ -1,4 +1,5 @@
-"""``feedmon simulate SCENARIO -o trial.mcap`` — a simulated trial with known truth."""
+"""``feedmon simulate SCENARIO -o trial.mcap`` — a simulated trial with known truth;
+``feedmon simulate SCENARIO --parts N -o DIR`` — a series of N parts (:mod:`replay.parts`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import argparse
 import time
 
 from replay import scenarios as SC
+from replay.parts import MAX_PARTS
 
 
 def _scenario_table() -> str:
@@ -23,7 +25,11 @@ def register(subparsers) -> None:
             "Simulate a closed-loop feed-drive trial (method §1) after the thesis case studies and\n"
             "write samples, ground truth (disturbance force, true drive constants per sample) and\n"
             "metadata to an MCAP trial file. An unstable closed loop or a non-finite/absurd result\n"
-            "is refused and nothing is written. Scenarios (--list):\n\n" + _scenario_table()
+            "is refused and nothing is written. Process scenarios (milling-part, milling-tooth-break, …)\n"
+            "add NC line and tool columns and truth events (/<machine>/<axis>/truth/events); with\n"
+            "--parts N a process scenario is cut N times with part-to-part variation ([series] of the\n"
+            "scenario: material, spindle speed, feed override, optional wear), one file per part in the\n"
+            "directory -o. Scenarios (--list):\n\n" + _scenario_table()
         ),
     )
     p.add_argument("scenario", metavar="SCENARIO", nargs="?", choices=SC.SCENARIOS,
@@ -40,6 +46,12 @@ def register(subparsers) -> None:
                         "trial's start time, which the MCAP log times count from (default: now, not stored); give it "
                         "for byte-identical files")
     p.add_argument("--show", action="store_true", help="print the scenario constants and exit")
+    p.add_argument("--parts", type=int, default=None, metavar="N",
+                   help=f"simulate a series of N parts (1 … {MAX_PARTS}) of a process scenario into the directory -o "
+                        "(part-0000.mcap, …), each varied as its [series] table says")
+    p.add_argument("--wear", type=float, default=None, metavar="REL",
+                   help="with --parts: relative force increase per part by tool wear (0.01 = +1 %% per part; "
+                        "default: the scenario's series.wear_per_part)")
     p.set_defaults(func=run)
 
 
@@ -57,7 +69,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--seed must be ≥ 0, got {args.seed}")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+    if args.wear is not None and args.parts is None:
+        raise ValueError("--wear belongs to a part series: give --parts N too")
     sc = SC.load_scenario(args.scenario, args.config, duration=args.duration)
+    if args.parts is not None and not args.show:
+        return _series(args, sc)
     if args.show:
         import json
 
@@ -74,4 +90,21 @@ def run(args: argparse.Namespace) -> int:
         f"{' at t = 0' if varying else ''}: {beta}"
         + (f"; time-varying: {', '.join(varying)} (per sample in the truth channel)" if varying else "")
     )
+    return 0
+
+
+def _series(args: argparse.Namespace, sc: dict) -> int:
+    from replay.parts import part_duration, part_variations, simulate_series
+
+    if not 1 <= args.parts <= MAX_PARTS:
+        raise ValueError(f"--parts must be 1 … {MAX_PARTS}, got {args.parts}")
+    if args.output is None:
+        raise ValueError("give the output directory of the part files with -o/--output")
+    t0 = time.perf_counter()
+    paths = simulate_series(sc, args.parts, args.output, seed=args.seed, created=args.created, wear_per_part=args.wear,
+                            fine=args.fine)
+    cut = sum(part_duration(sc, v.feed_override)
+              for v in part_variations(sc, args.parts, seed=args.seed, wear_per_part=args.wear))
+    print(f"wrote {len(paths)} parts of {args.scenario} to {args.output} ({paths[0].name} … {paths[-1].name}): "
+          f"{cut:.0f} s of machining in {time.perf_counter() - t0:.1f} s, seed {args.seed}")
     return 0

@@ -167,10 +167,11 @@ class Monitor:
         finish_seconds: float = 10.0,
         inline_bytes: int = INLINE_BYTES,
         input_health: InputHealthSettings | None = None,
+        monitors=None,
     ) -> None:
         if not drain_seconds >= 0 or not finish_seconds >= 0:
             raise ValueError(f"drain_seconds and finish_seconds must be ≥ 0, got {drain_seconds}, {finish_seconds}")
-        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits, input_health=input_health)
+        self.pipeline = Pipeline(axes, prefix=prefix, limits=limits, input_health=input_health, monitors=monitors)
         self.axes = axes
         self.session = session
         self.prefix = prefix
@@ -213,6 +214,9 @@ class Monitor:
         self._subs: list[Any] = []
         self._pubs: dict[tuple[str, str], Any] = {}
         self._health_pubs: dict[tuple[str, str], Any] = {}
+        # process alarms (monitor.process_monitor): publishers, the sinks that take them
+        self._alarm_pubs: dict[tuple[str, str], Any] = {}
+        self._alarm_offers = [s.offer_alarm for s in self.sinks if hasattr(s, "offer_alarm")]
         self._queryable = None
         self._thread: threading.Thread | None = None
         self._started_mono = time.monotonic()
@@ -313,6 +317,8 @@ class Monitor:
         for key in self.axes:
             self._pubs[key] = self._publisher(disturbance_key(self.prefix, *key))
             self._health_pubs[key] = self._publisher(health_key(self.prefix, *key), high=False)
+        if self.pipeline.process is not None:
+            self._start_alarms()
         self._queryable = self.session.declare_queryable(status_key(self.prefix), self._on_query)
         self._thread = threading.Thread(target=self._run, name="estimator", daemon=True)
         self._thread.start()
@@ -368,7 +374,7 @@ class Monitor:
         if block is None:
             return None
         t1 = time.perf_counter()
-        ax, est, health = p.estimate(block)
+        ax, est, health, alarms = p.estimate(block)
         if ax is None:
             return None
         t2 = time.perf_counter()
@@ -382,6 +388,8 @@ class Monitor:
                 self.publish_errors += 1
                 p.burst(f"publish:{ax.status.name}", "publishing the estimate of %s failed: %s", ax.status.name,
                         str(exc))
+            if alarms:  # right after the estimate: an alarm is what stops the feed
+                self._publish_alarms(ax, alarms, rx_ns)
             t4 = time.perf_counter()
             ax.status.latency.record(t4 - t_recv)
         for sink in self._encoded:
@@ -398,6 +406,48 @@ class Monitor:
         if health:  # after the block's messages (the MCAP log keeps main's order), outside the stage times
             self._publish_health(ax, health)
         return est
+
+    def _start_alarms(self) -> None:
+        """Alarm publishers (priority REAL_TIME, express) and the acknowledgement subscriber."""
+        import zenoh
+
+        from feedio.transport import ack_key, alarm_key
+
+        for key in self.axes:
+            self._alarm_pubs[key] = self.session.declare_publisher(
+                alarm_key(self.prefix, *key), encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.REAL_TIME, express=True)
+        self._subs.append(self.session.declare_subscriber(ack_key(self.prefix), self._on_ack))
+
+    def _on_ack(self, sample) -> None:
+        """``<prefix>/<machine>/<axis>/ack`` ``{"monitor": "impulse"|"tooth"|"envelope"}``: widen that monitor."""
+        try:
+            from feedio.transport import parse_key
+
+            machine, axis, _ = parse_key(sample.key_expr, self.prefix)
+            mon = self.pipeline.process.by_axis.get((machine, axis))
+            payload = sample.payload.to_bytes()
+            if mon is None or len(payload) > 4096:
+                raise ValueError(f"no process monitor for {machine}/{axis}" if mon is None else "payload too large")
+            import json
+
+            # a factor set between two blocks (the estimator reads it once per block segment)
+            mon.acknowledge(str(json.loads(payload)["monitor"]))
+        except Exception as exc:  # noqa: BLE001 - a bad acknowledgement is refused and logged
+            self.pipeline.counters["ack_refused"] += 1
+            self.pipeline.burst("ack", "refusing an alarm acknowledgement on %s: %s", str(sample.key_expr), str(exc))
+
+    def _publish_alarms(self, ax: AxisRuntime, alarms: list, rx_ns: int) -> None:
+        pub = self._alarm_pubs.get(ax.key)
+        for a in alarms:
+            try:
+                pub.put(S.encode(a))
+            except Exception as exc:  # noqa: BLE001 - session closing, etc.
+                self.publish_errors += 1
+                self.pipeline.burst(f"publish_alarm:{ax.status.name}", "publishing an alarm of %s failed: %s",
+                                    ax.status.name, str(exc))
+            for offer in self._alarm_offers:
+                offer(a, rx_ns)
 
     def _publish_health(self, ax: AxisRuntime, reports: list[S.Health]) -> None:
         """Health reports of an axis: on Zenoh (``<prefix>/<machine>/<axis>/health``) and to every sink
@@ -531,7 +581,8 @@ class Monitor:
                     except Exception as exc:  # noqa: BLE001 - OSError, a bad name, anything: say it, go on
                         self._problem("cannot save the tracker state of %s: %s: %s", ax.status.name,
                                       type(exc).__name__, exc)
-            for obj in [*self._pubs.values(), *self._health_pubs.values(), self._queryable]:
+            for obj in [*self._pubs.values(), *self._health_pubs.values(), *self._alarm_pubs.values(),
+                        self._queryable]:
                 try:
                     if obj is not None:
                         obj.undeclare()
@@ -539,6 +590,7 @@ class Monitor:
                     log.warning("undeclaring a publisher/queryable failed: %s", exc)
             self._pubs.clear()
             self._health_pubs.clear()
+            self._alarm_pubs.clear()
             self._queryable = None
         except BaseException as exc:  # noqa: BLE001 - even an interrupt must not leave "stopping" behind
             self._problem("shutdown interrupted: %s: %s", type(exc).__name__, exc)
@@ -584,7 +636,8 @@ class Monitor:
             if name:
                 per_axis.setdefault(name, {})[_CALLBACK_REASONS[reason]] = n
         axes = {ax.status.name: ax.status.report(ax.estimator.counters, ax.estimator.tracker.size,
-                                                 per_axis.get(ax.status.name), p.input_health[ax.key].status())
+                                                 per_axis.get(ax.status.name), p.input_health[ax.key].status(),
+                                                 p.process.by_axis[ax.key].status() if p.process is not None else None)
                 for ax in self.axes.values()}
         all_lat = [ax.status.latency.values() for ax in self.axes.values()]
         lat = np.concatenate(all_lat) if all_lat else np.zeros(0)

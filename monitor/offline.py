@@ -149,6 +149,8 @@ class _Encoder:
         t_end = float(block.t[-1])
         for h in res.health:  # stamped at its sample: the block's log time minus the time to its end
             out.append(("H", m, a, S.encode(h), max(0, lt - round((t_end - h.t) * 1e9))))
+        for e in res.alarms:  # likewise
+            out.append(("A", m, a, S.encode(e), max(0, lt - round((t_end - e.t) * 1e9))))
         return out
 
     def drain(self) -> dict[str, list[tuple]]:
@@ -167,6 +169,8 @@ def _write(w, entries: list[tuple]) -> None:
         elif e[0] == "C":
             _, m, a, records, sizes, log_ns, t, seq = e
             w.write_scalar_records(m, a, records, sizes, log_ns, t, seq)
+        elif e[0] == "A":  # a process alarm
+            w.write_alarm(S.decode_alarm(e[3]), log_time=e[4])
         else:  # "H": the report is checked again by the writer (bounds of seq and t)
             w.write_health(S.decode_health(e[3]), log_time=e[4])
 
@@ -174,7 +178,8 @@ def _write(w, entries: list[tuple]) -> None:
 # ---- the entry point ------------------------------------------------------------------------------
 def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
                 axes: dict[tuple[str, str], AxisRuntime], *, limits: InputLimits = DEFAULT,
-                jobs: int | None = None, input_health: InputHealthSettings | None = None) -> OfflineResult:
+                jobs: int | None = None, input_health: InputHealthSettings | None = None,
+                monitors=None) -> OfflineResult:
     """Estimate a recorded trial without Zenoh, as fast as the machine goes.
 
     Every samples block of the axes that have a model goes through the same
@@ -190,7 +195,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
 
     ``jobs``: processes for a trial with several modelled axes (None: one per core, at most one
     per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
-    input-health verdict merged into the health reports (:mod:`monitor.input_health`).
+    input-health verdict merged into the health reports (:mod:`monitor.input_health`). ``monitors``: the
+    process monitors' settings (:class:`monitor.process_monitor.MonitorSettings`; None or not enabled:
+    none run); their alarms go on ``/<machine>/<axis>/alarm``, stamped at their row.
     """
     from feedio.mcapio import OpenTrial, TrialWriter
 
@@ -233,17 +240,17 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     with TrialWriter(output, out_metas, start=start) as w:
         if jobs > 1:
             counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
-                                   jobs, input_health)
+                                   jobs, input_health, monitors)
         else:
-            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health)
+            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health, monitors)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
                          jobs, counts["health"])
 
 
-def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health) -> dict[str, int]:
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health, monitors=None) -> dict[str, int]:
     """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
-    pipe = Pipeline(axes, limits=limits, input_health=input_health)
+    pipe = Pipeline(axes, limits=limits, input_health=input_health, monitors=_monitors(axes, monitors))
     enc = _Encoder(has_truth)
     with _WriterThread() as out:
         counts = _estimate_items(_merged_blocks(trial, names), pipe, enc, out, lambda _key, entries: _write(w, entries))
@@ -272,6 +279,18 @@ def _estimate_items(items: Iterator, pipe: Pipeline, enc: _Encoder, out: _Writer
         counts["health"] += len(res.health)
         out.put(lambda k=key, b=block, t=lt, r=res: emit(k, enc.samples(k, b, t, r)), _held(block, res))
     return counts
+
+
+def _monitors(axes, settings):
+    """The process monitors of ``axes`` (None when ``settings`` is None or not enabled)."""
+    if settings is None:
+        return None
+    from .process_monitor import build_monitors
+    from .process_monitor.settings import MonitorSettings
+
+    if isinstance(settings, dict):
+        settings = msgspec.convert(settings, MonitorSettings)
+    return build_monitors(axes, settings)
 
 
 def _write_drain(w, per_axis: dict[str, list[tuple]], touched: dict[str, tuple | None]) -> None:
@@ -442,6 +461,7 @@ class _Entry(bytes, enum.Enum):
     BLOCK = b"B"  #: kind u1, seq i8, n i8, t0 f8, t1 f8, log_time i8, data length u4, data
     SCALARS = b"C"  #: count u4, records length u8, sizes i8[count], log_ns i8[count], t f8[count], seq i8[count], records
     HEALTH = b"H"  #: log_time i8, data length u4, data (the JSON of a Health report)
+    ALARM = b"A"  #: as HEALTH, the JSON of an AlarmEvent (process monitors)
 
 
 _KEY = struct.Struct("<dqi")
@@ -462,9 +482,9 @@ def _pack_entries(entries: list[tuple], buf: list[bytes]) -> None:
             buf += (_Entry.SCALARS, _C.pack(sizes.size, records.size), sizes.astype("<i8").tobytes(),
                     log_ns.astype("<i8").tobytes(), t.astype("<f8").tobytes(), seq.astype("<i8").tobytes(),
                     records.tobytes())
-        else:
+        else:  # "H" health report, "A" process alarm: the same frame
             _, _m, _a, data, lt = e
-            buf += (_Entry.HEALTH, _H.pack(lt, len(data)), data)
+            buf += (_Entry.HEALTH if e[0] == "H" else _Entry.ALARM, _H.pack(lt, len(data)), data)
 
 
 def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple], int]:
@@ -480,10 +500,10 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
             pos += _B.size
             out.append(("B", _KINDS[kind], m, a, view[pos:pos + size].tobytes(), seq, n, t0, t1, lt))
             pos += size
-        elif tag == _Entry.HEALTH:
+        elif tag in (_Entry.HEALTH, _Entry.ALARM):
             lt, size = _H.unpack_from(view, pos)
             pos += _H.size
-            out.append(("H", m, a, view[pos:pos + size].tobytes(), lt))
+            out.append((tag.decode(), m, a, view[pos:pos + size].tobytes(), lt))
             pos += size
         else:
             k, size = _C.unpack_from(view, pos)
@@ -497,7 +517,7 @@ def _unpack_entries(view: memoryview, pos: int, name: str) -> tuple[list[tuple],
 
 
 def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime], has_truth, limits,
-                  jobs: int, input_health: InputHealthSettings | None) -> dict[str, int]:
+                  jobs: int, input_health: InputHealthSettings | None, monitors=None) -> dict[str, int]:
     """``jobs`` > 1: children estimate and encode, this process merges and writes (module docstring)."""
     # fork when this process has no other thread (the command line): the children start at once with the
     # estimators as they are; else spawn (a thread holding a lock at fork time would leave it held), and
@@ -514,6 +534,7 @@ def _run_children(trial: str, w, names: list[str], axes: dict[str, AxisRuntime],
                     "sha256": {n: axes[n].status.model_sha256 for n in group},
                     "has_truth": [list(k) for k in has_truth], "limits": msgspec.to_builtins(limits),
                     "input_health": None if input_health is None else msgspec.to_builtins(input_health),
+                    "monitors": None if monitors is None else msgspec.to_builtins(monitors),
                     "log_format": None if fork else log_format()}
             own = {axes[n].key: axes[n] for n in group} if fork else None
             p = ctx.Process(target=_child_main, args=(child, json.dumps(spec), own), name="feedmon-offline",
@@ -656,8 +677,10 @@ def _child(conn, spec: dict, axes: dict | None = None) -> None:
                 raise TrialFileError(f"model file {ax.status.model_path} changed after the run started; run again")
     by_name = {f"{m}/{a}": ax for (m, a), ax in axes.items()}
     ih = spec.get("input_health")
+    ms = spec.get("monitors")
     pipe = Pipeline(axes, limits=msgspec.convert(spec["limits"], InputLimits),
-                    input_health=None if ih is None else msgspec.convert(ih, InputHealthSettings))
+                    input_health=None if ih is None else msgspec.convert(ih, InputHealthSettings),
+                    monitors=None if ms is None else _monitors(axes, ms))
     enc = _Encoder({tuple(k) for k in spec["has_truth"]})
     index = spec["index"]
     buf: list[bytes] = []

@@ -75,6 +75,8 @@ class Estimated(NamedTuple):
     ax: AxisRuntime | None  #: the axis the block was routed to (None: refused, no model or too long)
     est: EstimateRows | None = None  #: its estimate rows (None: no row, every sample dropped)
     health: list[S.Health] | tuple = ()  #: the health reports the block produced (oldest first)
+    #: the process alarms the block's rows raised (:mod:`monitor.process_monitor`; oldest first)
+    alarms: list[S.AlarmEvent] | tuple = ()
 
 
 _REFUSED = Estimated(None)
@@ -85,8 +87,11 @@ class Pipeline:
     """Decode → check the key → route → estimate. No I/O; one thread only."""
 
     def __init__(self, axes: dict[tuple[str, str], AxisRuntime], *, prefix: str = "feedmon",
-                 limits: InputLimits = DEFAULT, input_health: InputHealthSettings | None = None) -> None:
+                 limits: InputLimits = DEFAULT, input_health: InputHealthSettings | None = None,
+                 monitors=None) -> None:
         self.axes = axes
+        #: the process monitors (:class:`monitor.process_monitor.ProcessMonitors`; None: none run)
+        self.process = monitors
         #: the health of each axis' input stream (:mod:`monitor.input_health`), merged into its reports
         self.input_health = {key: InputHealth(float(ax.model.Ts), input_health) for key, ax in axes.items()}
         self._model_report: dict[tuple[str, str], S.Health] = {}  # each axis' last report of the loop
@@ -184,7 +189,26 @@ class Pipeline:
         if est is not None:
             st.last_seq = est.seq + len(est) - 1
             st.last_t = float(est.t[-1])
-        return Estimated(ax, est, self._health(ax, block, changed))
+        health = self._health(ax, block, changed)
+        if self.process is not None and est is not None:
+            alarms = self._alarms(ax, est, block)
+            if alarms:
+                return Estimated(ax, est, health, alarms)
+        return Estimated(ax, est, health)
+
+    def _alarms(self, ax: AxisRuntime, est: EstimateRows, block: S.SampleBlock) -> list[S.AlarmEvent]:
+        """The process monitors on the block's rows (an error there is counted and logged, never fatal)."""
+        try:
+            alarms = self.process.update(ax.key, est, block)
+        except Exception as exc:  # noqa: BLE001 - a monitor's failure must not stop the estimates
+            ax.status.counters["process_monitor_error"] += 1
+            self.burst(f"process:{ax.status.name}", "axis %s: process monitor failed on a block: %s: %s",
+                       ax.status.name, type(exc).__name__, str(exc), level=logging.ERROR)
+            return []
+        for a in alarms:
+            log.warning("axis %s: process alarm %s at t = %.4f s (seq %d): %.1f against limit %.1f N (%s)",
+                        ax.status.name, a.kind, a.t, a.seq, a.value, a.limit, a.monitor)
+        return alarms
 
     def _health(self, ax: AxisRuntime, block: S.SampleBlock, input_changed: bool) -> list[S.Health] | tuple:
         """Collect the axis' health reports (returned) with the input's verdict merged in (a report of its

@@ -298,10 +298,11 @@ class AxisStatus:
         return None
 
     def report(self, estimator_counters: Counter, dict_size: int,
-               refused: dict[str, int] | None = None, input_health: dict[str, Any] | None = None) -> AxisReport:
+               refused: dict[str, int] | None = None, input_health: dict[str, Any] | None = None,
+               process: dict[str, Any] | None = None) -> AxisReport:
         """The axis' status; ``refused``: per-reason counts kept outside this object (the Zenoh
         callback's refusals, discards at shutdown), merged into ``drops`` and ``counters``; ``input_health``:
-        the input-health verdict of the axis.
+        the input-health verdict of the axis; ``process``: the process monitors' (None: off).
 
         Built on the status thread while the estimating thread runs: ``last_seq``/``last_t`` are read
         *before* the counters. The estimator counts a block before the pipeline sets ``last_seq`` to
@@ -337,6 +338,7 @@ class AxisStatus:
             state=AxisStateRef(origin=self.state, path=self.state_path),
             health=None if self.health is None else {**self.health, "changes": self.health_changes},
             input=input_health,
+            process=process,
         )
 
 
@@ -433,6 +435,14 @@ def format_status(status: dict[str, Any], console=None) -> None:
             reasons = h.get("reasons")
             for r in reasons if isinstance(reasons, list) else []:
                 console.print(_cell(f"    - {r}", 1000))
+    for name, a in axes.items():  # the process monitors (monitor.process_monitor): count and last alarm
+        pm = a.process if isinstance(a.process, dict) else None
+        if pm:
+            last = pm.get("last") if isinstance(pm.get("last"), dict) else None
+            kinds = pm.get("by_kind") if isinstance(pm.get("by_kind"), dict) else ""
+            said = (f"; last {last.get('kind')} at t = {_num(last.get('t'))} s (seq {last.get('seq')}): "
+                    f"{_num(last.get('value'))} against {_num(last.get('limit'))} N") if last else ""
+            console.print(_cell(f"  {name}: process alarms {pm.get('alarms', 0)} {kinds or ''}{said}", 1000))
     for key, what in (("no_model", "samples of axes without a model (dropped)"),
                       ("key_mismatch", "messages whose payload names another axis than their key (refused)")):
         table = getattr(inp, key)

@@ -132,6 +132,8 @@ class AxisReport(msgspec.Struct, kw_only=True):
     state: AxisStateRef = msgspec.field(default_factory=AxisStateRef)
     health: dict[str, Any] | None = None  #: the last health report, since when its state holds, changes
     input: dict[str, Any] | None = None  #: the input-health verdict (:meth:`monitor.input_health.InputHealth.status`)
+    #: the process monitors' verdict (:meth:`monitor.process_monitor.monitor.AxisProcessMonitor.status`; None: off)
+    process: dict[str, Any] | None = None
 
 
 class StatusDoc(msgspec.Struct, kw_only=True):

@@ -23,6 +23,20 @@ Forces are evaluated at a fine angular step (default 0.5° of spindle rotation) 
 averaged over each output interval — exactly what a force held over one sample
 (ZOH) sees. No helix (flat-end, helix-free approximation), no tool deflection,
 no regeneration.
+
+Tooth condition (:class:`ToothCondition`, :func:`feed_force_teeth`): per-tooth radial
+offsets ``r_j(t)`` (the ρ cos model above plus an offset per tooth that may grow linearly,
+minus the radius a chipped or broken tooth lost) and a material factor on all four
+coefficients. The chip of tooth j is cut from the surface the teeth before it left
+(Kline & DeVor's runout model; the tooth before j is j + 1, which is 2π/N_t ahead),
+
+    h_j = max(0, min_{k=1…N_t} (k c + r_j − r_{j+k})) · sin φ_j,
+
+which is ``(c + r_j − r_{j+1}) sin φ`` while every tooth cuts; a tooth b that lost more
+radius than its chip cuts nothing and the tooth after it, b − 1, takes ``2c + r_{b−1} − r_{b+1}``.
+(:func:`feed_force` takes ``r_{j−1}``: the same tooth for the 2-tooth tools of the scenarios.)
+The radii are taken at the current time for all teeth (quasi-static: the first
+revolution after a step change is approximated).
 """
 
 from __future__ import annotations
@@ -33,7 +47,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["MillingTool", "SpindleProfile", "feed_force", "mean_feed_force"]
+__all__ = ["MillingTool", "SpindleProfile", "ToothCondition", "feed_force", "feed_force_teeth", "tooth_chips",
+           "mean_feed_force", "once_per_rev_amplitude"]
 
 
 @dataclass(frozen=True)
@@ -259,3 +274,167 @@ def mean_feed_force(tool: MillingTool, feed: float) -> float:
     """Closed-form mean slotting force resisting the feed (N) without runout: ``N a c K_rc/4 + N a K_re/π``."""
     c = float(tool.feed_per_tooth(feed))
     return tool.teeth * tool.depth * (c * tool.Krc / 4.0 + tool.Kre / math.pi)
+
+
+# ---------------------------------------------------------------------------------------------
+# tooth condition: per-tooth runout that grows, chipped / broken teeth, material
+# ---------------------------------------------------------------------------------------------
+#: most teeth a tool may have in the per-tooth model (indexable face mills go to ~20)
+MAX_TEETH = 64
+
+
+@dataclass(frozen=True)
+class ToothCondition:
+    """What happens to the teeth of a :class:`MillingTool` during a cut (SI: m, s).
+
+    ``offsets_m`` radial offset per tooth added to the tool's ρ cos(λ − 2πj/N_t) runout
+    (m; empty = none); ``growth_m_per_s`` their growth rate per tooth (m/s) from
+    ``growth_from_s`` on, ``r_j(t) = r_j + e_j + g_j·max(0, t − t_g)``; ``breaks`` tuples
+    ``(tooth, t_s, loss_m)``: from ``t_s`` tooth ``tooth`` is ``loss_m`` shorter (chipped;
+    more than its chip: broken, it cuts nothing); ``material`` multiplies K_tc, K_rc, K_te,
+    K_re (harder stock > 1; tool wear too).
+    """
+
+    offsets_m: tuple = ()
+    growth_m_per_s: tuple = ()
+    growth_from_s: float = 0.0
+    breaks: tuple = ()
+    material: float = 1.0
+
+    def check(self, teeth: int) -> None:
+        """ValueError naming the constant when it does not fit a tool of ``teeth`` teeth."""
+        if not 1 <= teeth <= MAX_TEETH:
+            raise ValueError(f"the per-tooth model takes 1 … {MAX_TEETH} teeth, got {teeth}")
+        for name in ("offsets_m", "growth_m_per_s"):
+            values = getattr(self, name)
+            if len(values) not in (0, teeth) or not all(math.isfinite(x) and abs(x) <= 1e-3 for x in values):
+                raise ValueError(f"{name} needs one value per tooth ({teeth}), each within ±1e-3 "
+                                 f"({'m' if name == 'offsets_m' else 'm/s'}), got {list(values)!r}")
+        if not (math.isfinite(self.growth_from_s) and self.growth_from_s >= 0):
+            raise ValueError(f"growth_from_s must be a finite time ≥ 0 s, got {self.growth_from_s!r}")
+        if not (math.isfinite(self.material) and 0.1 <= self.material <= 10.0):
+            raise ValueError(f"material factor must be in [0.1, 10], got {self.material!r}")
+        for item in self.breaks:
+            tooth, t_s, loss = item
+            if int(tooth) != tooth or not 0 <= tooth < teeth:
+                raise ValueError(f"breaks: tooth {tooth!r} is not one of the tool's teeth 0 … {teeth - 1}")
+            if not (math.isfinite(t_s) and t_s >= 0 and math.isfinite(loss) and 0 < loss <= 0.01):
+                raise ValueError(f"breaks: ({tooth}, {t_s!r} s, {loss!r} m) needs a time ≥ 0 s and a loss in (0, 0.01] m")
+
+    def arrays(self, tool: MillingTool):
+        """Kernel inputs in the tool's units (mm): base radius r_j, growth (mm/s), break times
+        (s, +inf: never) and losses (mm) per tooth, and the coefficients × material."""
+        teeth = int(tool.teeth)
+        self.check(teeth)
+        lam = math.radians(tool.runout_angle)
+        r = np.array([tool.runout * math.cos(lam - 2 * math.pi * j / teeth) for j in range(teeth)])
+        if self.offsets_m:
+            r = r + 1e3 * np.asarray(self.offsets_m, dtype=np.float64)
+        g = 1e3 * np.asarray(self.growth_m_per_s, dtype=np.float64) if self.growth_m_per_s else np.zeros(teeth)
+        t_break = np.full(teeth, np.inf)
+        loss = np.zeros(teeth)
+        for tooth, t_s, loss_m in sorted(self.breaks, key=lambda b: b[1]):
+            t_break[int(tooth)] = min(t_break[int(tooth)], float(t_s))
+            loss[int(tooth)] += 1e3 * float(loss_m)  # two events on one tooth: the losses add (at the first time)
+        k = float(self.material)
+        return r, g, t_break, loss, (tool.Ktc * k, tool.Krc * k, tool.Kte * k, tool.Kre * k)
+
+
+@njit(cache=True)
+def _chips(c, r, g, t, t_g, t_break, loss, out):
+    """Effective chip factors ``max(0, min_k (k c + r_j − r_{j+k}))`` (mm) of every tooth at time t
+    into ``out`` (the sin φ comes later)."""
+    teeth = r.size
+    grow = t - t_g if t > t_g else 0.0
+    for j in range(teeth):
+        rj = r[j] + g[j] * grow - (loss[j] if t >= t_break[j] else 0.0)
+        best = 1e300
+        for k in range(1, teeth + 1):
+            i = (j + k) % teeth  # the tooth k pitches ahead cut this spot k·(pitch time) earlier
+            ri = r[i] + g[i] * grow - (loss[i] if t >= t_break[i] else 0.0)
+            v = k * c + rj - ri
+            if v < best:
+                best = v
+        out[j] = best if best > 0.0 else 0.0
+
+
+@njit(cache=True)
+def _feed_force_teeth(t0, dt, feed, engage, kt, kn, kth, rpm_max, a, Ktc, Krc, Kte, Kre, r, g, t_g, t_break, loss,
+                      phi_st, phi_ex, step):
+    n = feed.size
+    teeth = r.size
+    out = np.zeros(n)
+    per = np.zeros((n, teeth))
+    chip = np.zeros(teeth)
+    acc = np.zeros(teeth)
+    two_pi = 2.0 * math.pi
+    m = int(math.ceil(two_pi * rpm_max / 60.0 * dt / step))
+    if m < 1:
+        m = 1
+    pitch = two_pi / teeth
+    seg = 0
+    for k in range(n):
+        if engage[k] == 0.0:
+            continue
+        acc[:] = 0.0
+        for i in range(m):
+            t = t0 + (k + (i + 0.5) / m) * dt
+            rpm, theta, seg = _spindle_at(t, seg, kt, kn, kth)
+            if rpm <= 0.0:
+                continue
+            c = feed[k] * 1e3 / (rpm / 60.0 * teeth)  # feed per tooth, mm
+            _chips(c, r, g, t, t_g, t_break, loss, chip)
+            for j in range(teeth):
+                phi = (theta + j * pitch) % two_pi
+                if phi < phi_st or phi > phi_ex:
+                    continue
+                s = math.sin(phi)
+                h = chip[j] * s
+                if h <= 0.0:
+                    continue
+                acc[j] += (Ktc * a * h + Kte * a) * math.cos(phi) + (Krc * a * h + Kre * a) * s
+        total = 0.0
+        for j in range(teeth):
+            per[k, j] = engage[k] * acc[j] / m
+            total += acc[j]
+        out[k] = engage[k] * total / m
+    return out, per
+
+
+def feed_force_teeth(tool: MillingTool, t0: float, dt: float, feed, engage=None, spindle: SpindleProfile | None = None,
+                     condition: ToothCondition | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`feed_force` with a :class:`ToothCondition`: the force resisting the feed (N) per
+    interval and each tooth's share of it, shape ``(n, N_t)`` (rows sum to the force)."""
+    feed = np.maximum(np.asarray(feed, dtype=np.float64), 0.0)
+    eng = np.ones_like(feed) if engage is None else np.asarray(engage, dtype=np.float64)
+    if eng.shape != feed.shape:
+        raise ValueError(f"engage has {eng.size} values, feed has {feed.size}")
+    sp = SpindleProfile(tool.spindle_rpm, phase=tool.phase) if spindle is None else spindle
+    r, g, t_break, loss, (Ktc, Krc, Kte, Kre) = (condition or ToothCondition()).arrays(tool)
+    return _feed_force_teeth(
+        float(t0), float(dt), feed, eng, sp.t, sp.rpm, sp.theta, sp.max_rpm, tool.depth, Ktc, Krc, Kte, Kre,
+        r, g, float((condition or ToothCondition()).growth_from_s), t_break, loss,
+        math.radians(tool.start_angle), math.radians(tool.exit_angle), math.radians(tool.angle_step),
+    )
+
+
+def tooth_chips(tool: MillingTool, condition: ToothCondition, c: float, t: float) -> np.ndarray:
+    """Effective chip ``max(0, min_k (k c + r_j − r_{j+k}))`` (mm) of every tooth at time t (s)
+    for the feed per tooth c (mm): what each tooth cuts, before the sin φ."""
+    r, g, t_break, loss, _ = condition.arrays(tool)
+    out = np.zeros(r.size)
+    _chips(float(c), r, g, float(t), float(condition.growth_from_s), t_break, loss, out)
+    return out
+
+
+def once_per_rev_amplitude(tool: MillingTool, chip_difference: float) -> float:
+    """Amplitude (N) of the spindle-frequency line of the slotting force resisting the feed of a
+    2-tooth tool whose teeth cut chips ``c ± Δc/2`` (``chip_difference`` = Δc, mm):
+
+        X_1 = (a Δc / 2π) ∫_0^π (K_tc sin φ cos φ + K_rc sin² φ) e^{−iφ} dφ,   2|X_1| = (2 a Δc / 3π) √(K_tc² + 4 K_rc²)
+
+    (the edge forces are alike for both teeth and only feed the tooth-passing harmonics).
+    With runout ρ at λ = 0: Δc = 2 (r_0 − r_1) = 4ρ."""
+    if tool.teeth != 2 or tool.start_angle != 0.0 or tool.exit_angle != 180.0:
+        raise ValueError("the closed form is for a 2-tooth tool slotting (0 … 180 degrees)")
+    return 2.0 * tool.depth * abs(chip_difference) / (3.0 * math.pi) * math.hypot(tool.Ktc, 2.0 * tool.Krc)

@@ -38,6 +38,20 @@ Drives the rigid first-order model does not describe (``[structure]``, Stribeck 
 * ``command-delay`` — the force acts one sample after it is commanded;
 * ``encoder-velocity`` — the velocity is the backward difference of the encoder position.
 
+Process scenarios for a process monitor (:mod:`replay.process`; ``_process`` base: an NC program of
+an approach, four feed sections and a retract with ``program_line`` and ``tool`` columns, 2 µm
+runout, the per-tooth force model of :mod:`replay.cutting`, truth events on
+``/<machine>/<axis>/truth/events``; ``docs/process-monitoring-scenarios.md``):
+
+* ``milling-part`` — the nominal part (the program a part series repeats, :mod:`replay.parts`);
+* ``milling-tooth-break`` — tooth 1 breaks at 9 s (its force share drops to 0, tooth 0 cuts
+  the chip of both);
+* ``milling-runout`` — the runout of tooth 0 grows by 2.5 µm/s from 4 s (the spindle-frequency
+  component grows);
+* ``milling-collision`` — a force pulse of 10× the cutting force over 6 ms at 8 s;
+* ``milling-missing-cut`` — no stock from 11 s to 13 s inside a feed section (an air cut where
+  the program cuts).
+
 Drive constants that vary (``[drive_drift]``, ``[drive_step]``, in every scenario;
 zero = constant) are evaluated at each sample time ``t_k`` and held over the
 interval ``[t_k, t_k + Ts)``, like the controller output (:func:`drive_series`).
@@ -85,6 +99,11 @@ SCENARIOS = (
     "two-mass",
     "command-delay",
     "encoder-velocity",
+    "milling-part",
+    "milling-tooth-break",
+    "milling-runout",
+    "milling-collision",
+    "milling-missing-cut",
 )
 
 #: drive constants that may vary over a trial (``[drive_drift]``, ``[drive_step]``)
@@ -234,6 +253,10 @@ def check(sc: dict) -> None:
     _check_structure(sc)
     if dk == "milling":
         _check_spindle(sc)
+    if "process" in sc:
+        from .process import check_process
+
+        check_process(sc)
 
 
 def _finite(sc: dict, path: str) -> float:

@@ -41,6 +41,7 @@ are flagged in the truth channel.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -52,8 +53,9 @@ from feedio.limits import SPINDLE_RPM_MAX
 from kernels.errors import ParameterError
 from kernels.feed_drive import beta_names, force_to_disturbance, physical_to_beta
 
+from . import process as P
 from . import scenarios as SC
-from .cutting import MillingTool, SpindleProfile, feed_force
+from .cutting import MillingTool, SpindleProfile, feed_force, feed_force_teeth
 from .plant import closed_loop_radius, friction, structure_of, structured_loop
 
 __all__ = [
@@ -121,6 +123,10 @@ class SimResult:
     coulomb_neg: np.ndarray  # magnitude of d_n(k), N
     spindle_angle: np.ndarray | None = None  # θ(t_k), rad, unwrapped (milling)
     block: int = 100
+    program_line: np.ndarray | None = None  # NC line per sample (process scenarios, replay.process)
+    tool: np.ndarray | None = None  # tool number per sample
+    tooth_force: np.ndarray | None = None  # (n, teeth) each tooth's share of ``force`` (N; process scenarios)
+    events: list = dataclasses.field(default_factory=list)  # known process events (feedio.schema.TruthEvent)
 
     @property
     def beta(self) -> np.ndarray:
@@ -408,8 +414,25 @@ def _step_force(d: dict, dt: float, n: int, duration: float) -> np.ndarray:
     return float(d["force"]) * covered
 
 
-def _disturbance(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int, spindle: SpindleProfile | None) -> np.ndarray:
-    """Disturbance force per interval of Ts/n_sub (N)."""
+def _process_force(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int, spindle: SpindleProfile | None,
+                   out: dict) -> np.ndarray:
+    """Milling force of a process scenario (:mod:`replay.process`) per interval of Ts/n_sub (N): the
+    per-tooth model with the tooth condition, missing stock and collision pulses; ``out`` receives
+    each tooth's share per sample (``tooth_force``, averaged to Ts) and the pulses (``impulses``)."""
+    n = v_ref.size * n_sub
+    dt = Ts / n_sub
+    t_mid = (np.arange(n) + 0.5) * dt
+    engage = SC.engagement(sc, t_mid) * P.missing_mask(sc, t_mid)
+    tc, teeth = feed_force_teeth(_milling_tool(sc["disturbance"]), 0.0, dt, np.repeat(v_ref, n_sub), engage,
+                                 spindle=spindle, condition=P.tooth_condition(sc))
+    pulses, out["impulses"] = P.impulse_force(sc, tc, dt)
+    out["tooth_force"] = teeth.reshape(v_ref.size, n_sub, -1).mean(axis=1)
+    return tc + pulses
+
+
+def _disturbance(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int, spindle: SpindleProfile | None,
+                 process: dict | None = None) -> np.ndarray:
+    """Disturbance force per interval of Ts/n_sub (N); a process scenario's extras go to ``process``."""
     d = sc["disturbance"]
     n = v_ref.size * n_sub
     dt = Ts / n_sub
@@ -421,6 +444,8 @@ def _disturbance(sc: dict, v_ref: np.ndarray, Ts: float, n_sub: int, spindle: Sp
         return _step_force(d, dt, n, sc["duration"])
     if not d["cutting"]:
         return np.zeros(n)
+    if P.has_process(sc):
+        return _process_force(sc, v_ref, Ts, n_sub, spindle, {} if process is None else process)
     tool = _milling_tool(d)
     feed = np.repeat(v_ref, n_sub)  # programmed feed rate → feed per tooth at the spindle speed (replay.cutting)
     t_mid = (np.arange(n) + 0.5) * dt
@@ -550,20 +575,21 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
     noise = np.random.default_rng([seed, _STREAM_NOISE]).normal(0.0, nz["v_meas_std"], n) if nz["v_meas_std"] > 0 else np.zeros(n)
 
     structure = structure_of(sc)
+    proc: dict = {}
     if not structure.rigid_model:
-        tc = _disturbance(sc, v_ref, Ts, 1, spindle)
+        tc = _disturbance(sc, v_ref, Ts, 1, spindle, proc)
         v_true, v_ctrl, u, x = _structured(sc, structure, v_ref, tc, noise, Ts, par, K, omega, fine)
         v_rec = v_ctrl.copy()
         pos = x
     elif not fine:
-        tc = _disturbance(sc, v_ref, Ts, 1, spindle)
+        tc = _disturbance(sc, v_ref, Ts, 1, spindle, proc)
         v_true, v_ctrl, u, x, _, _ = _zoh_loop(v_ref, tc, noise, Ts, J, B, K, dp, dn, omega, 0.0, 0.0)
         v_rec = v_ctrl.copy()
         pos = x
     else:
         from scipy.signal import decimate
 
-        tc_fine = _disturbance(sc, v_ref, Ts, n_sub, spindle)
+        tc_fine = _disturbance(sc, v_ref, Ts, n_sub, spindle, proc)
         noise_fine = (
             np.random.default_rng([seed, _STREAM_FINE]).normal(0.0, nz["v_meas_std"], n * n_sub)
             if nz["v_meas_std"] > 0 else np.zeros(n * n_sub)
@@ -603,12 +629,27 @@ def simulate(sc: dict, *, seed: int = 0, fine: bool = False, created: str | None
 
     meta = _trial_meta(sc, Ts=Ts, seed=seed, fine=fine, created=created, structure=structure, par=par, K=K, omega=omega,
                        spindle=spindle, betas=betas, coulomb=coulomb)
-    return SimResult(
+    res = SimResult(
         meta=meta, t=t, v_ref=v_ref, v_meas=v_rec, u=u, current=u / sc["drive"]["force_constant"],
         position=pos, spindle_rpm=rpm, force=tc, f=f, v_true=v_true, glitch=glitch,
         dynamometer=dyn, inertia=J, damping=B, coulomb_pos=dp, coulomb_neg=dn, spindle_angle=angle,
         block=int(sc["block"]),
     )
+    if P.has_process(sc):
+        _add_process(res, sc, proc, Ts)
+    return res
+
+
+def _add_process(res: SimResult, sc: dict, proc: dict, Ts: float) -> None:
+    """The NC context columns, each tooth's force and the truth events of a process scenario."""
+    n = len(res)
+    res.program_line, res.tool = P.program_columns(sc, n, Ts)
+    if not sc["disturbance"]["cutting"]:
+        return
+    res.tooth_force = proc["tooth_force"]
+    engaged = (SC.engagement(sc, res.t) * P.missing_mask(sc, res.t)) > 0
+    res.events = P.truth_events(sc, _milling_tool(sc["disturbance"]), res.t, res.v_ref, res.spindle_rpm, engaged,
+                                proc["impulses"])
 
 
 def simulate_scenario(name: str, *, seed: int = 0, duration: float | None = None, config=None,
@@ -624,9 +665,10 @@ def write_trial(res: SimResult, path, *, block: int | None = None) -> None:
     write_arrays(
         path, res.meta,
         dict(t=res.t, v_ref=res.v_ref, v_meas=res.v_meas, u=res.u, current=res.current,
-             position=res.position, spindle_rpm=res.spindle_rpm, spindle_angle=res.spindle_angle),
+             position=res.position, spindle_rpm=res.spindle_rpm, spindle_angle=res.spindle_angle,
+             **({} if res.program_line is None else {"program_line": res.program_line, "tool": res.tool})),
         dict(t=res.t, force=res.force, f=res.f, dynamometer=res.dynamometer, v_true=res.v_true,
              glitch=res.glitch, inertia=res.inertia, damping=res.damping, coulomb_pos=res.coulomb_pos,
              coulomb_neg=res.coulomb_neg),
-        block=int(block or res.block),
+        block=int(block or res.block), events=res.events,
     )

@@ -67,7 +67,7 @@ status_rate = 5
     ("[run]\nsink_priority = \"realtime\"\n", "key run.sink_priority: Invalid enum value 'realtime' (allowed: sink_priority one of idle, low)"),
     ("[run.limits]\nmax_message_bytes = 1073741824\n", "queue_bytes (67108864) must be >= max_message_bytes"),
     ("[run.limits]\nstatus_rate = 1e9\n", "allowed: 0.1 ≤ status_rate ≤ 100000"),
-    ("model = [\"x\"]\n", "unknown field `model`; known keys here: run (the options of feedmon run go in a [run] table)"),
+    ("model = [\"x\"]\n", "unknown field `model`; known keys here: run, monitors (the options of feedmon run go in a [run] table)"),
     ("[run\n", "not valid TOML"),
 ])
 def test_bad_file_names_file_key_and_range(tmp_path, text, needle):

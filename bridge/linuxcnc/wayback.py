@@ -19,8 +19,10 @@ Per axis the component (``[hal] component``, default ``feedmon``) has the output
 
 Alarm sources (:data:`ALARM_SOURCES`): each is a Zenoh key per axis and a function deciding, from
 one message, whether that source is in alarm (and which further pins it sets). The health reports
-(``<prefix>/<machine>/<axis>/health``, ``state == "alarm"``) are the first; another source plugs in
-with one more entry. A message that cannot be decoded, or is larger than :data:`MAX_REPORT_BYTES`, is
+(``<prefix>/<machine>/<axis>/health``, ``state == "alarm"``) are the first; the process alarms
+(``<prefix>/<machine>/<axis>/alarm``, any :class:`~feedio.schema.AlarmEvent`) hold the pin until an
+operator acknowledges them (``<prefix>/<machine>/<axis>/ack``, ``feedmon alarm ack``); another source
+plugs in with one more entry. A message that cannot be decoded, or is larger than :data:`MAX_REPORT_BYTES`, is
 counted and changes nothing.
 """
 
@@ -57,6 +59,8 @@ class AlarmSource(NamedTuple):
 
     key: Callable[[str, str, str], str]
     decide: Callable[[bytes], tuple[bool, dict[str, int]]]
+    #: a key whose messages clear the source (an alarm that latches until an operator acknowledges it)
+    clear_key: Callable[[str, str, str], str] | None = None
 
 
 def _health(payload: bytes) -> tuple[bool, dict[str, int]]:
@@ -64,9 +68,15 @@ def _health(payload: bytes) -> tuple[bool, dict[str, int]]:
     return report.state == "alarm", {"health": HEALTH_CODES[report.state]}
 
 
+def _process(payload: bytes) -> tuple[bool, dict[str, int]]:
+    S.decode_alarm(payload)  # a process alarm (collision, broken tooth, …): feed hold until acknowledged
+    return True, {}
+
+
 #: the alarm sources, by name: an axis' ``alarm`` pin is raised while any of them is in alarm
 ALARM_SOURCES: dict[str, AlarmSource] = {
     "health": AlarmSource(T.health_key, _health),
+    "process": AlarmSource(T.alarm_key, _process, T.ack_key),
 }
 
 
@@ -113,6 +123,9 @@ class WayBack:
             for name, src in ALARM_SOURCES.items():
                 self._subs.append(session.declare_subscriber(
                     src.key(self.prefix, m, axis), lambda s, a=axis, n=name: self.alarm(a, n, s.payload.to_bytes())))
+                if src.clear_key is not None:
+                    self._subs.append(session.declare_subscriber(
+                        src.clear_key(self.prefix, m, axis), lambda s, a=axis, n=name: self.clear(a, n)))
 
     def close(self) -> None:
         for sub in self._subs:
@@ -166,6 +179,19 @@ class WayBack:
             if vals["alarm"] != ax.values["alarm"]:
                 log.warning("axis %s: alarm %s (%s)", axis, "RAISED" if vals["alarm"] else "cleared",
                             ", ".join(k for k, v in ax.alarms.items() if v) or source)
+            ax.values.update(vals)
+        self.send({f"{axis}.{k}": v for k, v in vals.items()})
+
+    def clear(self, axis: str, source: str) -> None:
+        """An operator acknowledged ``source``'s alarm on ``axis``: it no longer holds the ``alarm`` pin."""
+        with self._lock:
+            ax = self.axes[axis]
+            if not ax.alarms.get(source):
+                return
+            ax.alarms[source] = False
+            vals = {"alarm": any(ax.alarms.values())}
+            if vals["alarm"] != ax.values["alarm"]:
+                log.warning("axis %s: alarm cleared (%s acknowledged)", axis, source)
             ax.values.update(vals)
         self.send({f"{axis}.{k}": v for k, v in vals.items()})
 

@@ -244,6 +244,10 @@ class McapSink(QueuedSink):
         the report's own)."""
         return self.offer(report, received_ns)
 
+    def offer_alarm(self, event: S.AlarmEvent, received_ns: int | None = None) -> bool:
+        """Queue a process :class:`AlarmEvent` (channel ``/<machine>/<axis>/alarm``)."""
+        return self.offer(event, received_ns)
+
     @property
     def rotating(self) -> bool:
         return self.rotate_bytes is not None or self.rotate_seconds is not None
@@ -393,7 +397,7 @@ class McapSink(QueuedSink):
 
     @staticmethod
     def _axis_of(item: Any) -> tuple[str, str]:
-        if isinstance(item, (S.SampleBlock, S.EstimateBlock, S.Health)):
+        if isinstance(item, (S.SampleBlock, S.EstimateBlock, S.Health, S.AlarmEvent)):
             return item.machine, item.axis
         if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             return str(item[0]), str(item[1])
@@ -431,6 +435,9 @@ class McapSink(QueuedSink):
         elif isinstance(item, S.Health):
             w = self._ensure_axis(item.machine, item.axis, None)
             self._call(lambda: w.write_health(item, log_time=rx))
+        elif isinstance(item, S.AlarmEvent):
+            w = self._ensure_axis(item.machine, item.axis, None)
+            self._call(lambda: w.write_alarm(item, log_time=rx))
         elif isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             machine, axis, block = item
             w = self._ensure_axis(machine, axis, block)
@@ -587,6 +594,8 @@ class McapProcessSink(ChildProcessSink):
             return self.offer_encoded(Tag.ESTIMATES, S.encode(item), rx)
         if isinstance(item, S.Health):
             return self.offer_encoded(Tag.HEALTH, S.encode(item), rx)
+        if isinstance(item, S.AlarmEvent):
+            return self.offer_encoded(Tag.ALARM, S.encode(item), rx)
         raise TypeError(f"McapProcessSink accepts SampleBlock, EstimateBlock or Health, got {type(item).__name__}")
 
     def offer_truth(self, machine: str, axis: str, block: S.TruthBlock, received_ns: int | None = None) -> bool:
@@ -598,6 +607,10 @@ class McapProcessSink(ChildProcessSink):
         """Queue a :class:`Health` report (channel ``/<machine>/<axis>/health``; see
         :meth:`McapSink.offer_health`)."""
         return self.offer(report, received_ns)
+
+    def offer_alarm(self, event: S.AlarmEvent, received_ns: int | None = None) -> bool:
+        """Queue a process :class:`AlarmEvent` (channel ``/<machine>/<axis>/alarm``)."""
+        return self.offer(event, received_ns)
 
     # ---- status ----------------------------------------------------------------------------
     def extra_status(self) -> dict[str, Any]:
@@ -672,6 +685,8 @@ def _child_main(conn, path, rotate_bytes, rotate_seconds, metas, options, report
                     sink.offer_truth(machine, axis, S.decode_truth(payload), rx, size)
                 elif tag == Tag.HEALTH:
                     sink.offer(S.decode_health(payload), rx, size)
+                elif tag == Tag.ALARM:
+                    sink.offer(S.decode_alarm(payload), rx, size)
                 else:
                     counts["undecodable"] += 1
             except (S.SchemaError, ValueError):

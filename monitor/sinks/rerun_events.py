@@ -31,13 +31,22 @@ import numpy as np
 
 from feedio import schema as S
 
-__all__ = ["Event", "FlagDigest", "EVENT_LEVELS"]
+__all__ = ["Event", "FlagDigest", "EVENT_LEVELS", "alarm_line"]
 
 #: Rerun TextLog levels used, most severe first
 EVENT_LEVELS = ("CRITICAL", "ERROR", "WARN", "INFO", "DEBUG")
 
 _RUN_KINDS = {S.STALE: ("STALE", "INFO", "repeated measurement (recording glitch), not learned"),
               S.REJECTED: ("REJECTED", "WARN", "non-finite or absurd input, not learned")}
+
+
+def alarm_line(a: S.AlarmEvent) -> str:
+    """The event-log line of a process alarm (:class:`~feedio.schema.AlarmEvent`): kind, measured against
+    limit, the σ it was judged with, NC line and tool, the monitor's detail."""
+    sigma = f", σ {a.sigma:.2f} N" if a.sigma is not None else ""
+    where = "".join(f", {k} {v}" for k, v in (("line", a.program_line), ("tool", a.tool)) if v is not None)
+    return (f"ALARM {a.kind} at t = {a.t:.3f} s: {a.value:.1f} against limit {a.limit:.1f} N{sigma}{where} "
+            f"({a.monitor}{'; ' + a.detail if a.detail else ''})")
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,12 @@ class RerunProcessSink(ChildProcessSink):
         """Queue a :class:`TruthBlock` of ``machine/axis`` (plotted as the true force / dynamometer)."""
         return self.offer((machine, axis, block))
 
+    def offer_alarm(self, event, received_ns: int | None = None) -> bool:
+        """Queue a process alarm (an ERROR line in the event log; :meth:`RerunSink.offer_alarm`)."""
+        from .rerun_events import alarm_line
+
+        return self.offer_event(event.machine, event.axis, event.seq, event.t, "ERROR", alarm_line(event))
+
     def offer_event(self, machine: str, axis: str, seq: int, t: float, level: str, text: str) -> bool:
         """Queue one line for the event log of ``machine/axis`` (see :meth:`RerunSink.offer_event`)."""
         return self.offer(("event", {"machine": machine, "axis": axis, "seq": int(seq), "t": float(t),

@@ -316,6 +316,12 @@ class RerunSink(QueuedSink):
         """
         return self.offer(_EventItem(machine, axis, Event(int(seq), float(t), str(level), str(text))))
 
+    def offer_alarm(self, event: S.AlarmEvent, received_ns: int | None = None) -> bool:
+        """Queue a process alarm: an ERROR line in the event log of its axis (:func:`alarm_line`)."""
+        from .rerun_events import alarm_line
+
+        return self.offer_event(event.machine, event.axis, event.seq, event.t, "ERROR", alarm_line(event))
+
     def offer_health(self, machine: str, axis: str, health: Mapping[str, Any]) -> bool:
         """Queue a health report (``{"seq", "t", "state": "ok"|"warn"|"alarm", "reasons": [...]}``):
         the event log gets a line when the state of the axis changes."""

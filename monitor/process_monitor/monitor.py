@@ -1,0 +1,282 @@
+"""The per-axis process monitor: estimate rows in, :class:`~feedio.schema.AlarmEvent` s out. No I/O.
+
+:class:`ProcessMonitors` is what the :class:`~monitor.pipeline.Pipeline` calls after the estimator, so the
+live monitor and ``feedmon run --from`` judge the same rows the same way. The force of estimate row ``j``
+describes sample ``j − 1`` (:mod:`monitor.estimator`), so it is paired with that sample's spindle angle;
+an alarm carries row ``j``'s sequence number, time and context (the row on which it was decided).
+
+Sections: a contiguous run of rows with the same ``(tool, program_line)`` (the n-th such run of a key is
+its own section: a line inside a loop is run many times); without context columns the whole run is one
+section. Progress within a section (s since its first row) indexes the reference envelope.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from feedio import schema as S
+from kernels import force_monitors as fm
+
+from .reference import ReferenceFile, section_key
+from .settings import MonitorSettings
+
+__all__ = ["AxisProcessMonitor", "ProcessMonitors", "ToothView", "build_monitors"]
+
+log = logging.getLogger("monitor.process")
+
+_IMPULSE_KINDS = ("collision", "overload")
+_ENVELOPE_KINDS = ("missing_cut", "over_band")
+#: monitor names an acknowledgement may name
+MONITORS = ("impulse", "tooth", "envelope")
+
+
+class ToothView:
+    """The last revolution's per-tooth view (for the dashboard): angle profile (N per bin), per-tooth peaks
+    (N), ``a0`` mean force and ``a1`` once-per-revolution amplitude (N)."""
+
+    __slots__ = ("t", "profile", "peaks", "a0", "a1")
+
+    def __init__(self, t: float, profile: np.ndarray, peaks: np.ndarray, a0: float, a1: float) -> None:
+        self.t, self.profile, self.peaks, self.a0, self.a1 = t, profile, peaks, a0, a1
+
+
+class AxisProcessMonitor:
+    """Monitors of one axis (settings :class:`~monitor.process_monitor.settings.MonitorSettings`)."""
+
+    def __init__(self, machine: str, axis: str, settings: MonitorSettings, Ts: float,
+                 reference: ReferenceFile | None = None) -> None:
+        self.machine, self.axis, self.s, self.Ts = machine, axis, settings, float(Ts)
+        imp = settings.impulse
+        self._window = max(2, int(round(imp.window_s / self.Ts)))
+        self._impulse = fm.new_impulse_state(self._window, imp.bins)
+        ts = settings.tooth
+        self._teeth = fm.ToothAccumulator(ts.teeth, ts.bins)
+        self._tooth = self._new_detector()
+        self.reference = reference
+        self._env = fm.new_envelope_state()
+        self._persist = max(1, int(round(settings.envelope.persist_s / self.Ts)))
+        self.widen = dict.fromkeys(MONITORS, 1.0)
+        self._theta_last = math.nan  # the angle of the previous block's last sample
+        self._key: tuple | None = None  # (tool, program_line) of the current section
+        self._occurrence: dict[tuple, int] = {}
+        self._t0 = math.nan  # time of the current section's first row
+        self._ref_sec = None
+        self.counts: dict[str, int] = {}
+        self.last: S.AlarmEvent | None = None
+        self.tooth_view: ToothView | None = None
+        self.sections: list[dict] = []  # per finished section: key, occurrence, rows, mean force (N), energy (J)
+        self._acc = [0, 0.0, 0.0]
+        #: revolutions ending before this time are not judged per tooth: an impulse distorts their fit
+        self._tooth_quiet_until = -math.inf
+
+    def _new_detector(self) -> fm.ToothDetector:
+        ts = self.s.tooth
+        return fm.ToothDetector(learn=ts.learn_revolutions, cut_min=ts.cut_min_N, sensitivity=ts.sensitivity,
+                                broken_fraction=ts.broken_fraction, runout_fraction=ts.runout_fraction,
+                                settle=ts.settle_revolutions)
+
+    # ---- operator --------------------------------------------------------------------------------------
+    def acknowledge(self, monitor: str) -> float:
+        """An operator called the last alarm of ``monitor`` a false alarm: widen its limits by ``ack_widen``
+        (logged); returns the new factor."""
+        if monitor not in MONITORS:
+            raise ValueError(f"unknown monitor {monitor!r}; one of {', '.join(MONITORS)}")
+        self.widen[monitor] *= self.s.ack_widen
+        self._tooth.widen = self.widen["tooth"]
+        if monitor == "tooth":
+            self._tooth.latched.clear()
+        log.warning("axis %s/%s: false alarm acknowledged for monitor %s: its limits widened ×%.3g", self.machine,
+                    self.axis, monitor, self.widen[monitor])
+        return self.widen[monitor]
+
+    # ---- rows ------------------------------------------------------------------------------------------
+    def update(self, est, block: S.SampleBlock) -> list[S.AlarmEvent]:
+        """Judge the estimate rows ``est`` (:class:`~monitor.estimator.EstimateRows`) of ``block``."""
+        if est is None or est.force is None or len(est) == 0:
+            return []
+        n = len(est)
+        force = est.force[0]
+        sd = np.sqrt(np.maximum(est.force[1], 0.0))
+        raw = self._raw_force(est)
+        theta = self._angles(est, block)
+        tool = est.context.get("tool")
+        line = est.context.get("program_line")
+        out: list[S.AlarmEvent] = []
+        start = 0
+        while start < n:  # split at section changes (rows of one key together)
+            key = (tool[start] if tool else None, line[start] if line else None)
+            stop = start + 1
+            while stop < n and (tool[stop] if tool else None, line[stop] if line else None) == key:
+                stop += 1
+            if key != self._key or not math.isfinite(self._t0):
+                self._new_section(key, float(est.t[start]))
+            out += self._segment(est, start, stop, force, sd, theta, key, raw)
+            start = stop
+        for a in out:
+            self.counts[a.kind] = self.counts.get(a.kind, 0) + 1
+            self.last = a
+        return out
+
+    def _raw_force(self, est) -> np.ndarray:
+        """The measured force of each row (N): the one-step residual ``v(j−1) = v_m(j) − βᵀz(j−1)`` scaled like
+        the filtered force (``F = −f/b``, the row's own scale ``force/f``). It carries the force of sample
+        j − 1 plus the measurement noise; the tracker's filtered force smooths what its kernel does not
+        expect (a once-per-revolution component under a tooth-period kernel), the per-tooth fit needs it."""
+        from kernels.online import R_F, R_RESID
+
+        f = est.rows[R_F]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = est.force[0] / f
+        good = np.isfinite(scale) & (np.abs(f) > 0)
+        if not good.any():
+            return np.full(len(est), np.nan)
+        return est.rows[R_RESID] * float(np.median(scale[good]))
+
+    def _angles(self, est, block: S.SampleBlock) -> np.ndarray:
+        """Spindle angle (rad) of the sample each row's force describes (row j: sample j − 1)."""
+        n = len(est)
+        if block.spindle_angle is None:
+            self._theta_last = math.nan
+            return np.full(n, np.nan)
+        ang = np.array(block.spindle_angle, dtype=np.float64)
+        first = est.seq - block.seq
+        theta = np.empty(n)
+        theta[0] = ang[first - 1] if first >= 1 else self._theta_last
+        theta[1:] = ang[first:first + n - 1]
+        self._theta_last = float(ang[-1])
+        return theta
+
+    def _new_section(self, key: tuple, t0: float) -> None:
+        self._close_section()
+        self._key, self._t0 = key, t0
+        occ = self._occurrence[key] = self._occurrence.get(key, -1) + 1
+        self._env[:] = 0.0
+        self._ref_sec = None if self.reference is None else self.reference.find(section_key(*key, occ))
+
+    def _close_section(self) -> None:
+        n, fsum, energy = self._acc
+        if self._key is not None and n:
+            self.sections.append({"tool": self._key[0], "program_line": self._key[1],
+                                  "occurrence": self._occurrence.get(self._key, 0), "rows": n,
+                                  "mean_force_N": fsum / n, "energy_J": energy})
+            del self.sections[:-10_000]
+        self._acc = [0, 0.0, 0.0]
+
+    def finish(self) -> list[dict]:
+        """End of the run: close the open section; returns the per-section statistics (wear trend input)."""
+        self._close_section()
+        self._key = None
+        return self.sections
+
+    def _limits(self, key: tuple) -> tuple[float, float]:
+        """(collision floor, overload limit) of a section: the last matching ``[[monitors.section]]`` wins."""
+        imp = self.s.impulse
+        floor, over = imp.limit_N, imp.overload_N if imp.overload_N is not None else math.inf
+        for sec in self.s.section:
+            if (sec.tool is None or sec.tool == key[0]) and (sec.program_line is None or sec.program_line == key[1]):
+                floor = sec.limit_N if sec.limit_N is not None else floor
+                over = sec.overload_N if sec.overload_N is not None else over
+        return floor, over
+
+    def _segment(self, est, a: int, b: int, force, sd, theta, key, raw) -> list[S.AlarmEvent]:
+        f, s, th = force[a:b], sd[a:b], theta[a:b]
+        m = b - a
+        ok = np.isfinite(f)
+        self._acc[0] += int(ok.sum())
+        self._acc[1] += float(f[ok].sum())
+        v = est.v_meas[a:b]
+        good = ok & np.isfinite(v)
+        self._acc[2] += float((f[good] * v[good]).sum() * self.Ts)
+        out: list[S.AlarmEvent] = []
+        kind, value, limit = np.full(m, -1, np.int64), np.zeros(m), np.zeros(m)
+        imp = self.s.impulse
+        if imp.enabled:
+            floor, over = self._limits(key)
+            w = self.widen["impulse"]
+            fi = raw[a:b] if imp.signal == "measured" else f
+            if fm.impulse_step(self._impulse, th, fi, s, imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w,
+                               floor * w, over, imp.persist, imp.alpha, kind, value, limit):
+                for i in np.nonzero(kind >= 0)[0]:
+                    self._tooth_quiet_until = float(est.t[a + i]) + 3 * imp.window_s
+                    out.append(self._event(est, a + i, _IMPULSE_KINDS[kind[i]], "impulse", value[i], limit[i],
+                                           s[i] if kind[i] == 0 else None, "|F − expected|" if kind[i] == 0 else "|F|"))
+        if self.s.tooth.enabled and np.isfinite(th).any():
+            out += self._tooth_rows(est, a, th, raw[a:b], s)
+        ref = self._ref_sec
+        if ref is not None:
+            env = self.s.envelope
+            w = self.widen["envelope"]
+            progress = est.t[a:b] - self._t0
+            if fm.envelope_step(self._env, progress, f, s, ref.mean_array, ref.spread_array, ref.bin_s,
+                                env.sensitivity * w, env.band_min_N * w, env.cut_min_N, self._persist,
+                                kind, value, limit):
+                for i in np.nonzero(kind >= 0)[0]:
+                    out.append(self._event(est, a + i, _ENVELOPE_KINDS[kind[i]], "envelope", value[i], limit[i],
+                                           s[i], f"reference section {ref.key}, {progress[i]:.3f} s in"))
+        out.sort(key=lambda e: e.seq)
+        return out
+
+    def _tooth_rows(self, est, a: int, th, f, s) -> list[S.AlarmEvent]:
+        rows, prof = self._teeth.update(th, f)
+        out = []
+        for r, p in zip(rows, prof):
+            i = a + int(r[0])
+            self.tooth_view = ToothView(float(est.t[i]), p, r[5:], float(r[1]), float(r[2]))
+            quiet = float(est.t[i]) <= self._tooth_quiet_until
+            for kind, excess, lim in self._tooth.update(math.nan if quiet else float(r[1]), float(r[2])):
+                out.append(self._event(est, i, kind, "tooth", excess, lim, self._tooth.sd1,
+                                       f"once-per-revolution amplitude {r[2]:.1f} N against {self._tooth.mean1:.1f} N "
+                                       f"learned, mean force {r[1]:.1f} N; tooth peaks "
+                                       + ", ".join(f"{x:.1f}" for x in r[5:]) + " N"))
+        return out
+
+    def _event(self, est, i: int, kind: str, monitor: str, value: float, limit: float, sigma, detail: str):
+        ctx = {k: est.context[k][i] for k in ("program_line", "tool") if k in est.context}
+        sig = None if sigma is None or not math.isfinite(sigma) else float(sigma)
+        return S.AlarmEvent(machine=self.machine, axis=self.axis, seq=int(est.seq + i), t=float(est.t[i]), kind=kind,
+                            monitor=monitor, value=float(value), limit=float(limit), sigma=sig,
+                            detail=detail[:S.ALARM_DETAIL_CHARS_MAX], **ctx)
+
+    def status(self) -> dict:
+        """Counts per kind and the last alarm (``feedmon status``)."""
+        last = self.last
+        return {"alarms": sum(self.counts.values()), "by_kind": dict(self.counts),
+                "last": None if last is None else {"kind": last.kind, "t": last.t, "seq": last.seq,
+                                                   "value": last.value, "limit": last.limit},
+                "widen": {k: v for k, v in self.widen.items() if v != 1.0}}
+
+
+class ProcessMonitors:
+    """The process monitors of every axis (those whose model scales to newtons), keyed like the axes."""
+
+    def __init__(self, axes: dict, settings: MonitorSettings, references: dict | None = None) -> None:
+        self.settings = settings
+        refs = references or {}
+        self.by_axis = {key: AxisProcessMonitor(key[0], key[1], settings, float(ax.model.Ts), refs.get(key))
+                        for key, ax in axes.items()}
+
+    def update(self, key: tuple[str, str], est, block: S.SampleBlock) -> list[S.AlarmEvent]:
+        mon = self.by_axis.get(key)
+        return [] if mon is None else mon.update(est, block)
+
+
+def build_monitors(axes: dict, settings: MonitorSettings) -> ProcessMonitors | None:
+    """The process monitors of ``axes`` with the reference files of ``settings`` (None: not enabled).
+    ``ValueError`` for a reference file that cannot be read or names no monitored axis."""
+    if settings is None or not settings.enabled:
+        return None
+    from .reference import load_reference
+
+    refs = {}
+    for path in settings.envelope.reference:
+        ref = load_reference(path)
+        key = (ref.machine, ref.axis)
+        if key not in axes:
+            raise ValueError(f"reference file {path} is of axis {ref.machine}/{ref.axis}, which has no model here")
+        if key in refs:
+            raise ValueError(f"reference file {path}: a second reference for axis {ref.machine}/{ref.axis}")
+        refs[key] = ref
+    return ProcessMonitors(axes, settings, refs)

@@ -1,0 +1,83 @@
+"""The ``[monitors]`` table of the ``feedmon run`` configuration: one msgspec Struct per monitor.
+
+Every number has its allowed range in its type (decoding a config file checks it and the error names
+the key and the range); ``sensitivity`` is the ``k`` of the monitor's ``k·σ`` limits (larger: fewer
+alarms). Units: N, s, revolutions, parts.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+
+__all__ = ["ImpulseSettings", "ToothSettings", "EnvelopeSettings", "SectionLimits", "MonitorSettings",
+           "MAX_SECTIONS"]
+
+#: the most ``[[monitors.section]]`` entries a configuration may hold
+MAX_SECTIONS = 1000
+
+_Newton = Annotated[float, msgspec.Meta(ge=0.0, le=1e7)]
+_K = Annotated[float, msgspec.Meta(ge=1.0, le=100.0)]
+
+
+class ImpulseSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Collision (impulse beyond the expected force) and overload (``|F|`` above ``overload_N``)."""
+
+    enabled: bool = True
+    #: the force judged: "filtered" (the tracker's estimate) or "measured" (the one-step residual in N)
+    signal: Literal["filtered", "measured"] = "measured"
+    limit_N: _Newton = 50.0  # floor of the collision limit (N): below it no impulse is a collision
+    ratio: Annotated[float, msgspec.Meta(ge=1.0, le=100.0)] = 1.5  # × running peak |F| (no spindle angle)
+    ratio_angle: Annotated[float, msgspec.Meta(ge=0.1, le=100.0)] = 1.0  # × max |profile| (with spindle angle)
+    sensitivity: _K = 6.0
+    window_s: Annotated[float, msgspec.Meta(ge=0.006, le=10.0)] = 0.1  # running peak and hold-off after an alarm
+    bins: Annotated[int, msgspec.Meta(ge=4, le=720)] = 12  # angle bins of the expected force
+    alpha: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.5  # weight of a new sample in its bin
+    overload_N: Annotated[float, msgspec.Meta(gt=0.0, le=1e7)] | None = None  # None: no overload monitor
+    persist: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 3  # overload: samples in a row
+
+
+class ToothSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Per tooth from the spindle angle: broken/chipped tooth and runout growth."""
+
+    enabled: bool = True
+    teeth: Annotated[int, msgspec.Meta(ge=1, le=32)] = 2
+    bins: Annotated[int, msgspec.Meta(ge=4, le=720)] = 36  # angle profile (dashboard, per-tooth peaks)
+    learn_revolutions: Annotated[int, msgspec.Meta(ge=5, le=100_000)] = 30
+    settle_revolutions: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 25  # of a cut's entry, before learning
+    sensitivity: _K = 6.0
+    cut_min_N: _Newton = 5.0  # a revolution with a mean force below this is no cut
+    broken_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.5  # of the mean cutting force
+    runout_fraction: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.1
+
+
+class EnvelopeSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Against a reference learned from good runs (``feedmon reference learn``): missing cut, over band."""
+
+    reference: Annotated[list[str], msgspec.Meta(max_length=1024)] = []  # reference files (one per axis); none: off
+    sensitivity: _K = 5.0
+    band_min_N: _Newton = 5.0
+    persist_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 0.1
+    cut_min_N: _Newton = 5.0  # a reference bin with a mean below this expects no cut
+
+
+class SectionLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Absolute limits of one tool and/or NC line (``[[monitors.section]]``); a row matches when every given
+    key equals its context."""
+
+    tool: Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)] | None = None
+    program_line: Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)] | None = None
+    limit_N: _Newton | None = None
+    overload_N: Annotated[float, msgspec.Meta(gt=0.0, le=1e7)] | None = None
+
+
+class MonitorSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """The ``[monitors]`` table. ``enabled`` false (the default): no process monitor runs, outputs unchanged."""
+
+    enabled: bool = False
+    impulse: ImpulseSettings = ImpulseSettings()
+    tooth: ToothSettings = ToothSettings()
+    envelope: EnvelopeSettings = EnvelopeSettings()
+    section: Annotated[list[SectionLimits], msgspec.Meta(max_length=MAX_SECTIONS)] = []
+    ack_widen: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 1.5  # each acknowledged false alarm widens ×
