@@ -554,6 +554,8 @@ JSON_SCHEMAS = {SCHEMA_NAMES[t]: json_schema(t) for t in SCHEMA_NAMES}
 ALARM_KINDS = ("collision", "overload", "broken_tooth", "runout", "missing_cut", "over_band", "wear")
 #: bound of :attr:`AlarmEvent.detail`
 ALARM_DETAIL_CHARS_MAX = 500
+#: the process monitors an alarm can be acknowledged for (each widens its own band)
+ALARM_MONITORS = ("impulse", "tooth", "envelope")
 _Newton = Annotated[float, msgspec.Meta(description="N (for 'wear': the unit the detail names)")]
 
 
@@ -596,7 +598,7 @@ def decode_alarm(data: bytes | str, *, what: str = "alarm event") -> AlarmEvent:
     return decode(data, AlarmEvent, what=what)
 
 
-__all__ += ["AlarmEvent", "ALARM_KINDS", "decode_alarm"]
+__all__ += ["AlarmEvent", "ALARM_KINDS", "ALARM_MONITORS", "decode_alarm"]
 SCHEMA_NAMES[AlarmEvent] = "feedmon.AlarmEvent"
 JSON_SCHEMAS[SCHEMA_NAMES[AlarmEvent]] = json_schema(AlarmEvent)
 

@@ -11,9 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from feedio.schema import ALARM_MONITORS as MONITORS
 from feedio.transport import add_zenoh_arguments
-
-MONITORS = ("impulse", "tooth", "envelope")
 
 
 def register(subparsers) -> argparse.ArgumentParser:

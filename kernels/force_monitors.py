@@ -48,7 +48,7 @@ from numba import njit
 from .errors import ParameterError
 
 __all__ = ["IMPULSE_STATE", "new_impulse_state", "impulse_step", "ToothAccumulator", "tooth_fit",
-           "ToothDetector", "envelope_step", "new_envelope_state", "wear_trend", "FIT_TERMS"]
+           "ToothDetector", "envelope_step", "new_envelope_state", "wear_trend"]
 
 # ---- collision / overload (M1, M2) ------------------------------------------------------------------------
 #: layout of the impulse monitor's float state: these slots, then a ring of |F| (``window`` values), then the

@@ -91,6 +91,11 @@ class MillingTool:
     def spindle_hz(self) -> float:
         return self.spindle_rpm / 60.0
 
+    @property
+    def tooth_hz(self) -> float:
+        """Tooth-passing frequency (Hz)."""
+        return self.spindle_hz * self.teeth
+
     def feed_per_tooth(self, feed) -> np.ndarray:
         """Feed per tooth c (mm) from the feed rate (m/s): ``c = feed / (n N_t)``."""
         return np.asarray(feed, dtype=np.float64) * 1e3 / (self.spindle_hz * self.teeth)

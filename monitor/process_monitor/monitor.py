@@ -30,7 +30,7 @@ log = logging.getLogger("monitor.process")
 _IMPULSE_KINDS = ("collision", "overload")
 _ENVELOPE_KINDS = ("missing_cut", "over_band")
 #: monitor names an acknowledgement may name
-MONITORS = ("impulse", "tooth", "envelope")
+MONITORS = S.ALARM_MONITORS
 
 
 class ToothView:
