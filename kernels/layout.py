@@ -16,6 +16,7 @@ of the ``int64`` buffer, read back by the accessors) and the constants passed in
 
 from __future__ import annotations
 
+import ast
 import collections
 import math
 from typing import NamedTuple
@@ -30,6 +31,20 @@ from ._krlst_simd import unowned_array, view
 ROLES = ("layout", "setting", "state", "scratch", "output")
 _KINDS = {"f8": "f", "i8": "i"}
 
+
+def _dimension(expr: str, env: dict) -> int:
+    """The value of a shape expression of a field list (names of dimensions and constants, integers, ``+``,
+    ``-``, ``*``): parsed, never evaluated, so nothing but that arithmetic can run."""
+    def value(node) -> int:
+        if isinstance(node, ast.Constant) and isinstance(node.value, int):
+            return node.value
+        if isinstance(node, ast.Name) and node.id in env:
+            return int(env[node.id])
+        if isinstance(node, ast.BinOp) and isinstance(node.op, (ast.Add, ast.Sub, ast.Mult)):
+            a, b = value(node.left), value(node.right)
+            return a + b if isinstance(node.op, ast.Add) else a - b if isinstance(node.op, ast.Sub) else a * b
+        raise ValueError(f"shape expression {expr!r}: only names of dimensions, integers, +, - and * are allowed")
+    return value(ast.parse(expr, mode="eval").body)
 
 class Field(NamedTuple):
     """One field: ``dtype`` ``"f8"`` (the float buffer) or ``"i8"`` (the integer buffer); ``shape`` a
@@ -76,8 +91,7 @@ class Layout:
 
     def shape(self, field: Field, dims: dict) -> tuple[int, ...]:
         env = {**self.consts, **dims}
-        return tuple(int(s) if isinstance(s, (int, np.integer)) else int(eval(s, {"__builtins__": {}}, env))
-                     for s in field.shape)
+        return tuple(int(s) if isinstance(s, (int, np.integer)) else _dimension(s, env) for s in field.shape)
 
     def _pad(self, n: int, kind: str) -> int:
         a = self.align if kind == "f" else 1
