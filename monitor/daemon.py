@@ -437,15 +437,21 @@ class Monitor:
             self.pipeline.counters["ack_refused"] += 1
             self.pipeline.burst("ack", "refusing an alarm acknowledgement on %s: %s", str(sample.key_expr), str(exc))
 
+    def _put(self, pub, message, what: str, ax: AxisRuntime) -> None:
+        """Publish one message of an axis; a failure (the session closing …) is counted and logged, never raised."""
+        try:
+            pub.put(S.encode(message))
+        except Exception as exc:  # noqa: BLE001 - session closing, etc.
+            self.publish_errors += 1
+            self.pipeline.burst(f"publish_{what}:{ax.status.name}", f"publishing the {what} of %s failed: %s",
+                                ax.status.name, str(exc))
+
     def _publish_alarms(self, ax: AxisRuntime, alarms: list, rx_ns: int) -> None:
+        """Process alarms of an axis: on Zenoh (``<prefix>/<machine>/<axis>/alarm``) and to every sink that
+        takes them (MCAP channel, Rerun event log)."""
         pub = self._alarm_pubs.get(ax.key)
         for a in alarms:
-            try:
-                pub.put(S.encode(a))
-            except Exception as exc:  # noqa: BLE001 - session closing, etc.
-                self.publish_errors += 1
-                self.pipeline.burst(f"publish_alarm:{ax.status.name}", "publishing an alarm of %s failed: %s",
-                                    ax.status.name, str(exc))
+            self._put(pub, a, "alarm", ax)
             for offer in self._alarm_offers:
                 offer(a, rx_ns)
 
@@ -454,12 +460,7 @@ class Monitor:
         that takes them (MCAP channel, Rerun event log)."""
         pub = self._health_pubs.get(ax.key)
         for h in reports:
-            try:
-                pub.put(S.encode(h))
-            except Exception as exc:  # noqa: BLE001 - session closing, etc.
-                self.publish_errors += 1
-                self.pipeline.burst(f"publish_health:{ax.status.name}", "publishing the health of %s failed: %s",
-                                    ax.status.name, str(exc))
+            self._put(pub, h, "health", ax)
             for offer in self._health_offers:
                 offer(h.machine, h.axis, h)
 
