@@ -119,15 +119,20 @@ def leave_idle(pid: int) -> int:
     return moved
 
 
+def _cpu_seconds(pid: int) -> float:
+    """CPU seconds process ``pid`` has used, all its threads (``utime + stime`` of ``/proc/<pid>/stat``)."""
+    with open(f"/proc/{pid}/stat", "rb") as fh:
+        stat = fh.read()
+    fields = stat[stat.rindex(b")") + 2:].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_state(pid: int) -> tuple[float, bool] | None:
     """``(CPU seconds process pid has used, whether one of its threads is runnable)`` from ``/proc``;
     ``None`` where that cannot be read (not Linux, the process gone). A stopped (``T``), blocked
     (``D``) or sleeping (``S``) process is not runnable; a starved one is (``R``), most of the time."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as fh:
-            stat = fh.read()
-        fields = stat[stat.rindex(b")") + 2:].split()
-        cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, all threads
+        cpu = _cpu_seconds(pid)
         for tid in os.listdir(f"/proc/{pid}/task"):
             with open(f"/proc/{pid}/task/{tid}/stat", "rb") as fh:
                 task = fh.read()
@@ -192,9 +197,11 @@ class _Gen:
         self.on_time = (self.last_msg, 0.0)  # (time.monotonic(), its CPU seconds) when it was last on time
 
     def mark_on_time(self, now: float) -> None:
-        state = cpu_state(self.proc.pid)
-        if state is not None:
-            self.on_time = (now, state[0])
+        """Remember its CPU time now, while it is on time (every tick: one read of its ``stat``, not of its threads)."""
+        try:
+            self.on_time = (now, _cpu_seconds(self.proc.pid))
+        except (OSError, ValueError, IndexError):
+            pass
 
     def starved(self, now: float) -> str | None:
         """Why this child counts as starved of CPU rather than stalled (None: it does not): a thread of it
