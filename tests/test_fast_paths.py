@@ -451,8 +451,10 @@ def test_sink_processes_run_below_the_monitor(tmp_path, priority):
     try:
         for sink in sinks:
             pid = sink._proc.pid
-            want = os.SCHED_IDLE if priority == "idle" else os.SCHED_OTHER
-            assert os.sched_getscheduler(pid) == want, (sink.name, os.sched_getscheduler(pid))
+            policy = os.sched_getscheduler(pid)
+            # (a child late at its start on a loaded host is moved out of the idle class: counted first)
+            want = os.SCHED_IDLE if priority == "idle" and sink.idle_left == 0 else os.SCHED_OTHER
+            assert policy == want, (sink.name, policy, sink.idle_left)
             assert os.getpriority(os.PRIO_PROCESS, pid) >= min(19, base + 10)
         for sink in sinks:  # what finishing does first: out of the idle class, so a busy machine cannot starve it
             pid = sink._proc.pid

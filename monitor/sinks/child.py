@@ -244,6 +244,7 @@ class ChildProcessSink(QueuedSink):
                              f"{stall_seconds!r}")
         self.start_timeout, self.stall_seconds = float(start_timeout), float(stall_seconds)
         self.restarts = 0
+        self.idle_left = 0  # times a late child was moved out of SCHED_IDLE (leave_idle)
         self.incomplete_children: list[str] = []  # files of children killed or dead (end on a complete record)
         self._past: Counter[str] = Counter()  # counters of the children that ended
         self._past_lists: dict[str, list] = {k: [] for k in self.list_fields}
@@ -384,6 +385,7 @@ class ChildProcessSink(QueuedSink):
         """The child is late (``why``): ``degraded``, and out of ``SCHED_IDLE`` (starved of CPU? it gets its
         share before it is taken for stalled)."""
         if self.degraded is None:
+            self.idle_left += 1  # (counted before the move: who sees the child moved sees the count)
             leave_idle(gen.proc.pid)
         self.set_degraded(f"{self._what} is late: {why}")
 
