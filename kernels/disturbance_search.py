@@ -63,6 +63,9 @@ MEMORY_RANGE = (50.0, 1e5)         # 1/(1 − λ), samples
 #: σ1 (s) and σ2 of the spindle-phase kernel when the stream brings spindle data and the model file's
 #: tracker was not periodic (thesis Table 4.5's σ1; σ2 for the few harmonics of a cutting force)
 SPINDLE_START = {"sigma1": 1.2, "sigma2": 0.5}
+#: a searched disturbance model whose γ is this many times the model file tracker's shows a disturbance the
+#: file's tracker takes for noise: online β learns with it (:func:`for_beta`)
+STRONG_GAMMA = 10.0
 
 
 @dataclass(frozen=True)
@@ -127,15 +130,27 @@ class TrackerChoice:
 
 
 def for_beta(choice: TrackerChoice, base: TrackerChoice) -> TrackerChoice:
-    """The tracker online β learns with while ``choice`` publishes the disturbance: ``base``, the model
-    file's tracker, whose hyperparameters identification weighed against the drive's regressors (a
-    flexible kernel tuned for prediction takes up the friction and damping β should see: on the EMPS drive
-    the online Coulomb friction fell by half) — except that a process the samples announce, the spindle,
-    brings its phase kernel, at ``base``'s σ1, γ and λ (σ2 too when ``base`` has one)."""
-    if choice.kind != "spindle" or base.kind == "spindle" and choice.same_structure(base):
+    """The tracker online β learns with while ``choice`` publishes the disturbance.
+
+    ``base``, the model file's tracker, whose hyperparameters identification weighed against the drive's
+    regressors (a flexible kernel tuned for prediction can take up the friction and damping β should see),
+    except where the process brings what ``base`` cannot follow:
+
+    * a spindle in the samples: its phase kernel, at ``base``'s σ1, γ and λ (σ2 too when ``base`` has one);
+    * a disturbance ``base`` takes for noise — ``choice`` of another structure whose signal-to-noise ratio
+      γ is :data:`STRONG_GAMMA` times ``base``'s or more: ``choice`` itself. In closed loop the command
+      answers the disturbance, so a disturbance left in β's noise is correlated with the command and
+      biases β (the EMPS drive's pulses made its inertia +130 %); the slow columns a flexible kernel
+      explains are then reported as not determined rather than learned wrong.
+    """
+    if choice.kind == "spindle":
+        if base.kind == "spindle" and choice.same_structure(base):
+            return base
+        sigma2 = base.sigma2 if base.kind != "time" else choice.sigma2
+        return replace(choice, sigma1=base.sigma1, sigma2=sigma2, gamma=base.gamma, forgetting=base.forgetting)
+    if choice.gamma < STRONG_GAMMA * base.gamma or choice.kind == "periodic" and choice.same_structure(base):
         return base
-    sigma2 = base.sigma2 if base.kind != "time" else choice.sigma2
-    return replace(choice, sigma1=base.sigma1, sigma2=sigma2, gamma=base.gamma, forgetting=base.forgetting)
+    return choice
 
 
 def _clip(x: float, lo_hi: tuple[float, float]) -> float:

@@ -139,13 +139,21 @@ def test_the_replay_budget_bounds_the_work():
     assert calls, "nothing was weighed"
 
 
-def test_online_beta_learns_with_the_files_tracker_and_the_spindle_phase_the_samples_announce():
-    """β keeps the file's tracker whatever publishes, but a spindle-phase kernel (at the file's σ1, γ, λ)."""
+def test_online_beta_learns_with_the_files_tracker_unless_the_process_brings_what_it_cannot_follow():
+    """β keeps the file's tracker for a weak searched model or the file's own structure; a spindle brings its
+    phase kernel (at the file's σ1, γ, λ); a strong disturbance of another structure (γ ≥ STRONG_GAMMA × the
+    file's), which the file's tracker would leave in β's noise, brings the searched model itself."""
     base = ds.TrackerChoice("time", sigma1=1.2, gamma=5.85, forgetting=0.998)
     short = ds.TrackerChoice("time", sigma1=0.05, gamma=1e3, forgetting=0.999)
     periodic = ds.TrackerChoice("periodic", sigma1=2.0, sigma2=0.5, period=1.0, gamma=50.0, forgetting=0.998)
     spindle = ds.TrackerChoice("spindle", sigma1=0.3, sigma2=0.25, gamma=900.0, forgetting=0.999, teeth=2)
-    assert ds.for_beta(short, base) == base and ds.for_beta(periodic, base) == base
+    weak = replace(short, gamma=ds.STRONG_GAMMA * base.gamma * 0.99)
+    assert ds.for_beta(weak, base) == base and ds.for_beta(replace(periodic, gamma=10.0), base) == base
+    strong = replace(periodic, gamma=100.0)
+    assert ds.for_beta(short, base) == short and ds.for_beta(strong, base) == strong
     b = ds.for_beta(spindle, base)
     assert (b.kind, b.teeth, b.sigma2) == ("spindle", 2, 0.25) and (b.sigma1, b.gamma, b.forgetting) == (1.2, 5.85, 0.998)
-    assert ds.for_beta(replace(periodic, gamma=5e3, sigma1=9.0, period=0.8), periodic) == periodic
+    # the file's own period, re-tuned by the search: the file's hyperparameters
+    assert ds.for_beta(replace(periodic, gamma=5e3, sigma1=9.0), periodic) == periodic
+    # another period, strong: the file's periodic tracker cannot follow it
+    assert ds.for_beta(replace(periodic, gamma=5e3, sigma1=9.0, period=0.8), periodic).period == 0.8
