@@ -80,8 +80,24 @@ SAMPLE_LIMITS = PhysicalLimits()
 LIMITS = {"v": SAMPLE_LIMITS.v_max, "u": SAMPLE_LIMITS.u_max, "t": SAMPLE_LIMITS.t_max}
 
 
-#: largest config file (``feedmon run --config``, the LinuxCNC bridge's), bytes
+#: largest config file (``feedmon run --config``, the LinuxCNC bridge's, a scenario's ``--config``) and
+#: model file, bytes
 MAX_CONFIG_BYTES = 1 << 20
+
+
+class FileTooLarge(ValueError):
+    """A file read with :func:`read_capped` holds more than its limit."""
+
+
+def read_capped(path, limit: int, what: str) -> bytes:
+    """The bytes of ``path``, at most ``limit``: reads ``limit + 1`` bytes, never the whole of a larger file
+    (its size on disk is not trusted: a FIFO or a device has none). :class:`FileTooLarge` names the file,
+    what it should be and the limit; ``OSError`` (``FileNotFoundError``…) as ``open`` raises it."""
+    with open(path, "rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise FileTooLarge(f"{path}: more than {limit} bytes is not a {what} (limit {limit} bytes)")
+    return data
 
 
 # ---- resource limits (configurable) ---------------------------------------------------------

@@ -29,7 +29,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from feedio.limits import MAX_CONFIG_BYTES, InputLimits, explain
+from feedio.limits import MAX_CONFIG_BYTES, InputLimits, explain, read_capped
 from monitor import online_settings as OS
 from monitor.input_health import InputHealthSettings
 from monitor.process_monitor.settings import MonitorSettings
@@ -100,10 +100,7 @@ def load_config_file(path: str | Path) -> ConfigFile:
     """
     path = Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_CONFIG_BYTES:
-            raise ValueError(f"config file {path} is {size} bytes; a config file has at most {MAX_CONFIG_BYTES}")
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        doc = tomllib.loads(read_capped(path, MAX_CONFIG_BYTES, "config file").decode("utf-8"))
     except FileNotFoundError:
         raise FileNotFoundError(f"config file {str(path)!r} does not exist") from None
     except UnicodeDecodeError as exc:

@@ -57,7 +57,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from feedio.digest import file_sha256
-from feedio.limits import bounded_float, bounded_int, error_path
+from feedio.limits import MAX_CONFIG_BYTES, FileTooLarge, bounded_float, bounded_int, error_path, read_capped
 from kernels.covariance import Kernel
 from kernels.feed_drive import FORMS, beta_names, validity_problems
 
@@ -418,13 +418,13 @@ def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     """
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        raw = read_capped(path, MAX_CONFIG_BYTES, "model file")
+    except FileTooLarge as exc:
+        raise ModelFileError(str(exc)) from None
     except FileNotFoundError:
         raise ModelFileError(f"{path}: model file not found; create one with 'feedmon identify TRIAL.mcap -o {path}'") from None
     except OSError as exc:
         raise ModelFileError(f"{path}: cannot read the model file ({exc.strerror or exc})") from None
-    if len(raw) > 1_000_000:
-        raise ModelFileError(f"{path}: {len(raw)} bytes is not a model file (limit 1 MB)")
     try:
         doc = tomllib.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

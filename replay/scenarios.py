@@ -67,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-from feedio.limits import SAMPLE_LIMITS, SPINDLE_RPM_MAX
+from feedio.limits import MAX_CONFIG_BYTES, SAMPLE_LIMITS, SPINDLE_RPM_MAX, read_capped
 from feedio.mcapio import MAX_TRIAL_SAMPLES
 
 _V_MAX = SAMPLE_LIMITS.v_max  # m/s
@@ -175,10 +175,10 @@ def load_scenario(name: str, config: str | Path | dict | None = None, *, duratio
         else:
             path = Path(config)
             try:
-                override = tomllib.loads(path.read_text(encoding="utf-8"))
+                override = tomllib.loads(read_capped(path, MAX_CONFIG_BYTES, "scenario config").decode("utf-8"))
             except OSError as exc:
                 raise OSError(f"cannot read scenario config {path}: {exc.strerror or exc}") from exc
-            except tomllib.TOMLDecodeError as exc:
+            except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
                 raise ValueError(f"scenario config {path} is not valid TOML: {exc}") from None
             source = str(path)
         override = dict(override)

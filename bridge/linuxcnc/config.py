@@ -34,7 +34,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from feedio.limits import MAX_CONFIG_BYTES, NAME_PATTERN, explain
+from feedio.limits import MAX_CONFIG_BYTES, NAME_PATTERN, FileTooLarge, explain, read_capped
 from feedio.schema import check_name
 
 __all__ = ["AxisConfig", "Publish", "HalSide", "BridgeConfig", "load_config", "PIN_FIELDS", "LINK_PINS",
@@ -174,11 +174,11 @@ def load_config(path: str | Path) -> BridgeConfig:
     ``FileNotFoundError`` when it does not exist."""
     path = Path(path)
     try:
-        if path.stat().st_size > MAX_CONFIG_BYTES:
-            raise ConfigError(f"config file {path} is larger than {MAX_CONFIG_BYTES} bytes")
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        doc = tomllib.loads(read_capped(path, MAX_CONFIG_BYTES, "bridge config file").decode("utf-8"))
     except FileNotFoundError:
         raise FileNotFoundError(f"bridge config file {str(path)!r} does not exist") from None
+    except FileTooLarge as exc:
+        raise ConfigError(str(exc)) from None
     except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
         raise ConfigError(f"config file {path}: not valid UTF-8 TOML ({exc})") from None
     try:

@@ -22,6 +22,7 @@ import msgspec
 import numpy as np
 
 from feedio import schema as S
+from feedio.limits import read_capped
 
 __all__ = ["ReferenceFile", "SectionReference", "learn_reference", "load_reference", "save_reference",
            "section_key", "sections_of", "MAX_REFERENCE_BYTES", "MAX_BINS"]
@@ -176,10 +177,8 @@ def save_reference(ref: ReferenceFile, path: str | os.PathLike) -> None:
 def load_reference(path: str | os.PathLike) -> ReferenceFile:
     """Read a reference file; ``ValueError`` naming the file and what is wrong."""
     path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_REFERENCE_BYTES:
-        raise ValueError(f"reference file {path} is {size} bytes; at most {MAX_REFERENCE_BYTES}")
+    raw = read_capped(path, MAX_REFERENCE_BYTES, "reference file")
     try:
-        return msgspec.json.decode(path.read_bytes(), type=ReferenceFile)
+        return msgspec.json.decode(raw, type=ReferenceFile)
     except (msgspec.ValidationError, msgspec.DecodeError) as exc:
         raise ValueError(f"reference file {path}: {exc}") from None
