@@ -15,10 +15,10 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [physical]        inertia (kg), damping (N·s/m), coulomb (symmetric), coulomb_pos/neg (N),
                       offset (N) — or the ``…_over_gain`` ratios when K is unknown
     [physical_se]     their standard errors (same keys)
-    [tracker]         kernel, sigma1 (s), sigma2, period (s) | lengthscale (s), gamma, forgetting,
-                      budget, jitter — the online KRLS-T (method §6); kernel = "spindle" with
-                      per, teeth, spindle_rpm instead of period: the spindle-phase kernel
-                      (:mod:`monitor.online_settings`)
+    [tracker]         kernel and exactly that kernel's keys (:data:`monitor.online_settings.TrackerKernel`:
+                      sigma1 (s), sigma2, period (s) | lengthscale (s) | for kernel = "spindle", the
+                      spindle-phase kernel, sigma1, sigma2, per, teeth, spindle_rpm), then gamma,
+                      forgetting, budget, jitter, search — the online KRLS-T (method §6)
     [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
     [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
@@ -35,7 +35,8 @@ Validation (:func:`load_model`) is one mechanism: the file is decoded into :clas
 a tree of ``msgspec`` Structs whose every number carries its documented range
 (``msgspec.Meta``); a wrong type, a value out of range, ``nan``/``inf`` (outside every range), an
 unknown key or a missing one is a :class:`ModelFileError` naming the file, the key and the allowed
-range. ``format_version`` must be the integer 1 or 2 (``true`` or ``1.0`` are refused). Then the
+range; ``[tracker]`` is a tagged union on ``kernel`` (a key of another kernel is refused, naming the keys
+the file's kernel takes). ``format_version`` must be the integer 1 or 2 (``true`` or ``1.0`` are refused). Then the
 model itself must be one that can be right (:func:`kernels.feed_drive.validity_problems`: stable
 pole, positive input gain, no Coulomb friction negative beyond its uncertainty), and ``beta`` must
 match ``beta_names`` and the form. The ranges (generated from the Structs by :func:`ranges_table`)

@@ -43,8 +43,9 @@ from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "TrackerKernel", "TRACKER_KERNELS",
            "SquaredExponentialKernel", "LocallyPeriodicKernel", "ZeroMeanLocallyPeriodicKernel", "PeriodicKernel",
-           "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
-           "TrackerOverride", "AdaptationOverride", "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
+           "SpindleKernel", "Adaptation", "Health", "OnlineSettings", "TrackerOverride", "AdaptationOverride",
+           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides",
+           "MODES"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,

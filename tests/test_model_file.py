@@ -212,6 +212,20 @@ def test_a_dict_is_no_tracker_kernel():
         TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 0.02})
 
 
+def test_run_overrides_of_sigma_go_into_the_kernels_that_have_them():
+    from monitor.online_settings import TrackerOverride, apply_overrides
+
+    override = TrackerOverride(sigma1=0.5, sigma2=0.3, gamma=9.0)
+    lp = _model()
+    out = apply_overrides(lp, tracker=override)
+    assert out.tracker.kernel == LocallyPeriodicKernel(sigma1=0.5, sigma2=0.3, period=1 / 55) and out.tracker.gamma == 9.0
+    assert lp.tracker.kernel == KERNELS[1] and lp.tracker.gamma != 9.0  # the model itself unchanged
+    se = apply_overrides(_model(tracker=TrackerConfig(kernel=KERNELS[0])), tracker=override)
+    assert se.tracker.kernel == KERNELS[0] and se.tracker.gamma == 9.0  # σ1, σ2: not this kernel's
+    periodic = apply_overrides(_model(tracker=TrackerConfig(kernel=KERNELS[3])), tracker=override)
+    assert periodic.tracker.kernel == PeriodicKernel(sigma2=0.3, period=0.02)
+
+
 @pytest.mark.parametrize("kernel, mutate, key, problem", [
     # a key of another kernel: the message says which keys the file's kernel takes
     (0, lambda t: t.replace("lengthscale = 0.8", "lengthscale = 0.8\nperiod = 0.02"), "tracker.period",

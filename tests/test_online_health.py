@@ -94,7 +94,7 @@ def test_a_trial_with_spindle_data_gets_the_spindle_phase_kernel(mill):
     assert k.spindle_rpm == pytest.approx(3000.0, rel=1e-6)
     assert m.tracker.forgetting == 0.998 and m.tracker.budget == 100
     ident = m.identification
-    assert ident["tuned"] and k["sigma1"] == pytest.approx(ident["sigma1"]) and m.tracker.gamma == pytest.approx(ident["gamma"])
+    assert ident["tuned"] and k.sigma1 == pytest.approx(ident["sigma1"]) and m.tracker.gamma == pytest.approx(ident["gamma"])
 
 
 @pytest.fixture(scope="module")
