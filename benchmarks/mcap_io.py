@@ -48,6 +48,7 @@ def main() -> None:
     from monitor.axes import load_axes
     from monitor.model_file import AxisModel, TrackerConfig, save_model
     from monitor.offline import run_offline
+    from monitor.online_settings import LocallyPeriodicKernel
     from replay.player import _pass_stream, scan_trial
     from replay.recover import recover
     from replay.simulator import simulate_scenario, write_trial
@@ -161,8 +162,8 @@ def main() -> None:
         m = read_trial(trial).meta
         save_model(AxisModel(machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta),
                              omega=m.truth.omega, coulomb=m.truth.coulomb, loop_gain=m.loop_gain, method="truth",
-                             tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495,
-                                                           "period": 0.02}, gamma=5.85, forgetting=0.996, budget=100),
+                             tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=0.02),
+                                                   gamma=5.85, forgetting=0.996, budget=100),
                              provenance={"source": "benchmark"}), model)
         run_offline(trial, d / "warm.mcap", load_axes([model]))
         rates = []

@@ -44,13 +44,13 @@ sys.path.insert(0, {root!r})
 from feedio import schema as S
 from feedio.mcapio import read_trial
 from monitor.model_file import AxisModel, TrackerConfig
+from monitor.online_settings import LocallyPeriodicKernel
 from monitor.estimator import AxisEstimator
 tr = read_trial({trial!r})
 m = tr.meta
 model = AxisModel(machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
                   coulomb=m.truth.coulomb, loop_gain=m.loop_gain,
-                  tracker=TrackerConfig(kernel={{"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495,
-                                                 "period": 1 / 55}}, gamma=5.85, forgetting=0.998, budget=100))
+                  tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55), gamma=5.85, forgetting=0.998, budget=100))
 mode = {mode!r}
 if mode is not None:
     import msgspec

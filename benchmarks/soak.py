@@ -161,6 +161,7 @@ class DriveStream:
 def model_file(path: Path) -> Path:
     """The axis model file with the stream's true β and the thesis tracker (Table 4.5)."""
     from monitor.model_file import AxisModel, TrackerConfig, save_model
+    from monitor.online_settings import LocallyPeriodicKernel
 
     d = DRIVE
     beta = physical_to_beta("velocity-loop", 1.0 / RATE, d["inertia"], d["damping"], gain=d["loop_gain"],
@@ -168,7 +169,7 @@ def model_file(path: Path) -> Path:
     save_model(AxisModel(
         machine=MACHINE, axis=AXIS, form="velocity-loop", Ts=1.0 / RATE, beta=[float(b) for b in beta],
         omega=d["omega"], coulomb=True, loop_gain=d["loop_gain"], method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55},
+        tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55),
                               gamma=5.85, forgetting=0.996, budget=100),
         provenance={"source": "benchmarks/soak.py (true beta)"},
     ), path)

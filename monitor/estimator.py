@@ -78,7 +78,7 @@ from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
 from .model_file import AxisModel
-from .online_settings import OnlineSettings, choice_of, spindle_of
+from .online_settings import OnlineSettings, SpindleKernel, choice_of
 from .state_check import StateError, check_snapshot
 
 __all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
@@ -211,7 +211,8 @@ class AxisEstimator:
                              f"{len(names)} names {names}; the online residual uses e, v"
                              f"{', −σ_p, −σ_n' if model.coulomb else ''}{', one' if intercept else ''}")
         self.settings = getattr(model, "online", None) or OnlineSettings()
-        self.spindle = spindle_of(model.tracker.kernel)
+        kernel = model.tracker.kernel
+        self.spindle = kernel if isinstance(kernel, SpindleKernel) else None
         #: samples from a command to its force (``[model] delay``): the first regressor holds the command
         #: that many samples back (:meth:`_delayed_command`)
         self.delay = int(getattr(model, "delay", 0) or 0)

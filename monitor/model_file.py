@@ -15,10 +15,10 @@ Layout (version 2; version 1 files — without the uncertainty tables — are st
     [physical]        inertia (kg), damping (N·s/m), coulomb (symmetric), coulomb_pos/neg (N),
                       offset (N) — or the ``…_over_gain`` ratios when K is unknown
     [physical_se]     their standard errors (same keys)
-    [tracker]         kernel, sigma1 (s), sigma2, period (s) | lengthscale (s), gamma, forgetting,
-                      budget, jitter — the online KRLS-T (method §6); kernel = "spindle" with
-                      per, teeth, spindle_rpm instead of period: the spindle-phase kernel
-                      (:mod:`monitor.online_settings`)
+    [tracker]         kernel and exactly that kernel's keys (:data:`monitor.online_settings.TrackerKernel`:
+                      sigma1 (s), sigma2, period (s) | lengthscale (s) | for kernel = "spindle", the
+                      spindle-phase kernel, sigma1, sigma2, per, teeth, spindle_rpm), then gamma,
+                      forgetting, budget, jitter, search — the online KRLS-T (method §6)
     [adaptation]      online β (optional; :class:`monitor.online_settings.Adaptation`)
     [health]          health thresholds (optional; :class:`monitor.online_settings.Health`)
     [identification]  chosen method, kernel, period, period_source, log_evidence and the
@@ -35,7 +35,8 @@ Validation (:func:`load_model`) is one mechanism: the file is decoded into :clas
 a tree of ``msgspec`` Structs whose every number carries its documented range
 (``msgspec.Meta``); a wrong type, a value out of range, ``nan``/``inf`` (outside every range), an
 unknown key or a missing one is a :class:`ModelFileError` naming the file, the key and the allowed
-range. ``format_version`` must be the integer 1 or 2 (``true`` or ``1.0`` are refused). Then the
+range; ``[tracker]`` is a tagged union on ``kernel`` (a key of another kernel is refused, naming the keys
+the file's kernel takes). ``format_version`` must be the integer 1 or 2 (``true`` or ``1.0`` are refused). Then the
 model itself must be one that can be right (:func:`kernels.feed_drive.validity_problems`: stable
 pole, positive input gain, no Coulomb friction negative beyond its uncertainty), and ``beta`` must
 match ``beta_names`` and the form. The ranges (generated from the Structs by :func:`ranges_table`)
@@ -47,7 +48,9 @@ limit) — and refuse the absurd:
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -152,20 +155,31 @@ class _PhysicalSeT(msgspec.Struct, **_Opts):
     offset_over_gain: _Se | None = None
 
 
-class _TrackerT(msgspec.Struct, **_Opts):
-    kernel: Literal["locally_periodic", "locally_periodic_zero_mean", "periodic", "squared_exponential", "spindle"]
+class _TrackerCommonT(msgspec.Struct, **_Opts):
+    """The ``[tracker]`` keys of every kernel (λ, M, ε_j, γ, search)."""
+
     gamma: bounded_float(1e-4, 1e8)
-    sigma1: bounded_float(1e-6, 1e6, "s") | None = None
-    sigma2: bounded_float(1e-3, 1e3) | None = None
-    period: bounded_float(1e-6, 1e6, "s") | None = None
-    lengthscale: bounded_float(1e-6, 1e6, "s") | None = None
-    per: Literal["revolution", "tooth"] | None = None  # spindle kernel
-    teeth: bounded_int(1, 1000, "cutting edges (spindle kernel)") | None = None
-    spindle_rpm: bounded_float(0.0, OS.SPINDLE_RPM_MAX, "rpm, nominal (spindle kernel)", open_low=True) | None = None
     forgetting: bounded_float(0.5, 1.0) = OS.TRACKER_DEFAULTS["forgetting"]
     budget: bounded_int(*OS.BUDGET_RANGE, "dictionary elements") = OS.TRACKER_DEFAULTS["budget"]
     jitter: bounded_float(*OS.JITTER_RANGE) = OS.TRACKER_DEFAULTS["jitter"]
     search: bool = True
+
+
+def _field_specs(struct: type) -> list[tuple]:
+    return [(f.name, f.type) if f.required else (f.name, f.type, f.default) for f in msgspec.structs.fields(struct)]
+
+
+def _tracker_table(kernel: type) -> type:
+    """The ``[tracker]`` table of one kernel: its keys (a :data:`monitor.online_settings.TrackerKernel`
+    member, tagged by ``kernel``) and the common ones (:class:`_TrackerCommonT`)."""
+    tag = kernel.__struct_config__.tag
+    return msgspec.defstruct(f"_Tracker_{tag}", _field_specs(kernel) + _field_specs(_TrackerCommonT),
+                             tag_field="kernel", tag=tag, module=__name__, **_Opts)
+
+
+#: the ``[tracker]`` table of each ``kernel`` string
+_TRACKER_TABLES = {tag: _tracker_table(k) for tag, k in OS.TRACKER_KERNELS.items()}
+_TrackerT = functools.reduce(operator.or_, _TRACKER_TABLES.values())
 
 
 class _CandidateT(msgspec.Struct, **_Opts):
@@ -257,6 +271,24 @@ def _describe(t) -> str:
     return type(t).__name__
 
 
+def _union_fields(prefix: str, members: list[type]) -> list[tuple[str, str]]:
+    """Rows of a tagged union of Structs: the tag's values, then each key with its range and, unless
+    every member has it, the tags that take it (keys of some members first)."""
+    tag_field = members[0].__struct_config__.tag_field
+    tags = [m.__struct_config__.tag for m in members]
+    seen: dict[str, dict[str, list[str]]] = {}  # key → range → tags
+    for m, tag in zip(members, tags, strict=True):
+        for key, allowed in _fields(prefix, m):
+            seen.setdefault(key, {}).setdefault(allowed, []).append(tag)
+    rows = [(f"{prefix}{tag_field}", " / ".join(map(repr, tags)))]
+    for every in (False, True):
+        for key, ranges in seen.items():
+            if (sum(map(len, ranges.values())) == len(tags)) == every:
+                rows.append((key, "; ".join(allowed if every and len(ranges) == 1 else
+                                            f"{allowed} ({tag_field}: {', '.join(ts)})" for allowed, ts in ranges.items())))
+    return rows
+
+
 def _fields(prefix: str, struct_type) -> list[tuple[str, str]]:
     from msgspec import inspect as mi
 
@@ -265,6 +297,9 @@ def _fields(prefix: str, struct_type) -> list[tuple[str, str]]:
     for f in info.fields:
         key = f"{prefix}{f.name}"
         t = f.type
+        if isinstance(t, mi.UnionType) and all(isinstance(x, mi.StructType) for x in t.types):
+            rows += _union_fields(f"{key}.", [x.cls for x in t.types])
+            continue
         inner = t.types[0] if isinstance(t, mi.UnionType) and isinstance(t.types[0], mi.StructType) else t
         if isinstance(inner, mi.StructType):
             rows += _fields(f"{key}.", inner.cls)
@@ -282,6 +317,8 @@ def ranges_table() -> str:
 
 
 _RANGES = dict(_fields("", ModelFileV2))
+#: the ranges of each kernel's ``[tracker]`` keys (error messages name the range of the file's kernel)
+_TRACKER_RANGES = {tag: dict(_fields("tracker.", t)) for tag, t in _TRACKER_TABLES.items()}
 __doc__ = (__doc__ or "") + ranges_table() + "\n"
 
 
@@ -292,8 +329,9 @@ __doc__ = (__doc__ or "") + ranges_table() + "\n"
 class TrackerConfig:
     """KRLS-T hyperparameters for the online tracker (method §6), defaults after thesis Table 4.5."""
 
-    kernel: dict = field(default_factory=lambda: {"type": "locally_periodic", "sigma1": OS.TRACKER_DEFAULTS["sigma1"],
-                                                  "sigma2": OS.TRACKER_DEFAULTS["sigma2"], "period": 1 / 55})
+    #: the kernel and its hyperparameters, as the file's ``[tracker]`` holds them
+    kernel: OS.TrackerKernel = field(default_factory=lambda: OS.LocallyPeriodicKernel(
+        sigma1=OS.TRACKER_DEFAULTS["sigma1"], sigma2=OS.TRACKER_DEFAULTS["sigma2"], period=1 / 55))
     gamma: float = OS.TRACKER_DEFAULTS["gamma"]
     forgetting: float = OS.TRACKER_DEFAULTS["forgetting"]
     budget: int = OS.TRACKER_DEFAULTS["budget"]
@@ -302,8 +340,14 @@ class TrackerConfig:
     #: period, σ1, σ2, γ, λ; :mod:`kernels.disturbance_search`), starting from the one above
     search: bool = True
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.kernel, OS.TrackerKernel):
+            raise TypeError(f"TrackerConfig.kernel must be one of {', '.join(OS.TRACKER_KERNELS)} kernels "
+                            f"(monitor.online_settings.TrackerKernel), got {type(self.kernel).__name__}")
+
     def build_kernel(self) -> Kernel:
-        return OS.build_tracker_kernel(self.kernel)
+        """The kernel the online tracker runs (a time kernel or the spindle-phase kernel)."""
+        return self.kernel.build()
 
 
 def _layouts(form: str, coulomb: bool) -> list[tuple[str, ...]]:
@@ -401,7 +445,7 @@ def truth_model(meta, *, period: float = 1 / 55, budget: int = 50, forgetting: f
     return AxisModel(
         machine=meta.machine, axis=meta.axis, form=meta.form, Ts=meta.Ts, beta=list(truth.beta), omega=truth.omega,
         coulomb=truth.coulomb, loop_gain=meta.loop_gain, method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": period},
+        tracker=TrackerConfig(kernel=OS.LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=period),
                               gamma=5.85, forgetting=forgetting, budget=budget),
         provenance={"source": "simulated truth"},
     )
@@ -438,44 +482,41 @@ def load_model(path, *, allow_invalid: bool = False) -> AxisModel:
     try:
         f = msgspec.convert(doc, ModelFileV2, strict=True)
     except msgspec.ValidationError as exc:
-        path_, text = error_path(exc)
-        key = path_.lstrip(".")
-        if text.startswith("Object contains unknown field"):
-            name = text.split("`")[1] if "`" in text else "?"
-            full = f"{key}.{name}" if key else name
-            raise ModelFileError(f"{path}: key '{full}': unknown key (misspelt?); see the model-file keys in the "
-                                 "README") from None
-        if text.startswith("Object missing required field"):
-            name = text.split("`")[1] if "`" in text else "?"
-            full = f"{key}.{name}" if key else name
-            raise ModelFileError(f"{path}: key '{full}': missing; re-create the file with 'feedmon identify'") from None
-        allowed = _RANGES.get(re.sub(r"\[\d+\]", "[]", key)) or _RANGES.get(re.sub(r"\[\d+\]$", "", key))
-        hint = f" (allowed: {allowed})" if allowed else ""
-        raise ModelFileError(f"{path}: key '{key}': {text}{hint}") from None
+        raise _refusal(path, exc, doc) from None
     return _to_model(path, f, allow_invalid)
+
+
+def _refusal(path: Path, exc: msgspec.ValidationError, doc: dict) -> ModelFileError:
+    """The :class:`ModelFileError` of a schema violation: the file, the key and what is allowed there (in
+    ``[tracker]``: what the file's kernel takes)."""
+    path_, text = error_path(exc)
+    key = path_.lstrip(".")
+    tracker = doc.get("tracker")
+    tag = tracker.get("kernel") if isinstance(tracker, dict) else None
+    kernel = OS.TRACKER_KERNELS.get(tag) if isinstance(tag, str) else None
+    name = text.split("`")[1] if "`" in text else "?"
+    full = f"{key}.{name}" if key else name
+    if text.startswith("Object contains unknown field"):
+        if key == "tracker" and kernel is not None and any(name in k.__struct_fields__ for k in OS.TRACKER_KERNELS.values()):
+            return ModelFileError(f"{path}: key '{full}': not a parameter of the {tag} kernel (it takes "
+                                  f"{', '.join(kernel.__struct_fields__)})")
+        return ModelFileError(f"{path}: key '{full}': unknown key (misspelt?); see the model-file keys in the README")
+    if text.startswith("Object missing required field"):
+        if key == "tracker" and kernel is not None and name in kernel.__struct_fields__:
+            need = [f.name for f in msgspec.structs.fields(kernel) if f.required]
+            return ModelFileError(f"{path}: key '{full}': missing; the {tag} kernel needs {', '.join(need)} "
+                                  f"(allowed: {_TRACKER_RANGES[tag][full]})")
+        return ModelFileError(f"{path}: key '{full}': missing; re-create the file with 'feedmon identify'")
+    ranges = _TRACKER_RANGES.get(tag, _RANGES) if key.startswith("tracker.") and isinstance(tag, str) else _RANGES
+    allowed = ranges.get(re.sub(r"\[\d+\]", "[]", key)) or ranges.get(re.sub(r"\[\d+\]$", "", key))
+    hint = f" (allowed: {allowed})" if allowed else ""
+    return ModelFileError(f"{path}: key '{key}': {text}{hint}")
 
 
 def _to_model(path: Path, f: ModelFileV2, allow_invalid: bool) -> AxisModel:
     m, t = f.model, f.tracker
-    kernel = {"type": t.kernel}
-    need = {"locally_periodic": ("sigma1", "sigma2", "period"), "locally_periodic_zero_mean": ("sigma1", "sigma2", "period"),
-            "periodic": ("sigma2", "period"),
-            "squared_exponential": ("lengthscale",), "spindle": ("sigma1", "sigma2", "spindle_rpm")}[t.kernel]
-    for key in need:
-        if getattr(t, key) is None:
-            raise ModelFileError(f"{path}: key 'tracker.{key}': missing; the {t.kernel} kernel needs "
-                                 f"{', '.join(need)} (allowed: {_RANGES['tracker.' + key]})")
-        kernel[key] = getattr(t, key)
-    if t.kernel == OS.SPINDLE:
-        kernel.update({k: getattr(t, k) for k in ("per", "teeth") if getattr(t, k) is not None})
-        try:
-            OS.check_kernel_desc(kernel)
-        except ValueError as exc:
-            raise ModelFileError(f"{path}: key 'tracker.kernel': {exc}") from None
-    for key in ("sigma1", "sigma2", "period", "lengthscale", "per", "teeth", "spindle_rpm"):
-        if key not in need and key not in kernel and getattr(t, key) is not None:
-            raise ModelFileError(f"{path}: key 'tracker.{key}': not a parameter of the {t.kernel} kernel "
-                                 f"(it takes {', '.join(need)})")
+    kernel_type = OS.TRACKER_KERNELS[type(t).__struct_config__.tag]
+    kernel = kernel_type(**{k: getattr(t, k) for k in kernel_type.__struct_fields__})
     physical = {k: v for k, v in msgspec.structs.asdict(f.physical).items() if v is not None}
     physical_se = {k: v for k, v in msgspec.structs.asdict(f.physical_se).items() if v is not None}
     ident = {k: v for k, v in msgspec.structs.asdict(f.identification).items()
@@ -580,8 +621,7 @@ def save_model(model: AxisModel, path) -> Path:
     the validator before it replaces ``path`` (nothing that :func:`load_model` would refuse for its
     format is ever written)."""
     path = Path(path)
-    tracker = {"kernel": model.tracker.kernel["type"]}
-    tracker.update({k: v for k, v in model.tracker.kernel.items() if k not in ("type", "dims")})
+    tracker = {"kernel": model.tracker.kernel.kind, **msgspec.structs.asdict(model.tracker.kernel)}
     tracker.update(gamma=model.tracker.gamma, forgetting=model.tracker.forgetting, budget=model.tracker.budget,
                    jitter=model.tracker.jitter, search=model.tracker.search)
     ident = {k: model.identification.get(k) for k in _IDENT_KEYS}

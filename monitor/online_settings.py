@@ -34,16 +34,18 @@ import msgspec
 
 from feedio.limits import SPINDLE_RPM_MAX, bounded_float, bounded_int, explain, field_range
 from kernels.beta_tracker import MIN_SPEED_MAX
-from kernels.covariance import Kernel
+from kernels.covariance import Kernel, LocallyPeriodic, Periodic, SquaredExponential, ZeroMeanLocallyPeriodic
 from kernels.disturbance_search import SIGMA1_RANGE, TrackerChoice
 from kernels.errors import ParameterError
 from kernels.health import HealthConfig
 from kernels.online import MODES
 from kernels.spindle_phase import spindle_phase_kernel
 
-__all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "SpindleKernel", "Adaptation", "Health", "OnlineSettings",
-           "TrackerOverride", "AdaptationOverride", "HealthOverride", "build_tracker_kernel", "check_kernel_desc",
-           "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides", "MODES"]
+__all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "TrackerKernel", "TRACKER_KERNELS",
+           "SquaredExponentialKernel", "LocallyPeriodicKernel", "ZeroMeanLocallyPeriodicKernel", "PeriodicKernel",
+           "SpindleKernel", "Adaptation", "Health", "OnlineSettings", "TrackerOverride", "AdaptationOverride",
+           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides",
+           "MODES"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
@@ -60,16 +62,73 @@ PER = ("revolution", "tooth")
 
 _OPTS = dict(frozen=True, forbid_unknown_fields=True, kw_only=True)
 
+_Seconds = bounded_float(1e-6, 1e6, "s")
+_Sigma2 = bounded_float(1e-3, 1e3)
 
-class SpindleKernel(msgspec.Struct, **_OPTS):
+
+class _TrackerKernel(msgspec.Struct, tag_field="kernel", **_OPTS):
+    """A ``[tracker]`` kernel: the ``kernel`` key of the file is the tag, the fields are exactly that
+    kernel's keys (a key of another kernel is refused when the file is read)."""
+
+    @property
+    def kind(self) -> str:
+        """The ``kernel`` string of the model file."""
+        return type(self).__struct_config__.tag
+
+    def build(self) -> Kernel:
+        """The :class:`kernels.covariance.Kernel` the online tracker runs."""
+        raise NotImplementedError
+
+
+class SquaredExponentialKernel(_TrackerKernel, tag="squared_exponential"):
+    """A smooth, slowly varying disturbance: ``SquaredExponential(ℓ)`` on time."""
+
+    lengthscale: _Seconds
+
+    def build(self) -> Kernel:
+        return SquaredExponential(self.lengthscale)
+
+
+class LocallyPeriodicKernel(_TrackerKernel, tag="locally_periodic"):
+    """``LocallyPeriodic(σ1, σ2, ψ)`` on time (method §5): a fixed disturbance period ψ."""
+
+    sigma1: _Seconds
+    sigma2: _Sigma2
+    period: _Seconds
+
+    def build(self) -> Kernel:
+        return LocallyPeriodic(self.sigma1, self.sigma2, self.period)
+
+
+class ZeroMeanLocallyPeriodicKernel(_TrackerKernel, tag="locally_periodic_zero_mean"):
+    """The locally periodic kernel without its slowly varying mean (:class:`kernels.covariance.ZeroMeanLocallyPeriodic`)."""
+
+    sigma1: _Seconds
+    sigma2: _Sigma2
+    period: _Seconds
+
+    def build(self) -> Kernel:
+        return ZeroMeanLocallyPeriodic(self.sigma1, self.sigma2, self.period)
+
+
+class PeriodicKernel(_TrackerKernel, tag="periodic"):
+    """``Periodic(σ2, ψ)`` on time: a period that never decorrelates."""
+
+    sigma2: _Sigma2
+    period: _Seconds
+
+    def build(self) -> Kernel:
+        return Periodic(self.sigma2, self.period)
+
+
+class SpindleKernel(_TrackerKernel, tag=SPINDLE, kw_only=True):
     """The spindle-phase kernel of ``[tracker] kernel = "spindle"`` (see the module docstring)."""
 
-    sigma1: bounded_float(0.0, 1e4, "s, length scale of the slow (time) factor", open_low=True)
-    sigma2: bounded_float(0.0, 1e3, "smoothness of the periodic factor (as in the time kernel)", open_low=True)
+    sigma1: bounded_float(1e-6, 1e4, "s")  # length scale of the slow (time) factor
+    sigma2: _Sigma2  # smoothness of the periodic factor (as in the time kernel)
     per: Literal["revolution", "tooth"] = "revolution"
     teeth: bounded_int(1, 1000, "cutting edges of the tool") = 1
-    spindle_rpm: bounded_float(0.0, SPINDLE_RPM_MAX, "rpm, nominal speed: the fallback without spindle data",
-                      open_low=True)
+    spindle_rpm: bounded_float(0.0, SPINDLE_RPM_MAX, "rpm, nominal: the fallback without spindle data", open_low=True)
 
     @property
     def period(self) -> float:
@@ -79,53 +138,30 @@ class SpindleKernel(msgspec.Struct, **_OPTS):
     def build(self) -> Kernel:
         return spindle_phase_kernel(self.sigma1, self.sigma2, self.period)
 
-    def to_dict(self) -> dict:
-        return {"type": SPINDLE, **msgspec.structs.asdict(self)}
 
-
-def check_kernel_desc(desc: dict) -> Kernel:
-    """The kernel of a ``[tracker]`` description (``type`` and its keys); ``ValueError`` naming the key."""
-    if desc.get("type") == SPINDLE:
-        body = {k: v for k, v in desc.items() if k != "type"}
-        try:
-            return msgspec.convert(body, SpindleKernel).build()
-        except msgspec.ValidationError as exc:
-            key, msg = explain(exc, SpindleKernel)
-            raise ValueError(f"spindle kernel: key {key}: {msg}") from None
-    return Kernel.from_dict(desc)
-
-
-def build_tracker_kernel(desc: dict) -> Kernel:
-    """:meth:`monitor.model_file.TrackerConfig.build_kernel`: the time kernels of
-    :meth:`kernels.covariance.Kernel.from_dict` or the spindle-phase kernel."""
-    return check_kernel_desc(desc)
-
-
-def spindle_of(desc: dict) -> SpindleKernel | None:
-    """The :class:`SpindleKernel` of a ``[tracker]`` kernel description, None for a time kernel."""
-    if desc.get("type") != SPINDLE:
-        return None
-    return msgspec.convert({k: v for k, v in desc.items() if k != "type"}, SpindleKernel)
+#: the ``[tracker]`` kernel of a model file, one Struct per ``kernel`` string (a msgspec tagged union)
+TrackerKernel = (SquaredExponentialKernel | LocallyPeriodicKernel | ZeroMeanLocallyPeriodicKernel | PeriodicKernel
+                 | SpindleKernel)
+#: the kernel Struct of each ``kernel`` string
+TRACKER_KERNELS = {k.__struct_config__.tag: k for k in TrackerKernel.__args__}
 
 
 def choice_of(tracker) -> TrackerChoice:
     """The :class:`~kernels.disturbance_search.TrackerChoice` a model file's ``[tracker]`` starts the
     online search from (a :class:`monitor.model_file.TrackerConfig`). A pure periodic kernel is the
     locally periodic one with the longest σ1 the search allows."""
-    d = tracker.kernel
-    kind = d.get("type")
+    k = tracker.kernel
     common = dict(gamma=float(tracker.gamma), forgetting=float(tracker.forgetting))
-    if kind == SPINDLE:
-        sk = spindle_of(d)
-        return TrackerChoice("spindle", sigma1=sk.sigma1, sigma2=sk.sigma2,
-                             teeth=sk.teeth if sk.per == "tooth" else 1, **common)
-    if kind in ("locally_periodic", "locally_periodic_zero_mean"):
-        return TrackerChoice("periodic", sigma1=float(d["sigma1"]), sigma2=float(d["sigma2"]),
-                             period=float(d["period"]), zero_mean=kind == "locally_periodic_zero_mean", **common)
-    if kind == "periodic":
-        return TrackerChoice("periodic", sigma1=SIGMA1_RANGE[1], sigma2=float(d["sigma2"]),
-                             period=float(d["period"]), **common)
-    return TrackerChoice("time", sigma1=float(d["lengthscale"]), **common)
+    if isinstance(k, SpindleKernel):
+        return TrackerChoice("spindle", sigma1=k.sigma1, sigma2=k.sigma2,
+                             teeth=k.teeth if k.per == "tooth" else 1, **common)
+    if isinstance(k, LocallyPeriodicKernel | ZeroMeanLocallyPeriodicKernel):
+        return TrackerChoice("periodic", sigma1=float(k.sigma1), sigma2=float(k.sigma2),
+                             period=float(k.period), zero_mean=isinstance(k, ZeroMeanLocallyPeriodicKernel), **common)
+    if isinstance(k, PeriodicKernel):
+        return TrackerChoice("periodic", sigma1=SIGMA1_RANGE[1], sigma2=float(k.sigma2),
+                             period=float(k.period), **common)
+    return TrackerChoice("time", sigma1=float(k.lengthscale), **common)
 
 
 def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) -> dict:
@@ -133,17 +169,16 @@ def tracker_table(*, tuned: dict | None, period: float, spindle: dict | None) ->
     :data:`TRACKER_DEFAULTS`; σ1, σ2, γ the REML-tuned values when identification tuned them, else
     the thesis'; the spindle-phase kernel when the trial has spindle data (``spindle``: ``teeth``,
     the median ``spindle_rpm`` and ``per``, default "revolution"), else the time kernel with ψ = ``period`` (s). Returns the
-    kernel description under ``"kernel"`` and the scalar settings."""
+    kernel (a :data:`TrackerKernel`) under ``"kernel"`` and the scalar settings."""
     cfg = dict(TRACKER_DEFAULTS)
     if tuned:
         cfg.update({k: float(tuned[k]) for k in ("sigma1", "sigma2", "gamma")})
     if spindle:
         kernel = SpindleKernel(sigma1=cfg["sigma1"], sigma2=cfg["sigma2"], per=spindle.get("per", "revolution"),
                                teeth=int(spindle.get("teeth") or 1), spindle_rpm=float(spindle["spindle_rpm"]))
-        desc = kernel.to_dict()
     else:
-        desc = {"type": "locally_periodic", "sigma1": cfg["sigma1"], "sigma2": cfg["sigma2"], "period": float(period)}
-    return {"kernel": desc, "gamma": cfg["gamma"], "forgetting": cfg["forgetting"], "budget": int(cfg["budget"]),
+        kernel = LocallyPeriodicKernel(sigma1=cfg["sigma1"], sigma2=cfg["sigma2"], period=float(period))
+    return {"kernel": kernel, "gamma": cfg["gamma"], "forgetting": cfg["forgetting"], "budget": int(cfg["budget"]),
             "jitter": cfg["jitter"]}
 
 
@@ -354,11 +389,11 @@ def apply_overrides(model, tracker: TrackerOverride | None = None, adaptation=No
             v = getattr(tracker, k)
             if v is not None:
                 setattr(t, k, v)
-        for k in ("sigma1", "sigma2"):
-            v = getattr(tracker, k)
-            if v is not None:
-                t.kernel = {**t.kernel, k: float(v)}
-        check_kernel_desc(t.kernel)
+        sigmas = {k: float(v) for k in ("sigma1", "sigma2")  # a kernel without σ1 (σ2) keeps none
+                  if (v := getattr(tracker, k)) is not None and k in t.kernel.__struct_fields__}
+        if sigmas:
+            t.kernel = msgspec.structs.replace(t.kernel, **sigmas)
+        t.kernel.build()  # ValueError: a value the kernel refuses
     online = getattr(m, "online", None) or OnlineSettings()
     try:
         online = OnlineSettings(adaptation=_merged(online.adaptation, adaptation) if adaptation is not None

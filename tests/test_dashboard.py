@@ -408,6 +408,26 @@ def test_axis_info_is_checked_when_the_sink_is_made(tmp_path):
         RerunSink(tmp_path / "bad.rrd", psd_window=4)
 
 
+def test_the_axis_info_of_a_model_follows_its_tracker_kernel():
+    """ψ of the marker: the time kernel's period, the spindle-phase kernel's period in time at the nominal
+    speed (per tooth: divided by the teeth, which the layout takes too), none for a smooth kernel."""
+    from monitor.model_file import AxisModel, TrackerConfig
+    from monitor.online_settings import LocallyPeriodicKernel, SpindleKernel, SquaredExponentialKernel
+    from monitor.sinks.rerun_layout import describe_model
+
+    def model(kernel):
+        return AxisModel(machine="m", axis="x", form="velocity-loop", Ts=0.003, beta=[0.37, 0.63], omega=1e-5,
+                         coulomb=False, loop_gain=184900.0, tracker=TrackerConfig(kernel=kernel))
+
+    assert describe_model(model(LocallyPeriodicKernel(sigma1=1.0, sigma2=0.5, period=0.02))) == {
+        "period": 0.02, "Ts": 0.003, "force": True, "teeth": None}
+    tooth = describe_model(model(SpindleKernel(sigma1=1.0, sigma2=0.5, per="tooth", teeth=4, spindle_rpm=3000.0)))
+    assert tooth["period"] == pytest.approx(60.0 / 3000.0 / 4) and tooth["teeth"] == 4
+    rev = describe_model(model(SpindleKernel(sigma1=1.0, sigma2=0.5, teeth=2, spindle_rpm=2400.0)), teeth=3)
+    assert rev["period"] == pytest.approx(60.0 / 2400.0) and rev["teeth"] == 3
+    assert describe_model(model(SquaredExponentialKernel(lengthscale=1.0)))["period"] is None
+
+
 def _view_windows(rrd) -> list[float]:
     """Rolling windows (s before the time cursor) of the views in the recording's layout."""
     from rerun.chunk import RrdReader

@@ -15,6 +15,7 @@ from kernels import KRLST, LocallyPeriodic, online
 from kernels.feed_drive import physical_to_beta
 from monitor.estimator import AxisEstimator
 from monitor.model_file import AxisModel, TrackerConfig
+from monitor.online_settings import LocallyPeriodicKernel
 
 TS = 1 / 333
 BETA = physical_to_beta("velocity-loop", TS, 300.0, 300.0, gain=83300.0, coulomb_pos=9.0, coulomb_neg=10.0)
@@ -24,7 +25,7 @@ OMEGA = 5e-4
 def _model(form="velocity-loop", beta=BETA, **kw) -> AxisModel:
     return AxisModel(machine="m", axis="x", form=form, Ts=TS, beta=list(map(float, beta)), omega=OMEGA,
                      coulomb=True, loop_gain=83300.0 if form == "velocity-loop" else None,
-                     tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict(), budget=40, forgetting=0.996), **kw)
+                     tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55), budget=40, forgetting=0.996), **kw)
 
 
 def _stream(n=1500, seed=0):

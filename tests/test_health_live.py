@@ -24,6 +24,7 @@ from monitor.axes import live_meta, load_axes
 from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator, StateError
 from monitor.model_file import AxisModel, TrackerConfig, save_model
+from monitor.online_settings import LocallyPeriodicKernel, SpindleKernel
 from monitor.sinks.mcap_sink import McapProcessSink, McapSink
 from monitor.state import StateStore
 from monitor.status import format_status
@@ -43,7 +44,7 @@ def shaker(tmp_path_factory):
     model = save_model(AxisModel(
         machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
         coulomb=m.truth.coulomb, loop_gain=m.loop_gain, method="truth",
-        tracker=TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55},
+        tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55),
                               gamma=5.85, forgetting=0.998, budget=100),
     ), d / "z.model.toml")
     return d, res, model
@@ -219,15 +220,15 @@ def _run_blocks(est, t, v_ref, v, size=37, **cols):
     return np.array(fn)
 
 
-SPINDLE = {"type": "spindle", "sigma1": 1.0, "sigma2": 0.5, "per": "revolution", "teeth": 2, "spindle_rpm": 3000.0}
+SPINDLE = SpindleKernel(sigma1=1.0, sigma2=0.5, per="revolution", teeth=2, spindle_rpm=3000.0)
 
 
 def test_without_spindle_data_the_spindle_kernel_is_the_time_kernel_at_the_nominal_speed():
     t, v_ref, v, *_ = _spindle_stream(2000, lambda t: np.full(t.size, 3000.0))
     est = AxisEstimator(_spindle_model(SPINDLE))
     fn = _run_blocks(est, t, v_ref, v)
-    ref = _run_blocks(AxisEstimator(_spindle_model({"type": "locally_periodic", "sigma1": 1.0, "sigma2": 0.5,
-                                                    "period": 60.0 / 3000.0})), t, v_ref, v)
+    ref = _run_blocks(AxisEstimator(_spindle_model(LocallyPeriodicKernel(sigma1=1.0, sigma2=0.5,
+                                                                       period=60.0 / 3000.0))), t, v_ref, v)
     assert est.counters["spindle_fallback"] == t.size
     # the same kernel values up to rounding (θ mod 2π and the direct row vs the time kernel's lag table);
     # KRLS-T carries such last-bit differences along (ε_j = 1e-6): a wrong θ or period is off by O(1)

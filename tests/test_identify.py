@@ -250,8 +250,8 @@ def test_spindle_speed_changes_are_identified_with_the_spindle_phase_kernel(simu
     assert check["state"] == "ok", check["summary"]
     assert check["online"]["inertia"]["value"] == pytest.approx(truth, rel=0.03)
     model = load_model(model_path)                     # the tracker runs the kernel identification tuned
-    assert model.tracker.kernel["type"] == "spindle" and model.tracker.kernel["per"] == "revolution"
-    assert model.tracker.kernel["sigma1"] == pytest.approx(best["hyperparameters"]["sigma1"])
+    assert model.tracker.kernel.kind == "spindle" and model.tracker.kernel.per == "revolution"
+    assert model.tracker.kernel.sigma1 == pytest.approx(best["hyperparameters"]["sigma1"])
     assert model.tracker.gamma == pytest.approx(best["hyperparameters"]["gamma"])
     assert sorted(c["per"] for c in model.candidates if c["kernel"] == "spindle") == ["revolution", "tooth"]
 
@@ -287,8 +287,8 @@ def test_a_disturbance_that_does_not_follow_the_spindle_gets_its_own_period(simu
     assert errs["inertia"] < 0.01 and errs["damping"] < 0.02
     assert doc["self_check"]["state"] == "ok", doc["self_check"]["summary"]
     model = load_model(model_path)
-    assert model.tracker.kernel["type"] == "locally_periodic"
-    assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD, rel=0.01)
+    assert model.tracker.kernel.kind == "locally_periodic"
+    assert model.tracker.kernel.period == pytest.approx(SHAKER_PERIOD, rel=0.01)
     assert model.online.adaptation.min_speed == 0.0    # the simulated friction follows the law down to Ω
 
     code, doc, _ = run_identify(trial, "--spindle-rpm", 3000)  # the user's word: kept, the data's period suggested
@@ -497,7 +497,7 @@ def test_model_file_and_report(simulated, tmp_path):
                  "--report", str(report)]) == 0
     model = load_model(model_path)
     assert model.form == "velocity-loop" and model.coulomb and model.beta_names[-1] == "one"
-    assert model.tracker.kernel["period"] == pytest.approx(SHAKER_PERIOD)
+    assert model.tracker.kernel.period == pytest.approx(SHAKER_PERIOD)
     assert model.identification["chosen"] == "pl_lssvm" and len(model.candidates) >= 4
     assert len(model.provenance["sha256"]) == 64 and model.validity_warning is None
     pngs = list(report.glob("*.png"))

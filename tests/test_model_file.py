@@ -9,6 +9,13 @@ import pytest
 from kernels import LocallyPeriodic
 from kernels.feed_drive import physical_to_beta
 from monitor.model_file import AxisModel, ModelFileError, TrackerConfig, load_model, ranges_table, save_model
+from monitor.online_settings import (
+    LocallyPeriodicKernel,
+    PeriodicKernel,
+    SpindleKernel,
+    SquaredExponentialKernel,
+    ZeroMeanLocallyPeriodicKernel,
+)
 
 BETA = [0.8338, 0.1632, 1.02e-4, -1.03e-4]  # velocity loop: stable pole, positive Coulomb friction
 
@@ -23,7 +30,7 @@ def _model(**overrides) -> AxisModel:
         omega=5e-4,
         coulomb=True,
         loop_gain=None,
-        tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, 1 / 55).to_dict()),
+        tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55)),
         physical={"inertia_over_gain": 0.0123, "damping_over_gain": 0.004},
         physical_se={"inertia_over_gain": 1e-5, "damping_over_gain": 2e-5},
         identification={"sigma1": 0.59, "sigma2": 0.42, "gamma": 50.3, "period": 1 / 55, "tuned": False,
@@ -160,7 +167,7 @@ def _write(tmp_path, text):
         (lambda t: t.replace("beta = [0.8338, 0.1632,", "beta = [0.8338,"), "model.beta", "needs 4 or 5"),
         (lambda t: t.replace("Ts = ", "Ts = -"), "model.Ts", "≥ 1e-06"),
         (lambda t: t.replace("Ts = 0.003003003003003003", "Ts = inf"), "model.Ts", "≤ 10"),
-        (lambda t: t.replace('kernel = "locally_periodic"', 'kernel = "spline"'), "tracker.kernel", "Invalid enum"),
+        (lambda t: t.replace('kernel = "locally_periodic"', 'kernel = "spline"'), "tracker.kernel", "Invalid value"),
         (lambda t: t.replace('machine = "mill"', 'machine = "mill/*"'), "axis.machine", "regex"),
         (lambda t: t.replace("[tracker]\n", "[tracker]\ngama = 3.0\n"), "tracker.gama", "unknown key"),
         (lambda t: t.replace("omega = 0.0005", "omega = 0.0005\nomega_typo = 1"), "model.omega_typo", "unknown key"),
@@ -178,11 +185,87 @@ def test_bad_model_files_name_key_and_file(tmp_path, mutate, key, problem):
     assert str(path) in message and f"'{key}'" in message and problem in message, message
 
 
+KERNELS = [
+    SquaredExponentialKernel(lengthscale=0.8),
+    LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55),
+    ZeroMeanLocallyPeriodicKernel(sigma1=0.04, sigma2=4.8, period=1 / 55),
+    PeriodicKernel(sigma2=0.7, period=0.02),
+    SpindleKernel(sigma1=0.31, sigma2=0.37, per="tooth", teeth=3, spindle_rpm=2400.0),
+]
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: k.kind)
+def test_every_tracker_kernel_round_trips_as_its_struct(tmp_path, kernel):
+    path = save_model(_model(tracker=TrackerConfig(kernel=kernel, gamma=7.5, budget=60)), tmp_path / "m.toml")
+    text = path.read_text()
+    table = text[text.index("[tracker]\n"):text.index("[identification]")]
+    keys = [line.split(" = ")[0] for line in table.splitlines()[1:] if line]
+    assert keys == ["kernel", *kernel.__struct_fields__, "gamma", "forgetting", "budget", "jitter", "search"]
+    back = load_model(path).tracker
+    assert type(back.kernel) is type(kernel) and back.kernel == kernel and back.kernel.kind == kernel.kind
+    assert back.gamma == 7.5 and back.budget == 60
+    assert back.build_kernel() == kernel.build()
+
+
+def test_a_dict_is_no_tracker_kernel():
+    with pytest.raises(TypeError, match="TrackerConfig.kernel must be one of"):
+        TrackerConfig(kernel={"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 0.02})
+
+
+def test_run_overrides_of_sigma_go_into_the_kernels_that_have_them():
+    from monitor.online_settings import TrackerOverride, apply_overrides
+
+    override = TrackerOverride(sigma1=0.5, sigma2=0.3, gamma=9.0)
+    lp = _model()
+    out = apply_overrides(lp, tracker=override)
+    assert out.tracker.kernel == LocallyPeriodicKernel(sigma1=0.5, sigma2=0.3, period=1 / 55) and out.tracker.gamma == 9.0
+    assert lp.tracker.kernel == KERNELS[1] and lp.tracker.gamma != 9.0  # the model itself unchanged
+    se = apply_overrides(_model(tracker=TrackerConfig(kernel=KERNELS[0])), tracker=override)
+    assert se.tracker.kernel == KERNELS[0] and se.tracker.gamma == 9.0  # σ1, σ2: not this kernel's
+    periodic = apply_overrides(_model(tracker=TrackerConfig(kernel=KERNELS[3])), tracker=override)
+    assert periodic.tracker.kernel == PeriodicKernel(sigma2=0.3, period=0.02)
+
+
+@pytest.mark.parametrize("kernel, mutate, key, problem", [
+    # a key of another kernel: the message says which keys the file's kernel takes
+    (0, lambda t: t.replace("lengthscale = 0.8", "lengthscale = 0.8\nperiod = 0.02"), "tracker.period",
+     "not a parameter of the squared_exponential kernel (it takes lengthscale)"),
+    (1, lambda t: t.replace("period = 0.0181", "spindle_rpm = 3000.0\nperiod = 0.0181"), "tracker.spindle_rpm",
+     "not a parameter of the locally_periodic kernel (it takes sigma1, sigma2, period)"),
+    (3, lambda t: t.replace("sigma2 = 0.7", "sigma1 = 1.0\nsigma2 = 0.7"), "tracker.sigma1",
+     "not a parameter of the periodic kernel (it takes sigma2, period)"),
+    (4, lambda t: t.replace("teeth = 3", "teeth = 3\nperiod = 0.02"), "tracker.period",
+     "not a parameter of the spindle kernel (it takes sigma1, sigma2, per, teeth, spindle_rpm)"),
+    # a missing key: named with its range
+    (0, lambda t: t.replace("lengthscale = 0.8", ""), "tracker.lengthscale",
+     "missing; the squared_exponential kernel needs lengthscale (allowed: number ≥ 1e-06, ≤ 1e+06 s)"),
+    (1, lambda t: t.replace("sigma2 = 0.495\n", ""), "tracker.sigma2",
+     "missing; the locally_periodic kernel needs sigma1, sigma2, period (allowed: number ≥ 0.001, ≤ 1000)"),
+    (4, lambda t: t.replace("spindle_rpm = 2400.0", ""), "tracker.spindle_rpm",
+     "missing; the spindle kernel needs sigma1, sigma2, spindle_rpm (allowed: number > 0, ≤ 100000"),
+    # a value out of the file's kernel's range: that kernel's range (σ1 of the spindle kernel ≤ 1e4 s)
+    (4, lambda t: t.replace("sigma1 = 0.31", "sigma1 = 20000.0"), "tracker.sigma1", "(allowed: number ≥ 1e-06, ≤ 10000 s)"),
+    (4, lambda t: t.replace('per = "tooth"', 'per = "flute"'), "tracker.per", "'revolution' / 'tooth'"),
+    (4, lambda t: t.replace("teeth = 3", "teeth = 0"), "tracker.teeth", "≥ 1"),
+    (0, lambda t: t.replace("[tracker]\nkernel = \"squared_exponential\"\n", "[tracker]\n"), "tracker.kernel", "missing"),
+])
+def test_a_tracker_table_of_the_wrong_shape_is_refused_naming_the_key(tmp_path, kernel, mutate, key, problem):
+    good = save_model(_model(tracker=TrackerConfig(kernel=KERNELS[kernel])), tmp_path / "good.toml").read_text()
+    good = good.replace("period = 0.01818181818181818", "period = 0.0181")
+    bad = mutate(good)
+    assert bad != good, "mutation did not apply"
+    path = _write(tmp_path, bad)
+    with pytest.raises(ModelFileError) as err:
+        load_model(path)
+    message = str(err.value)
+    assert str(path) in message and f"'{key}'" in message and problem in message, message
+
+
 @pytest.mark.parametrize("Ts, budget", [(1e-5, 2000), (1.0, 4), (1 / 333, 1500)])
 def test_ranges_admit_real_drives(tmp_path, Ts, budget):
     beta = physical_to_beta("velocity-loop", Ts, 300.0, 300.0, gain=83300.0 * min(1.0, Ts * 333), coulomb=False)
     model = _model(Ts=Ts, beta=list(beta), beta_se=None, coulomb=False,
-                   tracker=TrackerConfig(kernel=LocallyPeriodic(1.2, 0.495, max(2 * Ts, 1 / 55)).to_dict(),
+                   tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=max(2 * Ts, 1 / 55)),
                                          budget=budget))
     back = load_model(save_model(model, tmp_path / "m.toml"))
     assert back.Ts == Ts and back.tracker.budget == budget

@@ -22,6 +22,7 @@ from feedio import schema as S
 from feedio.mcapio import OpenTrial, iter_blocks, read_trial
 from feedmon.cli import main
 from monitor.model_file import ModelFileError, load_model, save_model
+from monitor.online_settings import SpindleKernel
 
 TS = 1 / 333
 
@@ -89,11 +90,11 @@ def test_a_trial_with_spindle_data_gets_the_spindle_phase_kernel(mill):
     _, model = mill
     m = load_model(model)
     k = m.tracker.kernel
-    assert k["type"] == "spindle" and k["per"] == "revolution" and k["teeth"] == 2
-    assert k["spindle_rpm"] == pytest.approx(3000.0, rel=1e-6)
+    assert isinstance(k, SpindleKernel) and k.kind == "spindle" and k.per == "revolution" and k.teeth == 2
+    assert k.spindle_rpm == pytest.approx(3000.0, rel=1e-6)
     assert m.tracker.forgetting == 0.998 and m.tracker.budget == 100
     ident = m.identification
-    assert ident["tuned"] and k["sigma1"] == pytest.approx(ident["sigma1"]) and m.tracker.gamma == pytest.approx(ident["gamma"])
+    assert ident["tuned"] and k.sigma1 == pytest.approx(ident["sigma1"]) and m.tracker.gamma == pytest.approx(ident["gamma"])
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import datetime as _dt
 import math
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 
-from kernels import SquaredExponential
 from kernels.adequacy import Adequacy
 from kernels.low_speed import LowSpeedFriction
 from kernels.noise import NoiseEstimate
@@ -141,13 +141,14 @@ class Identification:
         # the samples carry the spindle (monitor.online_settings.tracker_table, one definition)
         spindle = self.spindle if family != "spindle" else {**self.spindle, "per": tuned.get("per", "revolution")}
         cfg = OS.tracker_table(tuned=tuned, period=psi or 1.0, spindle=spindle)
+        k = cfg["kernel"]
         if psi is None and not self.spindle:  # no periodic disturbance in play: a smooth, slowly varying one
-            cfg["kernel"] = SquaredExponential(cfg["kernel"]["sigma1"]).to_dict()
+            cfg["kernel"] = OS.SquaredExponentialKernel(lengthscale=k.sigma1)
         elif not self.spindle and family != "locally_periodic":
-            cfg["kernel"] = {**cfg["kernel"], "type": family}
+            cfg["kernel"] = OS.TRACKER_KERNELS[family](sigma1=k.sigma1, sigma2=k.sigma2, period=k.period)
         for key, value in (tracker or {}).items():  # explicit settings: kernel hyperparameters go into the kernel
-            if key in cfg["kernel"] and key != "type":
-                cfg["kernel"] = {**cfg["kernel"], key: value}
+            if key in cfg["kernel"].__struct_fields__:
+                cfg["kernel"] = msgspec.structs.replace(cfg["kernel"], **{key: value})
             else:
                 cfg[key] = value
         kernel = cfg["kernel"]

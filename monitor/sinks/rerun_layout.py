@@ -154,13 +154,13 @@ def describe_model(model, teeth: int | None = None) -> dict[str, Any]:
     """``axis_info`` entry of an :class:`~monitor.model_file.AxisModel`: ψ of a time-periodic tracker
     kernel (s), Ts, force scaling, and the tool's teeth (argument, else a ``teeth`` attribute of the
     model when it has one)."""
-    kernel = model.tracker.kernel or {}
-    period = kernel.get("period") if kernel.get("type") in ("locally_periodic", "locally_periodic_zero_mean", "periodic") else None
-    if kernel.get("type") == "spindle":  # the spindle-phase kernel: its period in time at the nominal speed
-        per_rev = 60.0 / float(kernel["spindle_rpm"])
-        period = per_rev / int(kernel.get("teeth", 1)) if kernel.get("per") == "tooth" else per_rev
+    kernel = model.tracker.kernel  # a monitor.online_settings.TrackerKernel
+    period = kernel.period if kernel.kind in ("locally_periodic", "locally_periodic_zero_mean", "periodic") else None
+    if kernel.kind == "spindle":  # the spindle-phase kernel: its period in time at the nominal speed
+        per_rev = 60.0 / float(kernel.spindle_rpm)
+        period = per_rev / int(kernel.teeth) if kernel.per == "tooth" else per_rev
         if teeth is None:
-            teeth = kernel.get("teeth")
+            teeth = kernel.teeth
     if teeth is None:
         teeth = getattr(model, "teeth", None)
     return {"period": float(period) if period else None, "Ts": float(model.Ts), "force": bool(model.force_scalable),
