@@ -96,7 +96,7 @@ def read_capped(path, limit: int, what: str) -> bytes:
     with open(path, "rb") as fh:
         data = fh.read(limit + 1)
     if len(data) > limit:
-        raise FileTooLarge(f"{path}: more than {limit} bytes is not a {what} (limit {limit} bytes)")
+        raise FileTooLarge(f"{path}: larger than the limit of a {what}: at most {limit} bytes")
     return data
 
 
