@@ -47,8 +47,9 @@ def simulated(tmp_path_factory):
 
 #: the test files that take longest, handed to the workers first: pytest-xdist gives each worker whole files in
 #: collection order, and a long file begun last leaves the other worker idle at the end (longest first)
-LONG_FIRST = ("test_deploy.py", "test_linuxcnc.py", "test_identify.py", "test_online_health.py", "test_sink_faults.py",
-              "test_soak.py", "test_run_e2e.py", "test_fast_paths.py", "test_krlst.py", "test_out_of_sample.py")
+LONG_FIRST = ("test_deploy.py", "test_identify.py", "test_linuxcnc.py", "test_soak.py", "test_out_of_sample.py",
+              "test_sink_faults.py", "test_fast_paths.py", "test_krlst.py", "test_online_health.py", "test_faults.py",
+              "test_run_e2e.py", "test_state.py", "test_dashboard.py", "test_adequacy.py")
 
 
 def pytest_collection_modifyitems(config, items):
