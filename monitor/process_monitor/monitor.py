@@ -47,8 +47,11 @@ class AxisProcessMonitor:
     """Monitors of one axis (settings :class:`~monitor.process_monitor.settings.MonitorSettings`)."""
 
     def __init__(self, machine: str, axis: str, settings: MonitorSettings, Ts: float,
-                 reference: ReferenceFile | None = None) -> None:
+                 reference: ReferenceFile | None = None, v_min: float = 0.0) -> None:
         self.machine, self.axis, self.s, self.Ts = machine, axis, settings, float(Ts)
+        #: m/s: below it (the model's dead band Ω or min_speed) the friction law does not hold
+        self.v_min = float(v_min)
+        self._v_last = math.nan  # the previous block's last measured velocity
         imp = settings.impulse
         self._window = max(2, int(round(imp.window_s / self.Ts)))
         self._impulse = fm.new_impulse_state(self._window, imp.bins)
@@ -101,6 +104,7 @@ class AxisProcessMonitor:
         force = est.force[0]
         sd = np.sqrt(np.maximum(est.force[1], 0.0))
         raw = self._raw_force(est)
+        judged = self._judged(est, raw)
         theta = self._angles(est, block)
         tool = est.context.get("tool")
         line = est.context.get("program_line")
@@ -113,7 +117,7 @@ class AxisProcessMonitor:
                 stop += 1
             if key != self._key or not math.isfinite(self._t0):
                 self._new_section(key, float(est.t[start]))
-            out += self._segment(est, start, stop, force, sd, theta, key, raw)
+            out += self._segment(est, start, stop, force, sd, theta, key, raw, judged)
             start = stop
         for a in out:
             self.counts[a.kind] = self.counts.get(a.kind, 0) + 1
@@ -181,7 +185,19 @@ class AxisProcessMonitor:
                 over = sec.overload_N if sec.overload_N is not None else over
         return floor, over
 
-    def _segment(self, est, a: int, b: int, force, sd, theta, key, raw) -> list[S.AlarmEvent]:
+    def _judged(self, est, raw: np.ndarray) -> np.ndarray:
+        """The measured force where the friction law holds: NaN on rows whose velocity, or the previous
+        row's, is at or below :attr:`v_min`. There the Coulomb column of the regression switches while the
+        real friction does not (stiction, the stop and the breakaway), so the one-step residual is the
+        friction model's error, not a process force: a stop at the end of a part read as a 90 N impulse."""
+        raw = self._raw_force(est)
+        v = np.abs(np.asarray(est.v_meas, dtype=float))
+        prev = np.concatenate(([abs(self._v_last)], v[:-1]))
+        self._v_last = float(v[-1]) if v.size else self._v_last
+        slow = ~(np.minimum(v, prev) > self.v_min)  # NaN velocities are not judged either
+        return np.where(slow, np.nan, raw)
+
+    def _segment(self, est, a: int, b: int, force, sd, theta, key, raw, judged) -> list[S.AlarmEvent]:
         f, s, th = force[a:b], sd[a:b], theta[a:b]
         m = b - a
         ok = np.isfinite(f)
@@ -196,7 +212,7 @@ class AxisProcessMonitor:
         if imp.enabled:
             floor, over = self._limits(key)
             w = self.widen["impulse"]
-            fi = raw[a:b] if imp.signal == "measured" else f
+            fi = judged[a:b] if imp.signal == "measured" else f
             if fm.impulse_step(self._impulse, th, fi, s, imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w,
                                floor * w, over, imp.persist, imp.alpha, kind, value, limit):
                 for i in np.nonzero(kind >= 0)[0]:
@@ -255,7 +271,9 @@ class ProcessMonitors:
     def __init__(self, axes: dict, settings: MonitorSettings, references: dict | None = None) -> None:
         self.settings = settings
         refs = references or {}
-        self.by_axis = {key: AxisProcessMonitor(key[0], key[1], settings, float(ax.model.Ts), refs.get(key))
+        self.by_axis = {key: AxisProcessMonitor(key[0], key[1], settings, float(ax.model.Ts), refs.get(key),
+                                                v_min=max(float(ax.model.omega),
+                                                          float(ax.model.online.adaptation.min_speed)))
                         for key, ax in axes.items()}
 
     def update(self, key: tuple[str, str], est, block: S.SampleBlock) -> list[S.AlarmEvent]:
