@@ -6,7 +6,9 @@ Usage::
     python benchmarks/process_series.py                  # 200 parts (≈ 1.1 h of cutting; ~25 min here)
     python benchmarks/process_series.py --parts 50 --reference 10
 
-Every part is run through ``feedmon run --from … --monitors`` (impulse, tooth); with ``--reference K`` a
+The axis is identified as a user does it, once, on part 0 with ``feedmon identify`` and no options
+(``--truth-model``: the simulator's true β instead); every part is then run through
+``feedmon run --from … --monitors`` (impulse, tooth) — parts 1 … N−1 out of sample; with ``--reference K`` a
 reference is learned from the first K parts (``feedmon reference learn``) and the rest are also judged
 against it (envelope). Prints one line per part as it goes (alarms, if any) and a table at the end:
 parts, hours of cutting, alarms per monitor.
@@ -34,6 +36,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--reference", type=int, default=10, metavar="K", help="learn a reference from K parts (0: none)")
     ap.add_argument("--work", default=None, help="keep the files here (default: a temporary folder)")
+    ap.add_argument("--truth-model", action="store_true", help="monitor with the true β, not a model identified on part 0")
     args = ap.parse_args()
     from monitor.model_file import save_model, truth_model
 
@@ -46,7 +49,11 @@ def main() -> int:
                             "-o", str(work), "--seed", str(args.seed), "--created", "2024-05-01T08:00:00Z"],
                            check=True, cwd=ROOT, capture_output=True)
         parts = sorted(work.glob("part-*.mcap"))
-        save_model(truth_model(read_trial(parts[0]).meta, period=1 / 50, budget=100), work / "m.model.toml")
+        if args.truth_model:
+            save_model(truth_model(read_trial(parts[0]).meta, period=1 / 50, budget=100), work / "m.model.toml")
+        else:
+            subprocess.run([sys.executable, "-m", "feedmon.cli", "identify", str(parts[0]), "-o",
+                            str(work / "m.model.toml")], check=True, cwd=ROOT, capture_output=True)
         print(f"simulated {len(parts)} parts in {time.perf_counter() - t0:.0f} s", flush=True)
         counts: Counter[str] = Counter()
         seconds = 0.0

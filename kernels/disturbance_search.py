@@ -140,8 +140,8 @@ def for_beta(choice: TrackerChoice, base: TrackerChoice) -> TrackerChoice:
     * a disturbance ``base`` takes for noise — ``choice`` of another structure whose signal-to-noise ratio
       γ is :data:`STRONG_GAMMA` times ``base``'s or more: ``choice`` itself. In closed loop the command
       answers the disturbance, so a disturbance left in β's noise is correlated with the command and
-      biases β (the EMPS drive's pulses made its inertia +130 %); the slow columns a flexible kernel
-      explains are then reported as not determined rather than learned wrong.
+      biases β (docs/method.md, "Online β keeps the model file's tracker"); the slow columns a flexible
+      kernel explains are then reported as not determined rather than learned wrong.
     """
     if choice.kind == "spindle":
         if base.kind == "spindle" and choice.same_structure(base):
