@@ -175,7 +175,10 @@ def test_mcap_log_in_its_own_process_holds_what_the_in_process_sink_writes(work,
     ax = next(iter(axes.values()))
     metas = [live_meta(ax)]
     items = []
-    t0 = 1_700_000_000 * 10**9
+    # receive times an hour ahead: the live pairing releases a sample without its truth once it is older than
+    # HOLD_NS by the wall clock, at whatever moment each sink ticks; stamps in the future keep both files
+    # paired the same, whatever the load
+    t0 = time.time_ns() + 3600 * 10**9
     for k, b in enumerate(blocks_of(trial, 0, 600, 25)):
         est = ax.estimator.process(b)
         tb = S.TruthBlock(seq=b.seq, t=b.t, force=[float(i) for i in range(len(b.t))], f=[0.0] * len(b.t))
