@@ -633,3 +633,53 @@ def decode_truth_event(data: bytes | str, *, what: str = "truth event") -> Truth
 SCHEMA_NAMES[TruthEvent] = "feedmon.TruthEvent"
 JSON_SCHEMAS[SCHEMA_NAMES[TruthEvent]] = json_schema(TruthEvent)
 __all__ += ["TruthEvent", "decode_truth_event", "TRUTH_KIND_MAX_LEN"]
+
+
+# ---- the process monitors' view for the dashboard (appended: monitor/process_monitor makes it) -----
+#: most teeth and angle bins of a :class:`ToothView` (the ranges of ``[monitors.tooth]``)
+TEETH_MAX = 32
+PROFILE_BINS_MAX = 720
+_N = Annotated[float | None, msgspec.Meta(description="N; null: none")]
+
+
+class ToothView(msgspec.Struct, forbid_unknown_fields=True):
+    """The last revolutions per tooth: ``seq``/``t`` of the row that ended the last one, ``profile`` the mean
+    force per spindle-angle bin over the last few (bin ``b`` covers ``[b, b + 1)·360°/bins``), ``peaks`` their
+    mean peak force per tooth, ``a0`` the mean force and ``a1`` the once-per-revolution amplitude of the last
+    (N); ``a1_broken``/``a1_runout`` the values of A1 above which the tooth monitor calls a broken tooth /
+    runout (null while it learns)."""
+
+    seq: Seq
+    t: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]
+    profile: Annotated[list[float | None], msgspec.Meta(min_length=1, max_length=PROFILE_BINS_MAX)]
+    peaks: Annotated[list[float | None], msgspec.Meta(min_length=1, max_length=TEETH_MAX)]
+    a0: _N = None
+    a1: _N = None
+    a1_broken: _N = None
+    a1_runout: _N = None
+
+
+class ProcessView(msgspec.Struct, forbid_unknown_fields=True):
+    """What the process monitors of one axis judge against at row ``seq`` (time ``t``, s), for the dashboard
+    (the Rerun recording process; not published, not logged): ``collision_low``/``collision_high`` the force
+    range the collision test passes, ``overload`` its limit on ``|F|``, ``band_low``/``band_high`` the reference
+    envelope (N; null: that monitor has none here), ``tooth`` the last revolution when one ended since the
+    previous view."""
+
+    machine: Name
+    axis: Name
+    seq: Seq
+    t: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]
+    collision_low: _N = None
+    collision_high: _N = None
+    overload: _N = None
+    band_low: _N = None
+    band_high: _N = None
+    tooth: ToothView | None = None
+
+
+def decode_process_view(data: bytes | str, *, what: str = "process view") -> ProcessView:
+    return decode(data, ProcessView, what=what)
+
+
+__all__ += ["ProcessView", "ToothView", "decode_process_view", "TEETH_MAX", "PROFILE_BINS_MAX"]

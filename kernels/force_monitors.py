@@ -47,8 +47,8 @@ from numba import njit
 
 from .errors import ParameterError
 
-__all__ = ["IMPULSE_STATE", "new_impulse_state", "impulse_step", "ToothAccumulator", "tooth_fit",
-           "ToothDetector", "envelope_step", "new_envelope_state", "wear_trend"]
+__all__ = ["IMPULSE_STATE", "new_impulse_state", "impulse_step", "impulse_band", "ToothAccumulator", "tooth_fit",
+           "ToothDetector", "envelope_step", "envelope_band", "new_envelope_state", "wear_trend"]
 
 # ---- collision / overload (M1, M2) ------------------------------------------------------------------------
 #: layout of the impulse monitor's float state: these slots, then a ring of |F| (``window`` values), then the
@@ -76,6 +76,50 @@ def new_impulse_state(window: int, bins: int = 12) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _angle_limit(state, ratio_angle, k_sigma, limit_abs):
+    """The collision limit on ``|F − P(θ)|`` (M1, with the angle): ``max(L_abs, ratio_angle·max|P| + k·σ̄)``."""
+    w, bins = int(state[_I_W]), int(state[_I_BINS])
+    prof, hits, slow = _I_SLOTS + w, _I_SLOTS + w + bins, _I_SLOTS + w + 2 * bins
+    pmax = 0.0
+    for j in range(bins):
+        if state[hits + j] > 0.0:
+            pmax = max(pmax, abs(state[prof + j]), abs(state[slow + j]))
+    return max(limit_abs, ratio_angle * pmax + k_sigma * state[_I_SD])
+
+
+@njit(cache=True, nogil=True)
+def _peak_limit(state, ratio, k_sigma, limit_abs):
+    """The collision limit on ``|F|`` (M1, without the angle): ``max(L_abs, ratio·B + k·σ̄)``."""
+    w = int(state[_I_W])
+    peak = 0.0
+    for j in range(w):
+        if state[_I_SLOTS + j] > peak:
+            peak = state[_I_SLOTS + j]
+    return max(limit_abs, ratio * peak + k_sigma * state[_I_SD])
+
+
+@njit(cache=True, nogil=True)
+def impulse_band(state, ratio, ratio_angle, k_sigma, limit_abs):
+    """The force range the collision test (M1) passes as it stands (for the dashboard), ``(low, high)`` N:
+    with an angle profile ``[min P − L, max P + L]`` over the bins seen (a force outside is a collision at
+    any angle), without it ``±L``; NaN before the running peak is filled."""
+    w, bins = int(state[_I_W]), int(state[_I_BINS])
+    if state[_I_FILLED] < w:
+        return math.nan, math.nan
+    prof, hits, slow = _I_SLOTS + w, _I_SLOTS + w + bins, _I_SLOTS + w + 2 * bins
+    lo, hi = math.inf, -math.inf
+    for j in range(bins):
+        if state[hits + j] >= 3.0:
+            lo = min(lo, state[prof + j], state[slow + j])
+            hi = max(hi, state[prof + j], state[slow + j])
+    if hi >= lo:
+        lim = _angle_limit(state, ratio_angle, k_sigma, limit_abs)
+        return lo - lim, hi + lim
+    lim = _peak_limit(state, ratio, k_sigma, limit_abs)
+    return -lim, lim
+
+
+@njit(cache=True, nogil=True)
 def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs, limit_over, persist, alpha,
                  out_kind, out_value, out_limit):
     """Collision (M1) and overload (M2) over a block of rows; returns the number of alarms written.
@@ -99,7 +143,6 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
         if not math.isfinite(f):
             continue
         a = abs(f)
-        s = state[_I_SD]
         th = theta[i]
         b = -1
         if math.isfinite(th):
@@ -109,18 +152,10 @@ def impulse_step(state, theta, force, sd, ratio, ratio_angle, k_sigma, limit_abs
             state[_I_HOLD] -= 1.0
         elif filled >= w:
             if b >= 0 and state[hits + b] >= 3.0:
-                pmax = 0.0
-                for j in range(bins):
-                    if state[hits + j] > 0.0:
-                        pmax = max(pmax, abs(state[prof + j]), abs(state[slow + j]))
-                lim = max(limit_abs, ratio_angle * pmax + k_sigma * s)  # (M1), with the angle
+                lim = _angle_limit(state, ratio_angle, k_sigma, limit_abs)  # (M1), with the angle
                 d = min(abs(f - state[prof + b]), abs(f - state[slow + b]))
             else:
-                peak = 0.0
-                for j in range(w):
-                    if state[ring + j] > peak:
-                        peak = state[ring + j]
-                lim = max(limit_abs, ratio * peak + k_sigma * s)  # (M1), without
+                lim = _peak_limit(state, ratio, k_sigma, limit_abs)  # (M1), without
                 d = a
             if d > lim:
                 out_kind[i], out_value[i], out_limit[i] = 0, d, lim
@@ -330,6 +365,13 @@ class ToothDetector:
     def learned(self) -> bool:
         return math.isfinite(self.mean1)
 
+    def limits(self, a0: float) -> tuple[float, float]:
+        """The limits on ``A1 − Ā1`` (N) at mean force ``a0``: broken tooth (M4) and runout (M5); NaN while
+        learning."""
+        lim_b = self.widen * max(self.qb * a0, self.k * self.sd1)  # (M4)
+        lim_r = self.widen * max(self.qr * a0, self.k * self.sd1 / 2.0)  # (M5)
+        return lim_b, lim_r
+
     def update(self, a0: float, a1: float) -> list[tuple[str, float, float]]:
         """One revolution; returns the alarms ``(kind, measured excess ΔA1 (N), limit (N))`` it raised."""
         if not (math.isfinite(a0) and math.isfinite(a1)) or a0 <= self.cut_min:
@@ -348,7 +390,7 @@ class ToothDetector:
             return []
         out = []
         d = a1 - self.mean1
-        lim_b = self.widen * max(self.qb * a0, self.k * self.sd1)  # (M4)
+        lim_b, lim_r = self.limits(a0)
         self._over = self._over + 1 if d > lim_b else 0
         if self._over >= 2 and "broken_tooth" not in self.latched:
             self.latched.add("broken_tooth")
@@ -358,7 +400,6 @@ class ToothDetector:
             self._recent.pop(0)
         if len(self._recent) == 4:
             dm = sum(self._recent) / 4.0 - self.mean1
-            lim_r = self.widen * max(self.qr * a0, self.k * self.sd1 / 2.0)  # (M5)
             # a revolution above the broken-tooth limit in the window is a breakage on its way, not runout
             steady = max(self._recent) - self.mean1 <= lim_b
             if dm > lim_r and steady and "runout" not in self.latched and "broken_tooth" not in self.latched:
@@ -371,6 +412,25 @@ class ToothDetector:
 def new_envelope_state() -> np.ndarray:
     """``[below_run, above_run, latched_below, latched_above]``."""
     return np.zeros(4)
+
+
+@njit(cache=True, nogil=True)
+def _envelope_band(mean, spread, sd, k_sigma, band_min):
+    """The band (M6) of one reference bin, ``μ ± max(b_min, k·√(s² + σ²))`` (σ NaN: 0)."""
+    s = sd if math.isfinite(sd) else 0.0
+    half = max(band_min, k_sigma * math.sqrt(spread ** 2 + s * s))
+    return mean - half, mean + half
+
+
+def envelope_band(progress: float, sd: float, mean: np.ndarray, spread: np.ndarray, bin_s: float, k_sigma: float,
+                  band_min: float) -> tuple[float, float]:
+    """The band (M6) at ``progress`` s into the section (for the dashboard); NaN outside the reference."""
+    if not (math.isfinite(progress) and progress >= 0.0):
+        return math.nan, math.nan
+    b = int(progress / bin_s)
+    if b >= mean.size:
+        return math.nan, math.nan
+    return _envelope_band(float(mean[b]), float(spread[b]), float(sd), float(k_sigma), float(band_min))
 
 
 @njit(cache=True, nogil=True)
@@ -390,9 +450,7 @@ def envelope_step(state, progress, force, sd, mean, spread, bin_s, k_sigma, band
             state[0] = 0.0
             state[1] = 0.0
             continue
-        s = sd[i] if math.isfinite(sd[i]) else 0.0
-        half = max(band_min, k_sigma * math.sqrt(spread[b] ** 2 + s * s))
-        lo, hi = mean[b] - half, mean[b] + half
+        lo, hi = _envelope_band(mean[b], spread[b], sd[i], k_sigma, band_min)
         if f < lo and mean[b] > cut_min:
             state[0] += 1.0
             if state[0] >= persist and state[2] == 0.0:

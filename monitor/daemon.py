@@ -79,7 +79,7 @@ from .axes import AxisRuntime
 from .input_health import InputHealthSettings
 from .pipeline import Pipeline
 from .sinks.frames import Tag
-from .sinks.protocols import ClosingSink, EncodedSink, HealthSink, Sink, TruthSink
+from .sinks.protocols import ClosingSink, EncodedSink, HealthSink, ProcessViewSink, Sink, TruthSink
 from .state import StateStore
 from .status import StageRing
 from .status_doc import InputInfo, Latency, MonitorInfo, Percentiles, Served, StatusDoc, to_builtins
@@ -217,6 +217,8 @@ class Monitor:
         # process alarms (monitor.process_monitor): publishers, the sinks that take them
         self._alarm_pubs: dict[tuple[str, str], Any] = {}
         self._alarm_offers = [s.offer_alarm for s in self.sinks if hasattr(s, "offer_alarm")]
+        # the process monitors' views for the dashboard: made only when a sink takes them and monitors run
+        self._view_offers = [s.offer_process_view for s in self.sinks if isinstance(s, ProcessViewSink)]
         self._queryable = None
         self._thread: threading.Thread | None = None
         self._started_mono = time.monotonic()
@@ -405,7 +407,23 @@ class Monitor:
                                     time.perf_counter() - t4)
         if health:  # after the block's messages (the MCAP log keeps main's order), outside the stage times
             self._publish_health(ax, health)
+        if self._view_offers and est is not None and p.process is not None:
+            self._offer_view(ax)
         return est
+
+    def _offer_view(self, ax: AxisRuntime) -> None:
+        """The process monitors' view of an axis to the dashboard when one is due (at most every
+        ``VIEW_INTERVAL_S`` s of data); a failure is counted and logged, never raised."""
+        try:
+            view = self.pipeline.process.take_view(ax.key)
+        except Exception as exc:  # noqa: BLE001 - the dashboard must not stop the estimates
+            ax.status.counters["process_view_error"] += 1
+            self.pipeline.burst(f"view:{ax.status.name}", "axis %s: the process monitors' view failed: %s: %s",
+                                ax.status.name, type(exc).__name__, str(exc))
+            return
+        if view is not None:
+            for offer in self._view_offers:
+                offer(view)
 
     def _start_alarms(self) -> None:
         """Alarm publishers (priority REAL_TIME, express) and the acknowledgement subscriber."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 
 import numpy as np
 
@@ -23,7 +24,7 @@ from kernels import force_monitors as fm
 from .reference import ReferenceFile, section_key
 from .settings import MonitorSettings
 
-__all__ = ["AxisProcessMonitor", "ProcessMonitors", "ToothView", "build_monitors"]
+__all__ = ["AxisProcessMonitor", "ProcessMonitors", "build_monitors", "VIEW_INTERVAL_S"]
 
 log = logging.getLogger("monitor.process")
 
@@ -33,14 +34,25 @@ _ENVELOPE_KINDS = ("missing_cut", "over_band")
 MONITORS = S.ALARM_MONITORS
 
 
-class ToothView:
-    """The last revolution's per-tooth view (for the dashboard): angle profile (N per bin), per-tooth peaks
-    (N), ``a0`` mean force and ``a1`` once-per-revolution amplitude (N)."""
+#: s of data between two dashboard views of an axis (:meth:`AxisProcessMonitor.take_view`): at most 50 a second
+#: whatever the rate of blocks, about one per revolution at 3000 rpm
+VIEW_INTERVAL_S = 0.02
+#: revolutions averaged in the dashboard's per-tooth panel: one revolution has a few samples (6.7 at 333 Hz and
+#: 3000 rpm) for 36 angle bins, ten fill most bins
+VIEW_REVOLUTIONS = 10
 
-    __slots__ = ("t", "profile", "peaks", "a0", "a1")
 
-    def __init__(self, t: float, profile: np.ndarray, peaks: np.ndarray, a0: float, a1: float) -> None:
-        self.t, self.profile, self.peaks, self.a0, self.a1 = t, profile, peaks, a0, a1
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _mean_of(arrays) -> np.ndarray:
+    """Element-wise mean of equal-length arrays over their finite values (NaN where none is)."""
+    x = np.array(arrays)
+    ok = np.isfinite(x)
+    n = ok.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, np.where(ok, x, 0.0).sum(axis=0) / n, np.nan)
 
 
 class AxisProcessMonitor:
@@ -69,7 +81,13 @@ class AxisProcessMonitor:
         self._ref_sec = None
         self.counts: dict[str, int] = {}
         self.last: S.AlarmEvent | None = None
-        self.tooth_view: ToothView | None = None
+        #: the last revolution (row seq, t, record of ToothAccumulator) and whether it is new; the angle profiles
+        #: and per-tooth peaks of the last VIEW_REVOLUTIONS
+        self._rev: tuple | None = None
+        self._revs: deque = deque(maxlen=VIEW_REVOLUTIONS)
+        self._rev_new = False
+        self._row: tuple | None = None  # (seq, t, σ, section key) of the last row judged
+        self._view_t = -math.inf  # time of the last view
         self.sections: list[dict] = []  # per finished section: key, occurrence, rows, mean force (N), energy (J)
         self._acc = [0, 0.0, 0.0]
         #: revolutions ending before this time are not judged per tooth: an impulse distorts their fit
@@ -119,6 +137,7 @@ class AxisProcessMonitor:
                 self._new_section(key, float(est.t[start]))
             out += self._segment(est, start, stop, force, sd, theta, key, raw, judged)
             start = stop
+        self._row = (int(est.seq + n - 1), float(est.t[-1]), float(sd[-1]), key)
         for a in out:
             self.counts[a.kind] = self.counts.get(a.kind, 0) + 1
             self.last = a
@@ -175,6 +194,13 @@ class AxisProcessMonitor:
         self._key = None
         return self.sections
 
+    def _impulse_limits(self, key: tuple) -> tuple[float, float, float, float, float]:
+        """(ratio, ratio_angle, k, collision floor, overload limit) of the impulse test (M1, M2) in a section, the
+        operator's widening applied."""
+        imp, w = self.s.impulse, self.widen["impulse"]
+        floor, over = self._limits(key)
+        return imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w, floor * w, over
+
     def _limits(self, key: tuple) -> tuple[float, float]:
         """(collision floor, overload limit) of a section: the last matching ``[[monitors.section]]`` wins."""
         imp = self.s.impulse
@@ -210,11 +236,10 @@ class AxisProcessMonitor:
         kind, value, limit = np.full(m, -1, np.int64), np.zeros(m), np.zeros(m)
         imp = self.s.impulse
         if imp.enabled:
-            floor, over = self._limits(key)
-            w = self.widen["impulse"]
+            ratio, ratio_angle, k, floor, over = self._impulse_limits(key)
             fi = judged[a:b] if imp.signal == "measured" else f
-            if fm.impulse_step(self._impulse, th, fi, s, imp.ratio * w, imp.ratio_angle * w, imp.sensitivity * w,
-                               floor * w, over, imp.persist, imp.alpha, kind, value, limit):
+            if fm.impulse_step(self._impulse, th, fi, s, ratio, ratio_angle, k, floor, over, imp.persist, imp.alpha,
+                               kind, value, limit):
                 for i in np.nonzero(kind >= 0)[0]:
                     self._tooth_quiet_until = float(est.t[a + i]) + 3 * imp.window_s
                     out.append(self._event(est, a + i, _IMPULSE_KINDS[kind[i]], "impulse", value[i], limit[i],
@@ -240,7 +265,8 @@ class AxisProcessMonitor:
         out = []
         for r, p in zip(rows, prof):
             i = a + int(r[0])
-            self.tooth_view = ToothView(float(est.t[i]), p, r[5:], float(r[1]), float(r[2]))
+            self._rev, self._rev_new = (int(est.seq + i), float(est.t[i]), r), True
+            self._revs.append((p, r[5:]))
             quiet = float(est.t[i]) <= self._tooth_quiet_until
             for kind, excess, lim in self._tooth.update(math.nan if quiet else float(r[1]), float(r[2])):
                 out.append(self._event(est, i, kind, "tooth", excess, lim, self._tooth.sd1,
@@ -255,6 +281,39 @@ class AxisProcessMonitor:
         return S.AlarmEvent(machine=self.machine, axis=self.axis, seq=int(est.seq + i), t=float(est.t[i]), kind=kind,
                             monitor=monitor, value=float(value), limit=float(limit), sigma=sig,
                             detail=detail[:S.ALARM_DETAIL_CHARS_MAX], **ctx)
+
+    # ---- dashboard ---------------------------------------------------------------------------------------
+    def take_view(self) -> S.ProcessView | None:
+        """What the monitors judge against at the last row (:class:`~feedio.schema.ProcessView`), for the
+        dashboard; None until :data:`VIEW_INTERVAL_S` s of data passed since the last one (the caller asks once a
+        block: the cost is per view, not per sample). The collision range and the envelope band are the
+        kernels' own (M1, M6: :func:`~kernels.force_monitors.impulse_band`, ``envelope_band``)."""
+        if self._row is None or not self._row[1] >= self._view_t + VIEW_INTERVAL_S:
+            return None
+        seq, t, sd, key = self._row
+        self._view_t = t
+        imp, lo, hi, over = self.s.impulse, math.nan, math.nan, math.nan
+        if imp.enabled:
+            ratio, ratio_angle, k, floor, over = self._impulse_limits(key)
+            lo, hi = fm.impulse_band(self._impulse, ratio, ratio_angle, k, floor)
+        b_lo, b_hi, ref = math.nan, math.nan, self._ref_sec
+        if ref is not None:
+            env, w = self.s.envelope, self.widen["envelope"]
+            b_lo, b_hi = fm.envelope_band(t - self._t0, sd, ref.mean_array, ref.spread_array, ref.bin_s,
+                                          env.sensitivity * w, env.band_min_N * w)
+        tooth = None
+        if self._rev_new:
+            self._rev_new = False
+            r_seq, r_t, r = self._rev
+            a0, a1 = float(r[1]), float(r[2])
+            lim_b, lim_r = self._tooth.limits(a0) if self._tooth.learned else (math.nan, math.nan)
+            m1 = self._tooth.mean1
+            prof, peaks = (_mean_of(x) for x in zip(*self._revs))
+            tooth = S.ToothView(seq=r_seq, t=r_t, profile=[_num(x) for x in prof], peaks=[_num(x) for x in peaks],
+                                a0=_num(a0), a1=_num(a1), a1_broken=_num(m1 + lim_b), a1_runout=_num(m1 + lim_r))
+        return S.ProcessView(machine=self.machine, axis=self.axis, seq=seq, t=t, collision_low=_num(lo),
+                             collision_high=_num(hi), overload=_num(over), band_low=_num(b_lo),
+                             band_high=_num(b_hi), tooth=tooth)
 
     def status(self) -> dict:
         """Counts per kind and the last alarm (``feedmon status``)."""
@@ -279,6 +338,11 @@ class ProcessMonitors:
     def update(self, key: tuple[str, str], est, block: S.SampleBlock) -> list[S.AlarmEvent]:
         mon = self.by_axis.get(key)
         return [] if mon is None else mon.update(est, block)
+
+    def take_view(self, key: tuple[str, str]) -> S.ProcessView | None:
+        """The dashboard's view of an axis when one is due (:meth:`AxisProcessMonitor.take_view`)."""
+        mon = self.by_axis.get(key)
+        return None if mon is None else mon.take_view()
 
 
 def build_monitors(axes: dict, settings: MonitorSettings) -> ProcessMonitors | None:

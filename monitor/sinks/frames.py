@@ -21,5 +21,6 @@ class Tag(bytes, enum.Enum):
     TRUTH = b"T"  #: a TruthBlock of one axis (the axis named beside it)
     HEALTH = b"H"  #: a Health report (MCAP: the schema's JSON; Rerun: ``{machine, axis, health}``)
     ALARM = b"A"  #: a process monitor's AlarmEvent, JSON of the schema
+    PROCESS = b"P"  #: the process monitors' ProcessView of an axis (Rerun only), JSON of the schema
     EVENT = b"V"  #: an event for the Rerun timeline, JSON ``{machine, axis, seq, t, level, text}``
     QUIT = b"Q"  #: finish and exit (the whole message)

@@ -8,7 +8,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from .frames import Tag
 
-__all__ = ["Sink", "EncodedSink", "HealthSink", "TruthSink", "ClosingSink"]
+__all__ = ["Sink", "EncodedSink", "HealthSink", "TruthSink", "ProcessViewSink", "ClosingSink"]
 
 
 @runtime_checkable
@@ -46,6 +46,14 @@ class TruthSink(Protocol):
     them as ``Tag.TRUTH``)."""
 
     def offer_truth(self, machine: str, axis: str, block: Any) -> bool: ...
+
+
+@runtime_checkable
+class ProcessViewSink(Protocol):
+    """Takes the process monitors' views of an axis (:class:`~feedio.schema.ProcessView`: the dashboard's
+    per-tooth panel and limits); the daemon makes them only when such a sink runs."""
+
+    def offer_process_view(self, view: Any) -> bool: ...
 
 
 @runtime_checkable

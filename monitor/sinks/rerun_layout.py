@@ -18,7 +18,10 @@ placed at, for a value from EstimateBlock row j.
 * ``residual_psd/residual``, ``disturbance_psd/estimate|actual``: BarCharts, PSD in dB above the
   signal's floor vs Hz, at the last sample of their window; ``psd_markers/1_over_psi|
   tooth_passing|spindle`` marker bars (Hz) shown in both spectra.
-* ``events``: TextLog (flags, gaps, glitches, spectrum markers, health), at the sample concerned.
+* ``events``: TextLog (flags, gaps, glitches, spectrum markers, health, process alarms), at the sample
+  concerned.
+* with the process monitors on: ``force/limit/*`` their limits, ``force/alarm/<kind>`` their alarms,
+  ``tooth/*`` the per-tooth panel (:mod:`monitor.sinks.rerun_monitors`).
 
 Entity names sort so that the estimate is drawn over the truth (Rerun draws in path order).
 
@@ -36,7 +39,8 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["AxisInfo", "describe_model", "Series", "series_styles", "group_of", "units_of", "AxisView",
-           "axis_blueprint", "blueprint_for", "MARKER_COLOURS", "SPECTRUM_COLOURS", "TIMELINE", "SEQUENCE"]
+           "axis_blueprint", "blueprint_for", "MARKER_COLOURS", "SPECTRUM_COLOURS", "TIMELINE", "SEQUENCE",
+           "TOOTH_COLOUR", "ALARM_MARKER_SIZE", "alarm_style"]
 
 TIMELINE = "time"  # controller time (s), duration timeline
 SEQUENCE = "sample"  # sample sequence number
@@ -50,6 +54,13 @@ _GREY = (170, 170, 170, 255)
 _BLUE = (60, 150, 230, 255)
 _VIOLET = (180, 130, 230, 255)
 _CYAN = (23, 190, 207, 255)
+
+_YELLOW = (230, 200, 40, 255)
+_MAGENTA = (230, 60, 200, 255)
+_ALARM = (255, 40, 40, 255)
+TOOTH_COLOUR = (0, 200, 230, 255)
+#: px of an alarm's marker on the force panel
+ALARM_MARKER_SIZE = 12.0
 
 MARKER_COLOURS = {"1_over_psi": (255, 215, 0, 150), "tooth_passing": (0, 220, 255, 150), "spindle": (0, 220, 255, 150)}
 SPECTRUM_COLOURS = {"residual": (196, 140, 110, 255), "estimate": _RED, "actual": _GREEN}
@@ -109,9 +120,29 @@ _CONTEXT: dict[str, Series] = {
 }
 
 
-def series_styles(force: bool, context: bool = False) -> dict[str, Series]:
+_PROCESS: dict[str, Series] = {  # the process monitors' limits (rerun_monitors.py), the per-tooth amplitudes
+    "force/limit/collision_high": Series("collision limit (expected force + limit)", _YELLOW, 1.0, "Max"),
+    "force/limit/collision_low": Series("collision limit (expected force − limit)", _YELLOW, 1.0, "Min"),
+    "force/limit/overload_high": Series("overload limit", _MAGENTA, 1.0, "Max"),
+    "force/limit/overload_low": Series("overload limit (−)", _MAGENTA, 1.0, "Min"),
+    "force/limit/band_high": Series("reference band, upper", _VIOLET, 1.0, "Max"),
+    "force/limit/band_low": Series("reference band, lower", _VIOLET, 1.0, "Min"),
+    "tooth/a0": Series("mean force a0", _GREY, 1.5, "Average"),
+    "tooth/a1": Series("once-per-revolution amplitude A1", TOOTH_COLOUR, 1.5, "Max"),
+    "tooth/a1_broken": Series("A1 limit: broken tooth", _RED, 1.0, "Max"),
+    "tooth/a1_runout": Series("A1 limit: runout", _ORANGE, 1.0, "Max"),
+}
+
+
+def alarm_style(kind: str) -> Series:
+    """The style of the alarm markers of ``kind`` (``force/alarm/<kind>``): a red cross named by its kind."""
+    return Series(f"ALARM {kind}", _ALARM, ALARM_MARKER_SIZE)
+
+
+def series_styles(force: bool, context: bool = False, process: bool = False) -> dict[str, Series]:
     """Every time series of one axis (path relative to ``/<m>/<a>``) and its style."""
-    return {**_disturbance_series(force), **_COMMON, **(_CONTEXT if context else {})}
+    return {**_disturbance_series(force), **_COMMON, **(_CONTEXT if context else {}),
+            **(_PROCESS if process and force else {})}
 
 
 # ---- what the dashboard knows of an axis ------------------------------------------------------------
@@ -191,20 +222,22 @@ def _series_view(origin: str, name: str, window: float | None, contents=None, le
 @dataclass(frozen=True)
 class AxisView:
     """One axis on the dashboard: entity root (``/<m>/<a>``, escaped), names, newtons or velocity units,
-    whether its samples carry context columns (NC program line, tool)."""
+    whether its samples carry context columns (NC program line, tool), whether process monitors judge it."""
 
     root: str
     machine: str
     axis: str
     force: bool = True
     context: bool = False
+    process: bool = False
 
 
 def force_view(ax: AxisView, window: float | None, title_prefix: str = ""):
     """The disturbance panel: filtered estimate ±2σ at its sample time, truth, dynamometer."""
     what = "force" if ax.force else "disturbance (velocity units)"
     name = (f"{title_prefix}{ax.axis} {what} ({units_of(ax.force)}): filtered estimate ±2σ at its sample time, "
-            f"true{', dynamometer' if ax.force else ''}")
+            f"true{', dynamometer' if ax.force else ''}"
+            f"{'; monitor limits, alarms (red crosses)' if ax.process and ax.force else ''}")
     return _series_view(f"{ax.root}/{group_of(ax.force)}", name, window,
                         contents=["$origin/**", "- $origin/prediction"])
 
@@ -220,6 +253,23 @@ def _events_view(origin: str, name: str, contents=None, entity_column: bool = Fa
                           TextLogColumn("Body")])
     kw = {} if contents is None else {"contents": contents}
     return rrb.TextLogView(origin=origin, name=name, columns=cols, **kw)
+
+
+def tooth_row(ax: AxisView, window: float | None):
+    """The per-tooth panel (process monitors on): the last revolution's force over the spindle angle, its peak
+    per tooth, and the once-per-revolution amplitude against the tooth monitor's limits."""
+    import rerun.blueprint as rrb
+
+    o = ax.root
+    return rrb.Horizontal(
+        rrb.BarChartView(origin=f"{o}/tooth/profile", name=f"{ax.axis}: force (N) over spindle angle (°), "
+                                                           "last revolution", plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.BarChartView(origin=f"{o}/tooth/peaks", name="peak force per tooth (N), last revolution",
+                         plot_legend=rrb.PlotLegend(visible=False)),
+        _series_view(f"{o}/tooth", "per revolution (N): A1 and its limits (broken tooth red, runout orange), a0",
+                     window, contents=["$origin/a0", "$origin/a1", "$origin/a1_broken", "$origin/a1_runout"]),
+        column_shares=[1.4, 0.8, 1.8],
+    )
 
 
 def axis_blueprint(ax: AxisView, window: float | None = None, detail: float = 0.25):
@@ -253,8 +303,10 @@ def axis_blueprint(ax: AxisView, window: float | None = None, detail: float = 0.
         rrb.BarChartView(origin=f"{o}/disturbance_psd", contents=["$origin/**", markers],
                          name=f"{what} PSD, dB above its floor, vs frequency (Hz): estimate red, actual green; {key}",
                          plot_legend=rrb.PlotLegend(visible=False)),
-        _events_view(f"{o}/events", f"{ax.machine}/{ax.axis} events: flags, gaps, glitches, health"),
-        row_shares=[2.4, 1.5, 1.85, 1.85, 1.9],
+        *([tooth_row(ax, window)] if ax.process and ax.force else []),
+        _events_view(f"{o}/events", f"{ax.machine}/{ax.axis} events: flags, gaps, glitches, health"
+                                    f"{', process alarms' if ax.process else ''}"),
+        row_shares=[2.4, 1.5, 1.85, 1.85] + ([1.85] if ax.process and ax.force else []) + [1.9],
         name=f"{ax.machine}/{ax.axis}",
     )
 

@@ -9,7 +9,8 @@ encoding as on Zenoh, no pickling — to a pipe; a child process decodes them an
 
 Wire format on the pipe (``Connection.send_bytes``): one tag byte, then the payload —
 ``S`` + SampleBlock JSON, ``E`` + EstimateBlock JSON, ``T`` + ``machine\\0axis\\0`` + TruthBlock
-JSON, ``V`` + event JSON, ``H`` + health-report JSON, ``Q`` to finish. The child answers once at
+JSON, ``V`` + event JSON, ``H`` + health-report JSON, ``A`` + AlarmEvent JSON, ``P`` + ProcessView JSON,
+``Q`` to finish (:class:`~monitor.sinks.frames.Tag`). The child answers once at
 start (``{"server_uri": ...}`` or ``{"error": ...}``), then with its status whenever its counters
 change (at most every ``report_interval`` s) and once at the end (``"final": true``): failures
 inside the child count in the parent's ``failures``. It ignores SIGINT/SIGTERM (a service
@@ -107,11 +108,14 @@ class RerunProcessSink(ChildProcessSink):
         """Queue a :class:`TruthBlock` of ``machine/axis`` (plotted as the true force / dynamometer)."""
         return self.offer((machine, axis, block))
 
-    def offer_alarm(self, event, received_ns: int | None = None) -> bool:
-        """Queue a process alarm (an ERROR line in the event log; :meth:`RerunSink.offer_alarm`)."""
-        from .rerun_events import alarm_line
+    def offer_alarm(self, event: S.AlarmEvent, received_ns: int | None = None) -> bool:
+        """Queue a process alarm (an ERROR line in the event log and a marker on the force panel;
+        :meth:`RerunSink.offer_alarm`)."""
+        return self.offer(event)
 
-        return self.offer_event(event.machine, event.axis, event.seq, event.t, "ERROR", alarm_line(event))
+    def offer_process_view(self, view: S.ProcessView) -> bool:
+        """Queue a process monitors' view (:meth:`RerunSink.offer_process_view`)."""
+        return self.offer(view)
 
     def offer_event(self, machine: str, axis: str, seq: int, t: float, level: str, text: str) -> bool:
         """Queue one line for the event log of ``machine/axis`` (see :meth:`RerunSink.offer_event`)."""
@@ -145,12 +149,16 @@ class RerunProcessSink(ChildProcessSink):
             return Tag.SAMPLES + S.encode(item)
         if isinstance(item, S.EstimateBlock):
             return Tag.ESTIMATES + S.encode(item)
+        if isinstance(item, S.AlarmEvent):
+            return Tag.ALARM + S.encode(item)
+        if isinstance(item, S.ProcessView):
+            return Tag.PROCESS + S.encode(item)
         if isinstance(item, tuple) and len(item) == 3 and isinstance(item[2], S.TruthBlock):
             return Tag.TRUTH + f"{item[0]}\0{item[1]}\0".encode() + S.encode(item[2])
         if isinstance(item, tuple) and len(item) == 2 and item[0] in ("event", "health"):
             return (Tag.EVENT if item[0] == "event" else Tag.HEALTH) + json.dumps(item[1], allow_nan=False).encode()
         raise TypeError(f"RerunProcessSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), "
-                        f"events and health reports, got {type(item).__name__}")
+                        f"AlarmEvent, ProcessView, events and health reports, got {type(item).__name__}")
 
 
 def _next_free(path: str) -> str:
@@ -211,6 +219,10 @@ def _child_main(conn, rrd_path, serve_port, memory_limit, options, report_interv
             elif tag == Tag.HEALTH:
                 h = json.loads(body)
                 sink.offer_health(h["machine"], h["axis"], h["health"])
+            elif tag == Tag.ALARM:
+                sink.offer_alarm(S.decode_alarm(body))
+            elif tag == Tag.PROCESS:
+                sink.offer_process_view(S.decode_process_view(body))
             else:
                 counts["undecodable"] += 1
         except (S.SchemaError, ValueError, KeyError, TypeError):

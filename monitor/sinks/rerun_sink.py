@@ -1,7 +1,8 @@
 """``RerunSink``: the live and recorded Rerun dashboard of the monitor (thesis Figure 4.8 per axis).
 
 What it shows, and where each value is placed in time, is in :mod:`monitor.sinks.rerun_layout`;
-the event log in :mod:`monitor.sinks.rerun_events`; the spectra in :mod:`monitor.sinks.rerun_spectra`.
+the event log in :mod:`monitor.sinks.rerun_events`; the spectra in :mod:`monitor.sinks.rerun_spectra`; the
+process monitors' limits, alarms and per-tooth panel in :mod:`monitor.sinks.rerun_monitors`.
 
 Outputs
 -------
@@ -61,6 +62,7 @@ from . import rerun_layout as L
 from .queued import QueuedSink
 from .rerun_events import EVENT_LEVELS, Event, FlagDigest
 from .rerun_layout import AxisInfo, describe_model
+from .rerun_monitors import send_alarms, send_views
 from .rerun_spectra import marker_frequencies, psd_above_floor
 
 __all__ = ["RerunSink", "AxisInfo", "describe_model", "TIME_LIMIT_S", "axis_root"]
@@ -155,6 +157,10 @@ class _Axis:
     context: bool = False  # the estimates carry context columns (NC program line, tool)
     pruned: _Rolling = field(default_factory=_Rolling)
     reduced: _Rolling = field(default_factory=_Rolling)
+    process: bool = False  # process monitors judge the axis (their views arrive): the per-tooth panel
+    views: list = field(default_factory=list)  # ProcessViews waiting for the next batch
+    alarms: list = field(default_factory=list)  # AlarmEvents waiting for the estimate of their row
+    alarm_kinds: set = field(default_factory=set)  # kinds whose marker style is logged
 
     @property
     def sample_period(self) -> float | None:
@@ -317,10 +323,14 @@ class RerunSink(QueuedSink):
         return self.offer(_EventItem(machine, axis, Event(int(seq), float(t), str(level), str(text))))
 
     def offer_alarm(self, event: S.AlarmEvent, received_ns: int | None = None) -> bool:
-        """Queue a process alarm: an ERROR line in the event log of its axis (:func:`alarm_line`)."""
-        from .rerun_events import alarm_line
+        """Queue a process alarm: an ERROR line in the event log of its axis (:func:`alarm_line`) and a marker
+        on its force panel (:func:`~monitor.sinks.rerun_monitors.send_alarms`)."""
+        return self.offer(event)
 
-        return self.offer_event(event.machine, event.axis, event.seq, event.t, "ERROR", alarm_line(event))
+    def offer_process_view(self, view: S.ProcessView) -> bool:
+        """Queue a process monitors' view of an axis: its limits on the force panel, the per-tooth panel
+        (:mod:`monitor.sinks.rerun_monitors`)."""
+        return self.offer(view)
 
     def offer_health(self, machine: str, axis: str, health: Mapping[str, Any]) -> bool:
         """Queue a health report (``{"seq", "t", "state": "ok"|"warn"|"alarm", "reasons": [...]}``):
@@ -377,11 +387,25 @@ class RerunSink(QueuedSink):
                 Event(ev.seq, ev.t, ev.level, ev.text[:MAX_EVENT_TEXT]))
         elif isinstance(item, _HealthItem):
             self._take_health(item)
+        elif isinstance(item, S.AlarmEvent | S.ProcessView):
+            self._take_process(item)
         else:
-            raise TypeError(f"RerunSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), events "
-                            f"and health reports, got {type(item).__name__}")
-        if isinstance(item, _EventItem | _HealthItem):
+            raise TypeError(f"RerunSink accepts SampleBlock, EstimateBlock, (machine, axis, TruthBlock), AlarmEvent, "
+                            f"ProcessView, events and health reports, got {type(item).__name__}")
+        if isinstance(item, _EventItem | _HealthItem | S.AlarmEvent | S.ProcessView):
             self.count_written(1)  # (an event line is sent with the flags' lines; a report is one only on a change)
+
+    def _take_process(self, item: S.AlarmEvent | S.ProcessView) -> None:
+        from .rerun_events import alarm_line
+
+        self._check_times("process", [item.t])
+        ax = self._axis(item.machine, item.axis)
+        if isinstance(item, S.ProcessView):
+            ax.process = True
+            ax.views.append(item)
+        else:
+            ax.events.append(Event(item.seq, item.t, "ERROR", alarm_line(item)[:MAX_EVENT_TEXT]))
+            ax.alarms.append(item)
 
     def _take_health(self, item: _HealthItem) -> None:
         h = item.health
@@ -425,12 +449,12 @@ class RerunSink(QueuedSink):
         """Static styling of every series of an axis (legend names, colours, aggregation)."""
         import rerun as rr
 
-        for ent, s in L.series_styles(bool(ax.force is None or ax.force), ax.context).items():
+        for ent, s in L.series_styles(bool(ax.force is None or ax.force), ax.context, ax.process).items():
             self.rec.log(f"{ax.root}/{ent}", rr.SeriesLines(names=s.label, colors=s.colour, widths=s.width,
                                                             aggregation_policy=s.aggregation), static=True, strict=True)
 
     def _send_layout(self) -> None:
-        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force), ax.context)
+        views = tuple(L.AxisView(ax.root, m, a, bool(ax.force is None or ax.force), ax.context, ax.process)
                       for (m, a), ax in sorted(self._axes.items()))
         if views == self._layout:
             return
@@ -637,8 +661,19 @@ class RerunSink(QueuedSink):
                     setattr(ax, kind, [])
                     self._attempt(send, ax, blocks, items=len(blocks))
                     self.batches += 1
+            if ax.views:
+                views, ax.views = ax.views, []
+                self._attempt(send_views, self.rec, ax.root, views)
+            self._send_alarms(ax)
             if ax.events:
                 self._attempt(self._log_events, ax)
+
+    def _send_alarms(self, ax: _Axis, final: bool = False) -> None:
+        """The markers of the alarms whose row's estimate was sent (all of them at the end)."""
+        ready = [a for a in ax.alarms if final or (ax.last_seq is not None and a.seq <= ax.last_seq)]
+        if ready:
+            ax.alarms = [a for a in ax.alarms if a not in ready]
+            self._attempt(send_alarms, self.rec, ax.root, ready, ax.alarm_kinds, lambda seq: _force_at(ax, seq))
 
     def _flush(self, timeout: float) -> None:
         """Flush the recording; one that does not finish in ``timeout`` s makes the sink ``degraded`` (Rerun
@@ -676,6 +711,7 @@ class RerunSink(QueuedSink):
                 ax.events.extend(ax.digest.close())
                 if ax.since_psd and ax.last_seq is not None:
                     self._attempt(self._log_spectra, ax, ax.last_seq - 1, ax.last_seq, ax.last_t)
+                self._send_alarms(ax, final=True)
                 if ax.events:
                     self._attempt(self._log_events, ax)
             self._flush(max(10.0, self.flush_timeout))
@@ -686,6 +722,12 @@ class RerunSink(QueuedSink):
                 self._record_failure(TimeoutError(why), f"TimeoutError: {why}")
         if not self.broken:
             self.rec.disconnect()  # finalises the .rrd footer and stops the gRPC server
+
+
+def _force_at(ax: _Axis, seq: int) -> float:
+    """The filtered estimate of row ``seq`` (it describes sample seq − 1), from the spectra's window; NaN: gone."""
+    keep = np.flatnonzero(ax.estimate.seq == seq - 1)
+    return float(ax.estimate.val[keep[-1]]) if keep.size else math.nan
 
 
 def _describe_markers(marks: dict[str, np.ndarray], ax: _Axis) -> str:
