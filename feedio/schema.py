@@ -639,15 +639,18 @@ __all__ += ["TruthEvent", "decode_truth_event", "TRUTH_KIND_MAX_LEN"]
 #: most teeth and angle bins of a :class:`ToothView` (the ranges of ``[monitors.tooth]``)
 TEETH_MAX = 32
 PROFILE_BINS_MAX = 720
+#: revolutions a :class:`ToothView`'s profile and peaks average: one revolution has a few samples (6.7 at 333 Hz
+#: and 3000 rpm) for 36 angle bins
+TOOTH_VIEW_REVOLUTIONS = 10
 _N = Annotated[float | None, msgspec.Meta(description="N; null: none")]
 
 
 class ToothView(msgspec.Struct, forbid_unknown_fields=True):
     """The last revolutions per tooth: ``seq``/``t`` of the row that ended the last one, ``profile`` the mean
-    force per spindle-angle bin over the last few (bin ``b`` covers ``[b, b + 1)·360°/bins``), ``peaks`` their
-    mean peak force per tooth, ``a0`` the mean force and ``a1`` the once-per-revolution amplitude of the last
-    (N); ``a1_broken``/``a1_runout`` the values of A1 above which the tooth monitor calls a broken tooth /
-    runout (null while it learns)."""
+    force per spindle-angle bin over the last :data:`TOOTH_VIEW_REVOLUTIONS` (bin ``b`` covers
+    ``[b, b + 1)·360°/bins``), ``peaks`` their mean peak force per tooth, ``a0`` the mean force and ``a1`` the
+    once-per-revolution amplitude of the last (N); ``a1_broken``/``a1_runout`` the values of A1 above which the
+    tooth monitor calls a broken tooth / runout (null while it learns)."""
 
     seq: Seq
     t: Annotated[float, msgspec.Meta(ge=0.0, le=T_MAX)]
@@ -682,4 +685,5 @@ def decode_process_view(data: bytes | str, *, what: str = "process view") -> Pro
     return decode(data, ProcessView, what=what)
 
 
-__all__ += ["ProcessView", "ToothView", "decode_process_view", "TEETH_MAX", "PROFILE_BINS_MAX"]
+__all__ += ["ProcessView", "ToothView", "decode_process_view", "TEETH_MAX", "PROFILE_BINS_MAX",
+            "TOOTH_VIEW_REVOLUTIONS"]

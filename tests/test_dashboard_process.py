@@ -104,7 +104,7 @@ def test_per_tooth_panel_limits_and_alarm_marker_in_a_live_recording(trial, tmp_
     assert np.all(np.diff(s_hi) * S_TS >= 0.02 - 1e-9)  # at most one view per 20 ms of data
     assert rrd_scalars(store, "/cnc-mill/X/force/limit/band_high")[0].size == 0  # no reference: no band
     # the alarm's marker: at the alarm's row and time, on the filtered estimate there
-    s_m, t_m, y_m = rrd_scalars(store, "/cnc-mill/X/force/alarm/broken_tooth")
+    s_m, t_m, y_m = rrd_scalars(store, "/cnc-mill/X/force/marker/broken_tooth")
     assert s_m.tolist() == [alarm.seq] and abs(t_m[0] - alarm.t) < 2e-9
     s_e, _, est = rrd_scalars(store, "/cnc-mill/X/force/estimate")
     assert math.isclose(y_m[0], est[s_e == alarm.seq - 1][0])

@@ -37,9 +37,6 @@ MONITORS = S.ALARM_MONITORS
 #: s of data between two dashboard views of an axis (:meth:`AxisProcessMonitor.take_view`): at most 50 a second
 #: whatever the rate of blocks, about one per revolution at 3000 rpm
 VIEW_INTERVAL_S = 0.02
-#: revolutions averaged in the dashboard's per-tooth panel: one revolution has a few samples (6.7 at 333 Hz and
-#: 3000 rpm) for 36 angle bins, ten fill most bins
-VIEW_REVOLUTIONS = 10
 
 
 def _num(x: float) -> float | None:
@@ -82,9 +79,9 @@ class AxisProcessMonitor:
         self.counts: dict[str, int] = {}
         self.last: S.AlarmEvent | None = None
         #: the last revolution (row seq, t, record of ToothAccumulator) and whether it is new; the angle profiles
-        #: and per-tooth peaks of the last VIEW_REVOLUTIONS
+        #: and per-tooth peaks of the last TOOTH_VIEW_REVOLUTIONS
         self._rev: tuple | None = None
-        self._revs: deque = deque(maxlen=VIEW_REVOLUTIONS)
+        self._revs: deque = deque(maxlen=S.TOOTH_VIEW_REVOLUTIONS)
         self._rev_new = False
         self._row: tuple | None = None  # (seq, t, σ, section key) of the last row judged
         self._view_t = -math.inf  # time of the last view

@@ -20,8 +20,8 @@ placed at, for a value from EstimateBlock row j.
   tooth_passing|spindle`` marker bars (Hz) shown in both spectra.
 * ``events``: TextLog (flags, gaps, glitches, spectrum markers, health, process alarms), at the sample
   concerned.
-* with the process monitors on: ``force/limit/*`` their limits, ``force/alarm/<kind>`` their alarms,
-  ``tooth/*`` the per-tooth panel (:mod:`monitor.sinks.rerun_monitors`).
+* with the process monitors on: ``force/limit/*`` their limits,
+  ``force/marker/<kind>`` their alarms, ``tooth/*`` the per-tooth panel (:mod:`monitor.sinks.rerun_monitors`).
 
 Entity names sort so that the estimate is drawn over the truth (Rerun draws in path order).
 
@@ -37,6 +37,8 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+from feedio.schema import TOOTH_VIEW_REVOLUTIONS
 
 __all__ = ["AxisInfo", "describe_model", "Series", "series_styles", "group_of", "units_of", "AxisView",
            "axis_blueprint", "blueprint_for", "MARKER_COLOURS", "SPECTRUM_COLOURS", "TIMELINE", "SEQUENCE",
@@ -57,10 +59,10 @@ _CYAN = (23, 190, 207, 255)
 
 _YELLOW = (230, 200, 40, 255)
 _MAGENTA = (230, 60, 200, 255)
-_ALARM = (255, 40, 40, 255)
+_ALARM = (255, 255, 255, 255)  # white: over the red estimate
 TOOTH_COLOUR = (0, 200, 230, 255)
 #: px of an alarm's marker on the force panel
-ALARM_MARKER_SIZE = 12.0
+ALARM_MARKER_SIZE = 16.0
 
 MARKER_COLOURS = {"1_over_psi": (255, 215, 0, 150), "tooth_passing": (0, 220, 255, 150), "spindle": (0, 220, 255, 150)}
 SPECTRUM_COLOURS = {"residual": (196, 140, 110, 255), "estimate": _RED, "actual": _GREEN}
@@ -121,8 +123,8 @@ _CONTEXT: dict[str, Series] = {
 
 
 _PROCESS: dict[str, Series] = {  # the process monitors' limits (rerun_monitors.py), the per-tooth amplitudes
-    "force/limit/collision_high": Series("collision limit (expected force + limit)", _YELLOW, 1.0, "Max"),
-    "force/limit/collision_low": Series("collision limit (expected force − limit)", _YELLOW, 1.0, "Min"),
+    "force/limit/collision_high": Series("collision limit, upper", _YELLOW, 1.0, "Max"),
+    "force/limit/collision_low": Series("collision limit, lower", _YELLOW, 1.0, "Min"),
     "force/limit/overload_high": Series("overload limit", _MAGENTA, 1.0, "Max"),
     "force/limit/overload_low": Series("overload limit (−)", _MAGENTA, 1.0, "Min"),
     "force/limit/band_high": Series("reference band, upper", _VIOLET, 1.0, "Max"),
@@ -135,7 +137,7 @@ _PROCESS: dict[str, Series] = {  # the process monitors' limits (rerun_monitors.
 
 
 def alarm_style(kind: str) -> Series:
-    """The style of the alarm markers of ``kind`` (``force/alarm/<kind>``): a red cross named by its kind."""
+    """The style of the alarm markers of ``kind`` (``force/marker/<kind>``): a white cross named by its kind."""
     return Series(f"ALARM {kind}", _ALARM, ALARM_MARKER_SIZE)
 
 
@@ -237,7 +239,7 @@ def force_view(ax: AxisView, window: float | None, title_prefix: str = ""):
     what = "force" if ax.force else "disturbance (velocity units)"
     name = (f"{title_prefix}{ax.axis} {what} ({units_of(ax.force)}): filtered estimate ±2σ at its sample time, "
             f"true{', dynamometer' if ax.force else ''}"
-            f"{'; monitor limits, alarms (red crosses)' if ax.process and ax.force else ''}")
+            f"{'; monitor limits, alarms (white crosses)' if ax.process and ax.force else ''}")
     return _series_view(f"{ax.root}/{group_of(ax.force)}", name, window,
                         contents=["$origin/**", "- $origin/prediction"])
 
@@ -262,9 +264,10 @@ def tooth_row(ax: AxisView, window: float | None):
 
     o = ax.root
     return rrb.Horizontal(
-        rrb.BarChartView(origin=f"{o}/tooth/profile", name=f"{ax.axis}: force (N) over spindle angle (°), "
-                                                           "last revolution", plot_legend=rrb.PlotLegend(visible=False)),
-        rrb.BarChartView(origin=f"{o}/tooth/peaks", name="peak force per tooth (N), last revolution",
+        rrb.BarChartView(origin=f"{o}/tooth/profile", name=f"{ax.axis}: measured force (N) over spindle angle (°), "
+                         f"last {TOOTH_VIEW_REVOLUTIONS} revolutions", plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.BarChartView(origin=f"{o}/tooth/peaks",
+                         name=f"peak force per tooth (N), last {TOOTH_VIEW_REVOLUTIONS} revolutions",
                          plot_legend=rrb.PlotLegend(visible=False)),
         _series_view(f"{o}/tooth", "per revolution (N): A1 and its limits (broken tooth red, runout orange), a0",
                      window, contents=["$origin/a0", "$origin/a1", "$origin/a1_broken", "$origin/a1_runout"]),
@@ -306,7 +309,8 @@ def axis_blueprint(ax: AxisView, window: float | None = None, detail: float = 0.
         *([tooth_row(ax, window)] if ax.process and ax.force else []),
         _events_view(f"{o}/events", f"{ax.machine}/{ax.axis} events: flags, gaps, glitches, health"
                                     f"{', process alarms' if ax.process else ''}"),
-        row_shares=[2.4, 1.5, 1.85, 1.85] + ([1.85] if ax.process and ax.force else []) + [1.9],
+        # with the per-tooth row the spectra give it room (bar charts need height for their tick labels)
+        row_shares=[2.4, 1.5, 1.85, 1.85, 1.9] if not (ax.process and ax.force) else [2.3, 1.4, 1.3, 1.3, 2.4, 1.6],
         name=f"{ax.machine}/{ax.axis}",
     )
 
