@@ -160,3 +160,29 @@ def test_parameter_ranges_refused():
         fm.ToothAccumulator(teeth=0)
     with pytest.raises(ParameterError, match="learn"):
         fm.ToothDetector(learn=1)
+
+
+def test_the_dashboards_bands_are_the_limits_the_steps_judge_by():
+    """impulse_band: a force above its high edge is a collision at any angle, one on the profile is not;
+    envelope_band: the step's band (M6) at that bin."""
+    t, theta, rng = _stream(2000)
+    force = _tooth_force(theta) + rng.normal(0, 1.0, theta.size)
+    n = force.size
+    st = fm.new_impulse_state(33)
+    args = (2.0, 1.0, 6.0, 10.0)  # ratio, ratio_angle, k, floor
+    out = np.zeros(n, np.int64), np.zeros(n), np.zeros(n)
+    assert fm.impulse_step(st, theta, force, np.ones(n), *args, math.inf, 3, 0.5, *out) == 0
+    lo, hi = fm.impulse_band(st, *args)
+    assert lo < force.min() and hi > force.max() and hi - lo > 2 * 10.0
+    for angle in np.linspace(0.0, 2 * math.pi, 12, endpoint=False):
+        for f, alarms in ((hi + 1.0, 1), (lo - 1.0, 1), (float(_tooth_force(np.array([angle]))[0]), 0)):
+            trial = st.copy()
+            one = np.zeros(1, np.int64), np.zeros(1), np.zeros(1)
+            assert fm.impulse_step(trial, np.array([angle]), np.array([f]), np.ones(1), *args, math.inf, 3, 0.5,
+                                   *one) == alarms, (angle, f)
+    assert all(math.isnan(x) for x in fm.impulse_band(fm.new_impulse_state(33), *args))  # not filled yet
+    mean, spread = np.array([0.0, 50.0]), np.array([1.0, 2.0])
+    assert fm.envelope_band(0.07, 3.0, mean, spread, 0.05, 5.0, 5.0) == pytest.approx((50 - 5 * math.sqrt(13),
+                                                                                      50 + 5 * math.sqrt(13)))
+    assert fm.envelope_band(0.01, math.nan, mean, spread, 0.05, 5.0, 5.0) == (-5.0, 5.0)  # band_min; σ NaN: 0
+    assert all(math.isnan(x) for x in fm.envelope_band(0.2, 1.0, mean, spread, 0.05, 5.0, 5.0))  # past the end

@@ -285,8 +285,8 @@ class AxisProcessMonitor:
         dashboard; None until :data:`VIEW_INTERVAL_S` s of data passed since the last one (the caller asks once a
         block: the cost is per view, not per sample). The collision range and the envelope band are the
         kernels' own (M1, M6: :func:`~kernels.force_monitors.impulse_band`, ``envelope_band``)."""
-        if self._row is None or not self._row[1] >= self._view_t + VIEW_INTERVAL_S:
-            return None
+        if self._row is None or self._view_t <= self._row[1] < self._view_t + VIEW_INTERVAL_S:
+            return None  # (time going backwards, a new bridge session, is due at once)
         seq, t, sd, key = self._row
         self._view_t = t
         imp, lo, hi, over = self.s.impulse, math.nan, math.nan, math.nan
