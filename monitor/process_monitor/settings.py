@@ -11,6 +11,8 @@ from typing import Annotated, Literal
 
 import msgspec
 
+from feedio.schema import PROFILE_BINS_MAX, TEETH_MAX
+
 __all__ = ["ImpulseSettings", "ToothSettings", "EnvelopeSettings", "SectionLimits", "MonitorSettings",
            "MAX_SECTIONS"]
 
@@ -42,8 +44,8 @@ class ToothSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Per tooth from the spindle angle: broken/chipped tooth and runout growth."""
 
     enabled: bool = True
-    teeth: Annotated[int, msgspec.Meta(ge=1, le=32)] = 2
-    bins: Annotated[int, msgspec.Meta(ge=4, le=720)] = 36  # angle profile (dashboard, per-tooth peaks)
+    teeth: Annotated[int, msgspec.Meta(ge=1, le=TEETH_MAX)] = 2
+    bins: Annotated[int, msgspec.Meta(ge=4, le=PROFILE_BINS_MAX)] = 36  # angle profile (dashboard, per-tooth peaks)
     learn_revolutions: Annotated[int, msgspec.Meta(ge=5, le=100_000)] = 30
     settle_revolutions: Annotated[int, msgspec.Meta(ge=0, le=100_000)] = 25  # of a cut's entry, before learning
     sensitivity: _K = 6.0
