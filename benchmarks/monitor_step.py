@@ -1,6 +1,6 @@
 """Monitor step per sample with and without online β and health (target: at most +30 %).
 
-    python benchmarks/monitor_step.py                         # this tree: adaptation off / track / apply
+    python benchmarks/monitor_step.py                         # this tree: adaptation off / track / apply / default
     python benchmarks/monitor_step.py --baseline /work/main   # and a tree without online β and health
 
 What is timed: :meth:`monitor.estimator.AxisEstimator.process` — the monitor's whole per-block
@@ -44,13 +44,17 @@ sys.path.insert(0, {root!r})
 from feedio import schema as S
 from feedio.mcapio import read_trial
 from monitor.model_file import AxisModel, TrackerConfig
-from monitor.online_settings import LocallyPeriodicKernel
 from monitor.estimator import AxisEstimator
+try:
+    from monitor.online_settings import LocallyPeriodicKernel
+    kern = LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55)
+except ImportError:  # a baseline tree from before the typed kernel union
+    kern = {{"type": "locally_periodic", "sigma1": 1.2, "sigma2": 0.495, "period": 1 / 55}}
 tr = read_trial({trial!r})
 m = tr.meta
 model = AxisModel(machine=m.machine, axis=m.axis, form=m.form, Ts=m.Ts, beta=list(m.truth.beta), omega=m.truth.omega,
                   coulomb=m.truth.coulomb, loop_gain=m.loop_gain,
-                  tracker=TrackerConfig(kernel=LocallyPeriodicKernel(sigma1=1.2, sigma2=0.495, period=1 / 55), gamma=5.85, forgetting=0.998, budget=100))
+                  tracker=TrackerConfig(kernel=kern, gamma=5.85, forgetting=0.998, budget=100))
 mode = {mode!r}
 if mode is not None:
     import msgspec
@@ -108,7 +112,7 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", default=None, metavar="TREE", help="a checkout without online β and health")
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
-    configs = [("off", ROOT, "off"), ("track", ROOT, "track"), ("apply", ROOT, "apply")]
+    configs = [("off", ROOT, "off"), ("track", ROOT, "track"), ("apply", ROOT, "apply"), ("default", ROOT, None)]
     if args.baseline:
         configs.insert(0, ("baseline", Path(args.baseline).resolve(), None))
     res: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in configs}

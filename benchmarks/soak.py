@@ -283,6 +283,7 @@ class SoakResult:
     health_reasons: set[str] = field(default_factory=set)
     health_events: list[str] = field(default_factory=list)  # the first non-ok reports (stream time, reasons)
     nu2_max: float = 0.0  # largest window mean of ν² in a report
+    alarms: list[str] = field(default_factory=list)  # process alarms with --monitors (stream time, kind, value)
     z_max: dict[str, float] = field(default_factory=dict)  # largest |drift| of each parameter vs the model file (%)
     zs_max: dict[str, float] = field(default_factory=dict)  # largest |drift| in standard errors (the model's β is exact)
 
@@ -337,7 +338,13 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
     axes = load_axes([model])
     warm_up(axes)
     ax = axes[(MACHINE, AXIS)]
-    pipe = Pipeline(axes)
+    monitors = None
+    if opts.monitors:
+        from monitor.process_monitor import build_monitors
+        from monitor.process_monitor.settings import MonitorSettings
+
+        monitors = build_monitors(axes, MonitorSettings(enabled=True))
+    pipe = Pipeline(axes, monitors=monitors)
     key = f"feedmon/{MACHINE}/{AXIS}/samples"
     writer = None
     if opts.mcap:
@@ -375,6 +382,7 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
             block = decoded
         res_est = pipe.estimate(block)
         rows = res_est.est
+        res.alarms += [f"{_fmt_t(a.t)} {a.kind} {a.value:.1f} N against {a.limit:.1f} N" for a in res_est.alarms]
         est = None if rows is None else rows.block()
         for h in res_est.health:
             res.health[h.state] += 1
@@ -515,6 +523,9 @@ def _judge(res: SoakResult, opts, sent: int, duplicates_sent: int, rss0: float) 
                     f"alarm); largest mean ν² of a report {res.nu2_max:.2f}; largest online parameter error vs the "
                     f"truth: {drift}" + (f"; reasons: {'; '.join(sorted(res.health_reasons))}"
                                          if res.health_reasons else ""))
+    if opts.monitors:
+        ch["alarms"] = (not res.alarms, f"{len(res.alarms)} process alarms (must be 0)"
+                                        + (": " + "; ".join(res.alarms[:10]) if res.alarms else ""))
     if opts.rate_check:
         rows = [r for r in res.rows if r.stream_s > (opts.warmup_minutes or 0) * 60.0] or res.rows
         first_rate = rows[0].rate if len(rows) > 1 else res.rate
@@ -575,6 +586,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dup-rate", type=float, default=1 / 5000, help="probability per block of a re-sent block")
     p.add_argument("--no-wire", dest="wire", action="store_false", help="skip the JSON encode/decode of the live path")
     p.add_argument("--mcap", default=None, metavar="FILE", help="also write samples + estimates to this MCAP (/dev/null ok)")
+    p.add_argument("--monitors", action="store_true",
+                   help="run the process monitors (defaults) on the estimates too; any alarm fails the soak")
     p.add_argument("--json", default=None, metavar="FILE", help="write the figures and checks as JSON")
     return p
 

@@ -25,8 +25,14 @@ Steps (equation numbers used in the code):
   the feed) or a tooth that cuts less than the next. Against ``Ā1, s1`` learned over the first cutting
   revolutions:
 
-      broken tooth  ⇔  A1 − Ā1 > max(q_b·a0, k·s1)   on 2 revolutions in a row                     (M4)
+      broken tooth  ⇔  A1 − Ā1 > L_b  and  A1 − Ã1 > L_b   on 2 revolutions in a row,
+                       L_b = max(q_b·a0, k·s1)                                                        (M4)
       runout        ⇔  mean of the last 4 revolutions' A1 − Ā1 > max(q_r·a0, k·s1/2)                 (M5)
+
+  with ``Ã1`` the median ``A1`` of the ``STEP_WINDOW`` cutting revolutions before the first one over the
+  limit: a breakage is a step within a revolution or two, a runout grows over hundreds. Without the step
+  test a runout that had grown slowly past ``L_b`` (or met a smaller ``a0`` after a feed change, which
+  lowers ``L_b``) was called a broken tooth;
 
   with ``a0`` the mean cutting force; a tooth force that drops to zero makes ``A1 ≈ 2a0/N_t·…`` far above
   ``q_b a0`` (``q_b`` = 0.5), a runout growing by 30 % of the tooth force makes ``ΔA1 ≈ 0.3 a0``
@@ -41,6 +47,7 @@ Steps (equation numbers used in the code):
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 from numba import njit
@@ -337,6 +344,10 @@ class ToothAccumulator:
         return rows[:k], prof[:k]
 
 
+#: cutting revolutions whose median A1 is the step test's baseline Ã1 (M4)
+STEP_WINDOW = 10
+
+
 class ToothDetector:
     """Broken tooth (M4) and runout (M5) from the per-revolution records of :class:`ToothAccumulator`.
 
@@ -359,6 +370,9 @@ class ToothDetector:
         self.sd1 = math.nan
         self._recent: list[float] = []
         self._over = 0
+        #: A1 of the last cutting revolutions (not cleared by a pause: the same tool), the step baseline (M4)
+        self._history: deque[float] = deque(maxlen=STEP_WINDOW + 4)
+        self._step_base = math.nan  # Ã1, frozen at the first revolution over the limit
         self.latched: set[str] = set()
 
     @property
@@ -384,6 +398,7 @@ class ToothDetector:
             if self._cutting <= self.settle:
                 return []
             self._a1.append(a1)
+            self._history.append(a1)
             if len(self._a1) >= self.learn:
                 x = np.array(self._a1)
                 self.mean1, self.sd1 = float(x.mean()), float(x.std(ddof=1))
@@ -391,21 +406,32 @@ class ToothDetector:
         out = []
         d = a1 - self.mean1
         lim_b, lim_r = self.limits(a0)
-        self._over = self._over + 1 if d > lim_b else 0
+        if d > lim_b and self._over == 0:
+            self._step_base = self._baseline(skip=0)
+        step = a1 - self._step_base if self._over or d > lim_b else 0.0
+        self._over = self._over + 1 if d > lim_b and step > lim_b else 0
         if self._over >= 2 and "broken_tooth" not in self.latched:
             self.latched.add("broken_tooth")
-            out.append(("broken_tooth", d, lim_b))
+            out.append(("broken_tooth", step, lim_b))
         self._recent.append(a1)
         if len(self._recent) > 4:
             self._recent.pop(0)
         if len(self._recent) == 4:
             dm = sum(self._recent) / 4.0 - self.mean1
-            # a revolution above the broken-tooth limit in the window is a breakage on its way, not runout
-            steady = max(self._recent) - self.mean1 <= lim_b
+            # a step above the broken-tooth limit within the window is a breakage on its way, not runout
+            steady = max(self._recent) - self._baseline(skip=3) <= lim_b
             if dm > lim_r and steady and "runout" not in self.latched and "broken_tooth" not in self.latched:
                 self.latched.add("runout")
                 out.append(("runout", dm, lim_r))
+        self._history.append(a1)
         return out
+
+    def _baseline(self, skip: int) -> float:
+        """Ã1: the median A1 of up to ``STEP_WINDOW`` cutting revolutions, leaving out the last ``skip``
+        (the learned Ā1 while there are none)."""
+        h = list(self._history)
+        h = h[:len(h) - skip][-STEP_WINDOW:]
+        return float(np.median(h)) if h else self.mean1
 
 
 # ---- envelope (M6) ------------------------------------------------------------------------------------------

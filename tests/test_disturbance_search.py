@@ -30,6 +30,23 @@ def test_refine_period_finds_a_period_far_below_the_periodogram_bin():
     assert abs(psi * 55.3 - 1) < 5e-4
 
 
+def test_harmonic_spectra_equal_the_dense_dft():
+    """The phasor powers of ``_harmonic_powers`` against the DFT with one exponential per sample and
+    harmonic (P2), on irregular sample times, for the amplitudes and for the refined period's power."""
+    rng = np.random.default_rng(3)
+    t = np.arange(2000) * TS + rng.normal(0, 1e-5, 2000)
+    y = 3 * np.sin(2 * np.pi * 20.3 * t) + np.sin(2 * np.pi * 40.6 * t + 1) + rng.normal(0, 0.5, t.size)
+    w = np.hanning(t.size)
+    yw = (y - y.mean()) * w
+    for period in (1 / 55, 1 / 20.3, 0.37):
+        h_max = int(min(64, 0.5 * period / TS))
+        dense = np.abs(np.exp(-2j * np.pi * np.outer(np.arange(1, h_max + 1), t - t[0]) / period) @ yw) * 2 / w.sum()
+        np.testing.assert_allclose(ds.harmonic_amplitudes(y, t, period), dense, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ds._harmonic_powers(yw, t - t[0], 1 / period, h_max), (dense * w.sum() / 2) ** 2,
+                                   rtol=1e-9, atol=1e-12)
+    assert abs(ds.refine_period(y, t, 1 / 20.2) * 20.3 - 1) < 1e-3
+
+
 def test_sigma2_follows_the_harmonic_content():
     """A sine carries one harmonic, a square wave many: σ2 (P3) large for the first, small for the second."""
     t = np.arange(3000) * TS

@@ -126,6 +126,27 @@ def test_runout_growth_within_ten_revolutions_and_nominal_quiet():
     assert 0 < (theta[at] - theta[k0]) / (2 * math.pi) <= 10
 
 
+def _detector_run(a0, a1):
+    det = fm.ToothDetector()
+    rng = np.random.default_rng(4)
+    return [(i, kind) for i, (x0, x1) in enumerate(zip(a0, a1 + rng.normal(0.0, 0.3, a1.size)))
+            for kind, _, _ in det.update(x0, x1)]
+
+
+def test_a_runout_grown_past_the_breakage_limit_is_not_a_broken_tooth():
+    """A1 creeping from 3 N to 25 N over 600 revolutions, then a feed decrease that halves a0 (and with it
+    the breakage limit q_b·a0): runout, once — a breakage is a step (M4), this is a growth. The same A1 as
+    a step within one revolution is a broken tooth."""
+    n = 900
+    a0 = np.r_[np.full(700, 40.0), np.full(n - 700, 20.0)]
+    creep = 3.0 + np.clip((np.arange(n) - 100) / 600.0, 0.0, 1.0) * 22.0
+    alarms = _detector_run(a0, creep)
+    assert [k for _, k in alarms] == ["runout"]
+    step = np.where(np.arange(n) < 400, 3.0, 25.0)
+    alarms = _detector_run(a0, step)
+    assert [k for _, k in alarms] == ["broken_tooth"] and 400 <= alarms[0][0] <= 402
+
+
 def test_envelope_missing_cut_and_over_band():
     mean = np.r_[np.zeros(10), np.full(40, 50.0)]  # 0.5 s air, 2 s of cut, bins of 0.05 s
     spread = np.full(50, 2.0)

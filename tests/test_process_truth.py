@@ -63,6 +63,10 @@ def test_runout_growth_within_ten_revolutions(work, simulated):
     first = alarms[0]
     assert first.kind == "runout" and first.t > start.t_s
     assert _revolutions(first, reached) <= 10.0
+    # a growth is not a breakage: broken_tooth only once tooth 1 stops cutting (the runout, 2.5 µm/s from
+    # 4 s, reaches the last section's 0.04 mm feed per tooth at ≈ 18.4 s), and then saying why it may be so
+    for a in alarms[1:]:
+        assert a.kind == "broken_tooth" and a.t > 18.0 and "runout alarmed before" in a.detail, (a.kind, a.t)
 
 
 def test_reference_from_good_parts_catches_the_missing_cut_and_passes_good_parts(work, tmp_path):

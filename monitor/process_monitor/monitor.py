@@ -266,9 +266,13 @@ class AxisProcessMonitor:
             self._revs.append((p, r[5:]))
             quiet = float(est.t[i]) <= self._tooth_quiet_until
             for kind, excess, lim in self._tooth.update(math.nan if quiet else float(r[1]), float(r[2])):
+                # after a runout alarm, a step means a tooth stopped cutting; the force cannot tell a breakage
+                # from a runout that now exceeds the feed per tooth (the tooth's edge force ends with its chip)
+                cause = "one tooth cuts less: a breakage, or the runout alarmed before now exceeds the feed per " \
+                    "tooth; " if kind == "broken_tooth" and "runout" in self._tooth.latched else ""
                 out.append(self._event(est, i, kind, "tooth", excess, lim, self._tooth.sd1,
-                                       f"once-per-revolution amplitude {r[2]:.1f} N against {self._tooth.mean1:.1f} N "
-                                       f"learned, mean force {r[1]:.1f} N; tooth peaks "
+                                       f"{cause}once-per-revolution amplitude {r[2]:.1f} N against "
+                                       f"{self._tooth.mean1:.1f} N learned, mean force {r[1]:.1f} N; tooth peaks "
                                        + ", ".join(f"{x:.1f}" for x in r[5:]) + " N"))
         return out
 
