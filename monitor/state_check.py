@@ -23,9 +23,14 @@ from __future__ import annotations
 import numpy as np
 
 from kernels import _krlst_core as core
+from kernels import disturbance_search as ds
 from kernels.krlst import KRLST
 
-__all__ = ["StateError", "COUNT_MAX", "check_snapshot"]
+__all__ = ["StateError", "COUNT_MAX", "CHOICE", "check_snapshot", "choice_array", "choice_of_array"]
+
+#: the state entry of the disturbance model the online search had chosen
+CHOICE = "estimator.choice"
+_KINDS = ("time", "periodic", "spindle")
 
 #: largest counter a state may hold (samples learned, tracker steps): 2**53 − 1, >28,000 years at 10 kHz
 COUNT_MAX = 2**53 - 1
@@ -132,3 +137,28 @@ def _check_posterior(tr: KRLST) -> None:
         raise StateError("tracker posterior covariance Σ is not between 0 and the prior K_D")
     if not np.max(np.abs(tr.mu)) <= MU_MAX:
         raise StateError(f"tracker posterior mean μ is implausibly large (|μ| up to {np.max(np.abs(tr.mu)):.3g} m/s)")
+
+
+def choice_array(c: ds.TrackerChoice) -> np.ndarray:
+    """A disturbance model as the plain array a state file holds."""
+    return np.array([_KINDS.index(c.kind), c.sigma1, c.sigma2, c.period, c.teeth, c.gamma, c.forgetting,
+                     float(c.zero_mean)])
+
+
+def choice_of_array(a) -> ds.TrackerChoice:
+    """Inverse of :func:`choice_array`, every value checked against the ranges a model file allows for it
+    (:class:`StateError` naming the value)."""
+    a = np.asarray(a)
+    if a.shape != (8,) or a.dtype.kind != "f" or not np.isfinite(a).all():
+        raise StateError(f"{CHOICE!r} must be 8 finite numbers, got {a.dtype} {a.shape}")
+    kind, s1, s2, period, teeth, gamma, lam, zero_mean = (float(x) for x in a)
+    checks = (("kind", kind in (0.0, 1.0, 2.0)), ("sigma1", 1e-6 <= s1 <= 1e6), ("sigma2", 1e-3 <= s2 <= 1e3),
+              ("period", kind != 1.0 or 1e-6 <= period <= 1e6), ("teeth", teeth == int(teeth) and 1 <= teeth <= 1000),
+              ("gamma", 1e-4 <= gamma <= 1e8), ("forgetting", 0.5 <= lam <= 1.0), ("zero_mean", zero_mean in (0.0, 1.0)))
+    for name, ok in checks:
+        if not ok:
+            names = ("kind", "sigma1", "sigma2", "period", "teeth", "gamma", "forgetting", "zero_mean")
+            raise StateError(f"{CHOICE!r}: {name} {dict(zip(names, a.tolist()))[name]!r} is outside what a model "
+                             "file allows")
+    return ds.TrackerChoice(_KINDS[int(kind)], sigma1=s1, sigma2=s2, period=period, teeth=int(teeth), gamma=gamma,
+                            forgetting=lam, zero_mean=bool(zero_mean))
