@@ -444,6 +444,9 @@ def _summary(monitor) -> None:
         if s.get("incomplete_files"):
             _say(f"sink {s['name']}: incomplete files ({s.get('incomplete_note') or 'they end where writing stopped'}): "
                  f"{', '.join(map(str, s['incomplete_files']))}")
+    process = monitor.pipeline.process
+    for line in process.wear.report if process is not None and process.wear is not None else ():
+        _say(f"wear {line}")
     for p in monitor.saved_states:
         _say(f"tracker state saved: {p}")
     for name in monitor.unsaved_states:

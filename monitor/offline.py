@@ -246,22 +246,24 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
     t0 = time.perf_counter()
     wear: dict[str, Any] = {"report": [], "error": None}
+    built = _monitors(axes, monitors) if jobs == 1 else None  # a bad reference or history: refused before any output
     with TrialWriter(output, out_metas, start=start) as w:
         if jobs > 1:
             counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
                                    jobs, input_health, monitors)
         else:
-            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health, monitors, wear)
+            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health, built, wear)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
                          jobs, counts["health"], wear["report"], wear["error"])
 
 
-def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health, monitors=None,
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health, process=None,
               wear: dict[str, Any] | None = None) -> dict[str, int]:
-    """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing); at the end the wear
-    monitor's alarms (stamped at the axis' last block), its report and a failure to save into ``wear``."""
-    pipe = Pipeline(axes, limits=limits, input_health=input_health, monitors=_monitors(axes, monitors))
+    """``jobs=1``: reader thread → estimation here (``process``: the built process monitors) → writer thread
+    (encoding and writing); at the end the wear monitor's alarms (stamped at the axis' last block), its report
+    and a failure to save into ``wear``."""
+    pipe = Pipeline(axes, limits=limits, input_health=input_health, monitors=process)
     enc = _Encoder(has_truth)
     last_lt: dict[tuple[str, str], int] = {}
     with _WriterThread() as out:
