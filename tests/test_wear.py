@@ -15,8 +15,7 @@ from feedio.mcapio import iter_blocks, read_trial
 from feedmon.cli import main
 from monitor.model_file import save_model, truth_model
 from monitor.process_monitor.settings import WearSettings
-from monitor.process_monitor.wear import (MAX_HISTORY_BYTES, WearHistory, WearMonitor, judge, load_history,
-                                          save_history)
+from monitor.process_monitor.wear import MAX_HISTORY_BYTES, WearHistory, WearMonitor, judge, load_history, save_history
 from replay import parts as PT
 from replay import scenarios as SC
 from replay.simulator import simulate
@@ -165,3 +164,57 @@ def test_run_refuses_a_bad_history_at_start_and_leaves_it(parts, tmp_path, capsy
     cfg.write_text("[monitors.wear]\nhistory = 'w.json'\nwindow = 100\n")
     assert _run(parts, "part-0000.mcap", hist, "refused.mcap", "--config", str(cfg)) == 2
     assert "monitors.wear" in capsys.readouterr().err
+
+
+def test_live_run_appends_at_stop_and_publishes_wear_before_the_sinks_close(parts, tmp_path):
+    """The live monitor: the run is one part, appended when it stops; its wear alarms go out on Zenoh and into
+    the MCAP log like every other alarm (the same section statistics as offline: a rising history ends there)."""
+    import threading
+
+    from live_monitor import Live
+
+    from feedio import schema as S
+    from feedio import transport as T
+    from monitor.axes import load_axes
+    from monitor.process_monitor import MonitorSettings, build_monitors
+    from monitor.sinks.mcap_sink import McapProcessSink
+
+    hist = tmp_path / "wear.json"
+    assert _run(parts, "part-0000.mcap", hist, "live-ref.mcap") == 0
+    rising = load_history(hist)
+    for sec in rising.axes[0].sections:
+        now = sec.parts[0]
+        sec.parts[:] = [msgspec.structs.replace(now, part=f"old-{i}", mean_force_N=now.mean_force_N * (1 - 0.03 * (12 - i)))
+                        for i in range(12)]
+    save_history(rising, hist)
+    axes = load_axes([str(parts / "m.model.toml")])
+    trial = read_trial(parts / "part-0000.mcap")
+    log = tmp_path / "live.mcap"
+    settings = MonitorSettings(enabled=True, wear=WearSettings(history=str(hist)))
+    live = Live(axes, prefix="feedmon-wear", key=T.samples_key("feedmon-wear", "cnc-mill", "X"),
+                sinks=[McapProcessSink(log, metas=[trial.meta], start_timeout=60)],
+                monitors=build_monitors(axes, settings))
+    got: list[S.AlarmEvent] = []
+    four = threading.Event()
+
+    def on_alarm(sample):
+        got.append(S.decode_alarm(sample.payload.to_bytes()))
+        if len(got) >= 4:
+            four.set()
+
+    sub = live.s.declare_subscriber(T.alarm_key("feedmon-wear"), on_alarm)
+    try:
+        n = 0
+        for _, b in iter_blocks(parts / "part-0000.mcap", None, ("samples",)):
+            live.pub.put(S.encode(b))
+            n += len(b.t)
+        live.wait(lambda m: m.status()["axes"]["cnc-mill/X"]["samples_in"] >= n)
+        assert live.monitor.stop() == []
+        assert four.wait(30.0)
+    finally:
+        sub.undeclare()
+        assert live.close() == []
+    assert sorted((a.kind, a.program_line) for a in got) == [("wear", 20), ("wear", 30), ("wear", 40), ("wear", 50)]
+    logged = [b for _, b in iter_blocks(log, None, ("alarm",))]
+    assert sorted(a.program_line for a in logged) == [20, 30, 40, 50] and all(a.kind == "wear" for a in logged)
+    assert all(len(s.parts) == 13 and s.parts[-1].part.startswith("live ") for s in load_history(hist).axes[0].sections)
