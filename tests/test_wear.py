@@ -151,6 +151,9 @@ def test_run_appends_the_part_and_raises_wear_on_a_rising_history(parts, tmp_pat
                and a.seq == last.seq + len(last.t) - 1 for a in alarms)
     assert all(len(s.parts) == 13 and s.parts[-1].part == "part-0001.mcap" for s in load_history(hist).axes[0].sections)
     assert "— WEAR (above" in capsys.readouterr().err
+    assert main(["wear", "show", str(hist)]) == 0
+    shown = capsys.readouterr().out
+    assert shown.count("part-0001.mcap") == 4 and shown.count("WEAR") == 4 and "T1/L50/0" in shown
 
 
 def test_run_refuses_a_bad_history_at_start_and_leaves_it(parts, tmp_path, capsys):
@@ -178,6 +181,7 @@ def test_live_run_appends_at_stop_and_publishes_wear_before_the_sinks_close(part
     from monitor.axes import load_axes
     from monitor.process_monitor import MonitorSettings, build_monitors
     from monitor.sinks.mcap_sink import McapProcessSink
+    from monitor.sinks.rerun_events import alarm_line
 
     hist = tmp_path / "wear.json"
     assert _run(parts, "part-0000.mcap", hist, "live-ref.mcap") == 0
@@ -215,6 +219,7 @@ def test_live_run_appends_at_stop_and_publishes_wear_before_the_sinks_close(part
         sub.undeclare()
         assert live.close() == []
     assert sorted((a.kind, a.program_line) for a in got) == [("wear", 20), ("wear", 30), ("wear", 40), ("wear", 50)]
+    assert alarm_line(got[0]).startswith(f"ALARM wear at t = {got[0].t:.3f} s: rise {got[0].value:.1%} against limit")
     logged = [b for _, b in iter_blocks(log, None, ("alarm",))]
     assert sorted(a.program_line for a in logged) == [20, 30, 40, 50] and all(a.kind == "wear" for a in logged)
     assert all(len(s.parts) == 13 and s.parts[-1].part.startswith("live ") for s in load_history(hist).axes[0].sections)
