@@ -15,7 +15,15 @@ from feedio.mcapio import iter_blocks, read_trial
 from feedmon.cli import main
 from monitor.model_file import save_model, truth_model
 from monitor.process_monitor.settings import WearSettings
-from monitor.process_monitor.wear import MAX_HISTORY_BYTES, WearHistory, WearMonitor, judge, load_history, save_history
+from monitor.process_monitor.wear import (
+    MAX_HISTORY_BYTES,
+    MAX_HISTORY_SECTIONS,
+    WearHistory,
+    WearMonitor,
+    judge,
+    load_history,
+    save_history,
+)
 from replay import parts as PT
 from replay import scenarios as SC
 from replay.simulator import simulate
@@ -66,6 +74,31 @@ def test_the_rule_needs_both_significance_and_rise():
     assert not v.alarm and v.t < 5 and v.limit > v.rise
     v = judge(-100.0 * (1 + 0.02 * np.arange(25)), s)  # a force against the feed: its magnitude rises
     assert v.alarm and v.parts == 20
+
+
+def _stats(line: int, force: float, energy: float) -> dict:
+    return {"tool": 1, "program_line": line, "occurrence": 0, "rows": 100, "mean_force_N": force, "energy_J": energy}
+
+
+def test_energy_statistic_and_the_section_bound(tmp_path):
+    """``statistic = "energy"`` judges the cut energy (here rising while the mean force stays); a history that
+    holds MAX_HISTORY_SECTIONS sections records no new one and says so."""
+    force = WearMonitor(WearSettings(history=str(tmp_path / "f.json")))
+    energy = WearMonitor(WearSettings(history=str(tmp_path / "e.json"), statistic="energy"))
+    for i in range(15):
+        run = [_stats(20, 30.0, 0.5 * (1 + 0.03 * i)), _stats(10, 0.5, 0.0)]  # line 10: no cut
+        assert force.add_run("m", "x", run, f"p{i}", "", (i, 1.0)) == []
+        got = energy.add_run("m", "x", run, f"p{i}", "", (i, 1.0))
+    assert [(a.kind, a.program_line, a.seq) for a in got] == [("wear", 20, 14)]
+    assert [s.key for s in energy.history.axes[0].sections] == ["T1/L20/0"]
+    full = WearMonitor(WearSettings(history=str(tmp_path / "full.json")))
+    for line in range(MAX_HISTORY_SECTIONS):
+        full.add_run("m", "x", [_stats(line, 30.0, 1.0)], "p", "", None)
+    full.save()
+    full = WearMonitor(WearSettings(history=str(tmp_path / "full.json")))
+    full.add_run("m", "y", [_stats(5, 30.0, 1.0)], "p", "", None)
+    assert full.refused_sections == 1 and "1 new section(s) NOT recorded" in full.report[-1]
+    assert [a.axis for a in full.history.axes] == ["x", "y"] and full.history.axes[1].sections == []
 
 
 def _history_of(parts: list[float]) -> WearHistory:

@@ -174,7 +174,7 @@ class WearMonitor:
         section; the alarms carry ``last`` (seq, t: the run's last row, where the decision is made)."""
         s, hist = self.s, self.history.axis(machine, axis)
         by_key = {sec.key: sec for sec in hist.sections}
-        out = []
+        out, refused = [], self.refused_sections
         for st in sections:
             if not abs(st["mean_force_N"]) >= s.cut_min_N:
                 continue  # no cut (approach, retract): nothing wears there
@@ -205,6 +205,9 @@ class WearMonitor:
                     detail=f"section {key}: |{s.statistic}| rose {v.rise:.1%} (relative, fitted) over the last "
                            f"{v.parts} parts, t = {v.t:.1f} > {s.sensitivity:g} and rise > {s.min_rise:.0%}; "
                            f"value, limit and sigma are relative (1 = 100 %)"))
+        if self.refused_sections > refused:
+            self.report.append(f"{machine}/{axis}: {self.refused_sections - refused} new section(s) NOT recorded: the "
+                               f"history holds {MAX_HISTORY_SECTIONS} sections already (start a new one)")
         return out
 
     def save(self) -> None:
