@@ -25,6 +25,7 @@ COMMANDS: dict[str, str] = {
     "bridge": "feedmon.bridge_cmd",
     "reference": "feedmon.reference_cmd",
     "alarm": "feedmon.alarm_cmd",
+    "wear": "feedmon.wear_cmd",
 }
 
 

@@ -104,6 +104,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                     help="run the process monitors on the force (collision, overload, broken tooth, runout)")
     pm.add_argument("--reference", action="append", default=None, metavar="FILE",
                     help="a reference envelope (feedmon reference learn) to compare with; implies --monitors")
+    pm.add_argument("--wear-history", default=None, metavar="FILE",
+                    help="wear trend across parts: this run is one part, its per-section force is appended to FILE "
+                         "(JSON, made when missing) and a rising trend raises a 'wear' alarm at the end; implies "
+                         "--monitors (file: [monitors.wear])")
     add_zenoh_arguments(p, role="listen")
     p.set_defaults(func=run, prefix=None)  # None: not given (the config file or the default applies)
     return p
@@ -216,6 +220,11 @@ def _run_offline(args, cfg: RunConfig) -> int:
             if h.get("state") not in (None, "ok") else ""
         _say(f"{ax.status.name}: {c['samples_in']} samples, {c['estimates_out']} estimates, "
              f"{c['gaps']} gaps, {c['stale']} stale, dictionary {ax.estimator.tracker.size}{refused}{health}")
+    for line in res.wear_report:
+        _say(f"wear {line}")
+    if res.wear_error:
+        lost += 1
+        _say(f"wear history NOT saved ({res.wear_error}): this part is not in it")
     procs = f", {res.jobs} processes" if res.jobs > 1 else ""
     print(f"estimated {res.samples} samples of {', '.join(res.axes)} in {res.seconds:.2f} s "
           f"({res.rate:,.0f} samples/s{procs}) -> {res.output} (+{res.truth_blocks} truth blocks copied)")
@@ -435,6 +444,9 @@ def _summary(monitor) -> None:
         if s.get("incomplete_files"):
             _say(f"sink {s['name']}: incomplete files ({s.get('incomplete_note') or 'they end where writing stopped'}): "
                  f"{', '.join(map(str, s['incomplete_files']))}")
+    process = monitor.pipeline.process
+    for line in process.wear.report if process is not None and process.wear is not None else ():
+        _say(f"wear {line}")
     for p in monitor.saved_states:
         _say(f"tracker state saved: {p}")
     for name in monitor.unsaved_states:

@@ -125,6 +125,9 @@ def load_config_file(path: str | Path) -> ConfigFile:
     if isinstance(env, dict) and isinstance(env.get("reference"), (str, list)):  # paths relative to the file
         base = path.resolve().parent
         env["reference"] = [str(base / x) if isinstance(x, str) else x for x in _as_list(env["reference"])]
+    wear = (doc.get("monitors") or {}).get("wear") if isinstance(doc.get("monitors"), dict) else None
+    if isinstance(wear, dict) and isinstance(wear.get("history"), str):  # relative to the file
+        wear["history"] = str(path.resolve().parent / wear["history"])
     try:
         return msgspec.convert(doc, ConfigFile)
     except msgspec.ValidationError as exc:
@@ -193,11 +196,14 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
 
 
 def monitor_settings_from_args(args: argparse.Namespace) -> MonitorSettings:
-    """The ``[monitors]`` table of ``--config`` with ``--monitors`` (switch them on) and ``--reference FILE``
-    (add a reference envelope; switches them on) on top."""
+    """The ``[monitors]`` table of ``--config`` with ``--monitors`` (switch them on), ``--reference FILE``
+    (add a reference envelope) and ``--wear-history FILE`` (the wear history; both switch them on) on top."""
     ms = load_config_file(args.config).monitors if getattr(args, "config", None) else MonitorSettings()
     refs = getattr(args, "reference", None) or []
-    if getattr(args, "monitors", False) or refs:
+    wear = getattr(args, "wear_history", None)
+    if getattr(args, "monitors", False) or refs or wear:
         env = msgspec.structs.replace(ms.envelope, reference=[*ms.envelope.reference, *refs])
         ms = msgspec.structs.replace(ms, enabled=True, envelope=env)
+    if wear:
+        ms = msgspec.structs.replace(ms, wear=msgspec.structs.replace(ms.wear, history=wear))
     return ms

@@ -44,8 +44,8 @@ Shutdown (:meth:`Monitor.stop`) always finishes, within ``drain_seconds`` + ``fi
 the sinks' ``timeout``; every step is guarded, its errors logged and returned: stop accepting
 input (later messages counted ``shutdown_discarded``), undeclare the subscribers, let the estimator
 thread drain the queue for up to ``drain_seconds``, then discard (and count, per axis) what is
-still queued and wait for the message in progress (on either thread) up to ``finish_seconds``;
-close the sinks side by side, all by one deadline (MCAP finished and readable, .rrd finalised; a
+still queued and wait for the message in progress (on either thread) up to ``finish_seconds``; with
+a wear history, append the run as one part and publish its ``wear`` alarms (Zenoh and sinks); close the sinks side by side, all by one deadline (MCAP finished and readable, .rrd finalised; a
 sink process not done by then is killed and what it had not written counted), and return as a
 problem what each did not write (:func:`sink_losses`); save the tracker states — only when no
 message is being estimated any more (a state that may still be changing is never written), and
@@ -580,6 +580,8 @@ class Monitor:
             if not stopped:
                 self._problem("the estimator thread did not stop (a block still in progress); tracker states are "
                               "NOT saved, the saved ones are left as they were")
+            elif self._thread is not None:
+                self._end_of_run()
             self._close_sinks(timeout)
             # never overwrite a state when start failed (no thread) or the estimator may still change it
             if self.state_store is not None and self._thread is not None and stopped:
@@ -617,6 +619,23 @@ class Monitor:
         finally:
             self.state = "stopped"
         return self.problems
+
+    def _end_of_run(self) -> None:
+        """The wear monitor at the end of a run (this run is one part): the alarms go out like the others, before
+        the sinks close; a history that cannot be saved is a problem (exit 1)."""
+        try:
+            when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            ends = self.pipeline.finish(f"live {when}", when)
+        except Exception as exc:  # noqa: BLE001 - never stops the shutdown
+            self._problem("the wear monitor failed at the end of the run: %s: %s", type(exc).__name__, exc)
+            return
+        rx_ns = time.time_ns()
+        for key, alarms in ends.items():
+            if alarms:
+                self._publish_alarms(self.axes[key], alarms, rx_ns)
+        wear = self.pipeline.process.wear if self.pipeline.process is not None else None
+        if wear is not None and wear.error:
+            self._problem("wear history %s NOT saved (%s): this run is not in it", wear.path, wear.error)
 
     def _close_sinks(self, timeout: float) -> None:
         """Close every sink side by side, all done by ``timeout`` s from now (a sink gives up on what it

@@ -47,7 +47,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
@@ -77,6 +77,10 @@ class OfflineResult:
     skipped_axes: list[str]
     jobs: int = 1
     health_reports: int = 0
+    #: the wear monitor's report at the end of the run, one line per section judged (empty: no wear monitor)
+    wear_report: list[str] = field(default_factory=list)
+    #: why the wear history could not be saved (None: saved, or no wear monitor)
+    wear_error: str | None = None
 
     @property
     def rate(self) -> float:
@@ -197,7 +201,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     per axis; 1: this process only). See the module docstring. ``input_health``: thresholds of the
     input-health verdict merged into the health reports (:mod:`monitor.input_health`). ``monitors``: the
     process monitors' settings (:class:`monitor.process_monitor.MonitorSettings`; None or not enabled:
-    none run); their alarms go on ``/<machine>/<axis>/alarm``, stamped at their row.
+    none run); their alarms go on ``/<machine>/<axis>/alarm``, stamped at their row. With a wear history
+    (``monitors.wear.history``) the run is one part: its section statistics are appended, its ``wear`` alarms
+    stamped at the axis' last block, and it runs in this process (one history, one writer).
     """
     from feedio.mcapio import OpenTrial, TrialWriter
 
@@ -234,36 +240,54 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     names = [f"{m}/{a}" for (m, a) in metas]
     jobs = min(os.cpu_count() or 1, len(names)) if jobs is None else min(jobs, max(1, len(names)))
     if jobs > 1 and threading.active_count() > 1 and not all(_fresh(axes[key]) for key in metas):
-        jobs = 1  # a spawned child builds its estimators from the model files: only when that is what they are
+        jobs = 1
+    if getattr(monitors, "enabled", False) and monitors.wear.history is not None:
+        jobs = 1  # the wear history is one file, updated by the process that judged every axis  # a spawned child builds its estimators from the model files: only when that is what they are
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
     t0 = time.perf_counter()
+    wear: dict[str, Any] = {"report": [], "error": None}
+    built = _monitors(axes, monitors) if jobs == 1 else None  # a bad reference or history: refused before any output
     with TrialWriter(output, out_metas, start=start) as w:
         if jobs > 1:
             counts = _run_children(trial, w, names, {n: axes[k] for n, k in zip(names, metas)}, has_truth, limits,
                                    jobs, input_health, monitors)
         else:
-            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health, monitors)
+            counts = _run_here(trial, w, names, axes, has_truth, limits, input_health, built, wear)
     seconds = time.perf_counter() - t0
     return OfflineResult(output, counts["samples"], counts["estimates"], counts["truth"], seconds, names, skipped,
-                         jobs, counts["health"])
+                         jobs, counts["health"], wear["report"], wear["error"])
 
 
-def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health, monitors=None) -> dict[str, int]:
-    """``jobs=1``: reader thread → estimation here → writer thread (encoding and writing)."""
-    pipe = Pipeline(axes, limits=limits, input_health=input_health, monitors=_monitors(axes, monitors))
+def _run_here(trial: str, w, names: list[str], axes, has_truth, limits, input_health, process=None,
+              wear: dict[str, Any] | None = None) -> dict[str, int]:
+    """``jobs=1``: reader thread → estimation here (``process``: the built process monitors) → writer thread
+    (encoding and writing); at the end the wear monitor's alarms (stamped at the axis' last block), its report
+    and a failure to save into ``wear``."""
+    pipe = Pipeline(axes, limits=limits, input_health=input_health, monitors=process)
     enc = _Encoder(has_truth)
+    last_lt: dict[tuple[str, str], int] = {}
     with _WriterThread() as out:
-        counts = _estimate_items(_merged_blocks(trial, names), pipe, enc, out, lambda _key, entries: _write(w, entries))
+        counts = _estimate_items(_merged_blocks(trial, names), pipe, enc, out, lambda _key, entries: _write(w, entries),
+                                 last_lt)
+        if pipe.process is not None and pipe.process.wear is not None:
+            when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            ends = pipe.finish(os.path.basename(trial), when)
+            wear["report"] += pipe.process.wear.report
+            wear["error"] = pipe.process.wear.error
+            entries = [("A", m, a, S.encode(e), last_lt.get((m, a), 0)) for (m, a), alarms in ends.items()
+                       for e in alarms]
+            out.put(lambda: _write(w, entries))
         out.put(lambda: _write_drain(w, enc.drain(), {n: enc.touched.get(n) for n in names}))
     return counts
 
 
 def _estimate_items(items: Iterator, pipe: Pipeline, enc: _Encoder, out: _WriterThread,
-                    emit: Callable[[tuple, list[tuple]], None]) -> dict[str, int]:
+                    emit: Callable[[tuple, list[tuple]], None], last_lt: dict | None = None) -> dict[str, int]:
     """The work per input item of both paths: estimate each samples block (here, on the reader's
     items), and hand what the item puts into the output (:class:`_Encoder`) to ``emit(key, entries)``
     on the writer thread. A refused block (too long, no model) is counted by the pipeline, not
-    copied, as live. Returns the counts (samples estimated, estimates, truth blocks, health reports)."""
+    copied, as live. Returns the counts (samples estimated, estimates, truth blocks, health reports);
+    ``last_lt`` gets each axis' last log time."""
     counts = {"samples": 0, "estimates": 0, "truth": 0, "health": 0}
     for key, name, kind, lt, block in _prefetch(items):
         if kind == "truth":
@@ -277,6 +301,8 @@ def _estimate_items(items: Iterator, pipe: Pipeline, enc: _Encoder, out: _Writer
         if res.est is not None:
             counts["estimates"] += len(res.est)
         counts["health"] += len(res.health)
+        if last_lt is not None:
+            last_lt[res.ax.key] = lt
         out.put(lambda k=key, b=block, t=lt, r=res: emit(k, enc.samples(k, b, t, r)), _held(block, res))
     return counts
 

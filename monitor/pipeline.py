@@ -210,6 +210,17 @@ class Pipeline:
                         ax.status.name, a.kind, a.t, a.seq, a.value, a.limit, a.monitor)
         return alarms
 
+    def finish(self, part: str, when: str) -> dict[tuple[str, str], list[S.AlarmEvent]]:
+        """End of a run: the wear monitor's alarms per axis (:meth:`~monitor.process_monitor.ProcessMonitors.finish`;
+        empty without one), logged like the others."""
+        if self.process is None or self.process.wear is None:
+            return {}
+        out = self.process.finish(part, when)
+        for key, alarms in out.items():
+            for a in alarms:
+                log.warning("axis %s/%s: process alarm %s at the end of the run: %s", key[0], key[1], a.kind, a.detail)
+        return out
+
     def _health(self, ax: AxisRuntime, block: S.SampleBlock, input_changed: bool) -> list[S.Health] | tuple:
         """Collect the axis' health reports (returned) with the input's verdict merged in (a report of its
         own when it changed and the loop made none), update its status and log every change of the health

@@ -38,7 +38,8 @@ from feedio.mcapio import format_time, parse_time
 
 from . import scenarios as SC
 
-__all__ = ["PartVariation", "MAX_PARTS", "series_constants", "part_variations", "part_duration", "part_scenario", "simulate_series"]
+__all__ = ["PartVariation", "MAX_PARTS", "series_constants", "part_variations", "part_duration", "part_scenario",
+           "simulate_series", "truth_sections"]
 
 #: most parts one series may hold (one trial file each)
 MAX_PARTS = 100_000
@@ -164,3 +165,20 @@ def simulate_series(sc: dict, n_parts: int, out_dir, *, seed: int = 0, created: 
         if progress is not None:
             progress(var.index, path)
     return paths
+
+
+def truth_sections(res) -> list[dict]:
+    """The per-section statistics of a simulated part from its true force, in the form of
+    :meth:`monitor.process_monitor.AxisProcessMonitor.finish` (tool, program_line, occurrence, rows,
+    mean_force_N, energy_J = Σ F·v·Ts): the wear monitor's input without the estimator, for its statistics."""
+    line, tool = np.asarray(res.program_line), np.asarray(res.tool)
+    f, v = np.asarray(res.force, dtype=np.float64), np.asarray(res.v_true, dtype=np.float64)
+    ts = float(res.meta.Ts)
+    cut = np.flatnonzero((line[1:] != line[:-1]) | (tool[1:] != tool[:-1])) + 1
+    out, seen = [], {}
+    for a, b in zip(np.r_[0, cut], np.r_[cut, line.size]):
+        key = (int(tool[a]), int(line[a]))
+        occ = seen[key] = seen.get(key, -1) + 1
+        out.append({"tool": key[0], "program_line": key[1], "occurrence": occ, "rows": int(b - a),
+                    "mean_force_N": float(f[a:b].mean()), "energy_J": float((f[a:b] * v[a:b]).sum() * ts)})
+    return out

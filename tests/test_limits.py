@@ -106,19 +106,20 @@ def _loaders():
     from feedmon.run_config import load_config_file
     from monitor.model_file import load_model
     from monitor.process_monitor.reference import MAX_REFERENCE_BYTES, load_reference
+    from monitor.process_monitor.wear import MAX_HISTORY_BYTES, load_history
     from replay.scenarios import load_scenario
 
     return [("model file", load_model, L.MAX_CONFIG_BYTES), ("config file", load_config_file, L.MAX_CONFIG_BYTES),
             ("bridge config file", load_config, L.MAX_CONFIG_BYTES),
             ("scenario config", lambda p: load_scenario("shaker-constant", p), L.MAX_CONFIG_BYTES),
-            ("reference file", load_reference, MAX_REFERENCE_BYTES)]
+            ("reference file", load_reference, MAX_REFERENCE_BYTES), ("wear history", load_history, MAX_HISTORY_BYTES)]
 
 
 @pytest.mark.parametrize("kind", ["file", "endless"])
 def test_every_file_a_user_names_is_read_only_up_to_its_limit(tmp_path, kind):
-    """Model, run config, bridge config, scenario config and reference files: one byte over the limit, or an
-    endless stream (/dev/zero, whose size on disk is 0), is refused naming the file and the limit — never
-    read whole."""
+    """Model, run config, bridge config, scenario config, reference and wear history files: one byte over the
+    limit, or an endless stream (/dev/zero, whose size on disk is 0), is refused naming the file and the
+    limit — never read whole."""
     for what, load, limit in _loaders():
         if kind == "endless":
             path = Path("/dev/zero")

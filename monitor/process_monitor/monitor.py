@@ -86,6 +86,7 @@ class AxisProcessMonitor:
         self._row: tuple | None = None  # (seq, t, σ, section key) of the last row judged
         self._view_t = -math.inf  # time of the last view
         self.sections: list[dict] = []  # per finished section: key, occurrence, rows, mean force (N), energy (J)
+        self.last_row: tuple[int, float] | None = None  # (seq, t) of the last row judged
         self._acc = [0, 0.0, 0.0]
         #: revolutions ending before this time are not judged per tooth: an impulse distorts their fit
         self._tooth_quiet_until = -math.inf
@@ -116,6 +117,7 @@ class AxisProcessMonitor:
         if est is None or est.force is None or len(est) == 0:
             return []
         n = len(est)
+        self.last_row = (int(est.seq + n - 1), float(est.t[-1]))
         force = est.force[0]
         sd = np.sqrt(np.maximum(est.force[1], 0.0))
         raw = self._raw_force(est)
@@ -328,8 +330,10 @@ class AxisProcessMonitor:
 class ProcessMonitors:
     """The process monitors of every axis (those whose model scales to newtons), keyed like the axes."""
 
-    def __init__(self, axes: dict, settings: MonitorSettings, references: dict | None = None) -> None:
+    def __init__(self, axes: dict, settings: MonitorSettings, references: dict | None = None, wear=None) -> None:
         self.settings = settings
+        #: the wear history across parts (:class:`~.wear.WearMonitor`; None: no wear monitor)
+        self.wear = wear
         refs = references or {}
         self.by_axis = {key: AxisProcessMonitor(key[0], key[1], settings, float(ax.model.Ts), refs.get(key),
                                                 v_min=max(float(ax.model.omega),
@@ -345,10 +349,31 @@ class ProcessMonitors:
         mon = self.by_axis.get(key)
         return None if mon is None else mon.take_view()
 
+    def finish(self, part: str, when: str) -> dict[tuple[str, str], list[S.AlarmEvent]]:
+        """End of a run (one part): each axis' section statistics into the wear history, saved; the ``wear``
+        alarms per axis. ``part`` labels the run in the history, ``when`` is its UTC time (ISO 8601). A history
+        that cannot be saved is left as it was, the reason in ``wear.error`` (the alarms are still returned)."""
+        if self.wear is None:
+            return {}
+        out = {}
+        for key, mon in self.by_axis.items():
+            alarms = self.wear.add_run(key[0], key[1], mon.finish(), part, when, mon.last_row)
+            for a in alarms:
+                mon.counts[a.kind] = mon.counts.get(a.kind, 0) + 1
+                mon.last = a
+            out[key] = alarms
+        try:
+            self.wear.save()
+        except (OSError, ValueError) as exc:
+            self.wear.error = f"{type(exc).__name__}: {exc}"
+            log.error("wear history %s NOT saved: %s", self.wear.path, self.wear.error)
+        return out
+
 
 def build_monitors(axes: dict, settings: MonitorSettings) -> ProcessMonitors | None:
-    """The process monitors of ``axes`` with the reference files of ``settings`` (None: not enabled).
-    ``ValueError`` for a reference file that cannot be read or names no monitored axis."""
+    """The process monitors of ``axes`` with the reference files and the wear history of ``settings`` (None: not
+    enabled). ``ValueError`` for a reference file that cannot be read or names no monitored axis, and for a wear
+    history that cannot be used."""
     if settings is None or not settings.enabled:
         return None
     from .reference import load_reference
@@ -362,4 +387,9 @@ def build_monitors(axes: dict, settings: MonitorSettings) -> ProcessMonitors | N
         if key in refs:
             raise ValueError(f"reference file {path}: a second reference for axis {ref.machine}/{ref.axis}")
         refs[key] = ref
-    return ProcessMonitors(axes, settings, refs)
+    wear = None
+    if settings.wear.history is not None:
+        from .wear import WearMonitor
+
+        wear = WearMonitor(settings.wear)
+    return ProcessMonitors(axes, settings, refs, wear)

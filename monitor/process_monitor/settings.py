@@ -13,8 +13,8 @@ import msgspec
 
 from feedio.schema import PROFILE_BINS_MAX, TEETH_MAX
 
-__all__ = ["ImpulseSettings", "ToothSettings", "EnvelopeSettings", "SectionLimits", "MonitorSettings",
-           "MAX_SECTIONS"]
+__all__ = ["ImpulseSettings", "ToothSettings", "EnvelopeSettings", "WearSettings", "SectionLimits",
+           "MonitorSettings", "MAX_SECTIONS", "MAX_KEEP"]
 
 #: the most ``[[monitors.section]]`` entries a configuration may hold
 MAX_SECTIONS = 1000
@@ -64,6 +64,31 @@ class EnvelopeSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     cut_min_N: _Newton = 5.0  # a reference bin with a mean below this expects no cut
 
 
+#: the most parts a wear history keeps per section (``keep``)
+MAX_KEEP = 200
+
+
+class WearSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Wear trend across parts (M7): one history file of per-section statistics, judged at the end of each run.
+
+    Alarm ⇔ over the last ``window`` parts (at least ``min_parts``) the slope's t statistic exceeds
+    ``sensitivity`` and the fitted rise exceeds ``min_rise`` of the fitted first value. Why these defaults
+    (false-alarm probability per part and over 200 parts): ``docs/process-monitoring.md``, "Wear"."""
+
+    history: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)] | None = None  # None: no wear monitor
+    statistic: Literal["mean_force", "energy"] = "mean_force"  # |mean force| (N) or |cut energy ∫F·v dt| (J)
+    window: Annotated[int, msgspec.Meta(ge=3, le=MAX_KEEP)] = 20  # parts the trend is fitted over
+    min_parts: Annotated[int, msgspec.Meta(ge=3, le=MAX_KEEP)] = 10  # parts a section needs before it is judged
+    keep: Annotated[int, msgspec.Meta(ge=3, le=MAX_KEEP)] = 50  # parts kept per section in the file
+    sensitivity: _K = 5.0  # the t statistic's limit
+    min_rise: Annotated[float, msgspec.Meta(gt=0.0, le=10.0)] = 0.10  # fitted rise over the window, relative
+    cut_min_N: _Newton = 5.0  # a section whose |mean force| is below this is no cut: not recorded
+
+    def __post_init__(self) -> None:
+        if not self.min_parts <= self.window <= self.keep:
+            raise ValueError(f"min_parts ({self.min_parts}) ≤ window ({self.window}) ≤ keep ({self.keep}) is needed")
+
+
 class SectionLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Absolute limits of one tool and/or NC line (``[[monitors.section]]``); a row matches when every given
     key equals its context."""
@@ -81,5 +106,6 @@ class MonitorSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     impulse: ImpulseSettings = ImpulseSettings()
     tooth: ToothSettings = ToothSettings()
     envelope: EnvelopeSettings = EnvelopeSettings()
+    wear: WearSettings = WearSettings()
     section: Annotated[list[SectionLimits], msgspec.Meta(max_length=MAX_SECTIONS)] = []
     ack_widen: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 1.5  # each acknowledged false alarm widens ×

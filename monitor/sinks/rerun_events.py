@@ -43,10 +43,14 @@ _RUN_KINDS = {S.STALE: ("STALE", "INFO", "repeated measurement (recording glitch
 def alarm_line(a: S.AlarmEvent) -> str:
     """The event-log line of a process alarm (:class:`~feedio.schema.AlarmEvent`): kind, measured against
     limit, the σ it was judged with, NC line and tool, the monitor's detail."""
-    sigma = f", σ {a.sigma:.2f} N" if a.sigma is not None else ""
     where = "".join(f", {k} {v}" for k, v in (("line", a.program_line), ("tool", a.tool)) if v is not None)
-    return (f"ALARM {a.kind} at t = {a.t:.3f} s: {a.value:.1f} against limit {a.limit:.1f} N{sigma}{where} "
-            f"({a.monitor}{'; ' + a.detail if a.detail else ''})")
+    if a.kind == "wear":  # a rise across parts, relative (1 = 100 %)
+        sigma = f", spread {a.sigma:.1%}" if a.sigma is not None else ""
+        measured = f"rise {a.value:.1%} against limit {a.limit:.1%}{sigma}"
+    else:
+        sigma = f", σ {a.sigma:.2f} N" if a.sigma is not None else ""
+        measured = f"{a.value:.1f} against limit {a.limit:.1f} N{sigma}"
+    return f"ALARM {a.kind} at t = {a.t:.3f} s: {measured}{where} ({a.monitor}{'; ' + a.detail if a.detail else ''})"
 
 
 @dataclass(frozen=True)
