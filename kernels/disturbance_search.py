@@ -355,7 +355,7 @@ class SearchSettings:
     every: float = 4.0            #: s between two searches while the primary improves
     every_max: float = 16.0       #: s between two searches at most, after searches that found nothing
     retry: float = 0.25           #: s between two searches while the primary predicts poorly
-    lag: float = 0.25             #: s of samples after its start at which a search's verdict applies
+    lag: float = 0.1              #: s of samples after its start at which a search's verdict applies
     retry_max: float = 2.0        #: s at most between them after searches that found nothing
     cooldown: float = 20.0        #: s before a structure that lost is tried again
     settle: float = 0.5           #: s after an adoption before the validity test uses the innovations
