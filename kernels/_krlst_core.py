@@ -205,7 +205,8 @@ def _kernel_row(st, x, xph, hw, kt):
                     kernel_row_phased(st.kinds, st.params, st.cols, X, st.Ph, occ, i, i + 1, x, xph, kt)
         ktt = tab[0]
     else:
-        kernel_row_phased(st.kinds, st.params, st.cols, st.X, st.Ph, st.occ, 0, hw, x, xph, kt)
+        # lo = np.int64(0), not a literal 0: one compiled kernel_row_phased for both calls
+        kernel_row_phased(st.kinds, st.params, st.cols, st.X, st.Ph, st.occ, np.int64(0), hw, x, xph, kt)
         ktt = 1.0                                      # k(x, x): every kernel is normalised (Kernel.diag)
     for i in range(hw, hw8):
         kt[i] = 0.0

@@ -393,7 +393,8 @@ def joint_update(st, bs, z, y, gate, out, bout):
         _beta_step(bs, z, e, R, gate, bout)
     if not form_force:                            # (8) the simulation's next step, with the model file's β₀
         zs = vec[V_SIM]                           # (stable by the validity rules; β̂ would feed back on itself)
-        regressor(False, bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE], par[P_OMEGA], z[0], vsim, zs)
+        # np.bool_, not a literal False: one compiled regressor
+        regressor(np.bool_(False), bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE], par[P_OMEGA], z[0], vsim, zs)
         acc = 0.0
         b0 = bs.beta0
         for j in range(p):
@@ -602,7 +603,7 @@ def replay_joint(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, x_now, out, bout, 
     for k in range(X.shape[0]):
         joint_arm(st, bs, X[k], out)
         regressor(form_force, i_sp, i_sn, i_one, omega, exo[k], v[k], zbuf)
-        joint_update(st, bs, zbuf, target[k], False, out, bout)
+        joint_update(st, bs, zbuf, target[k], np.bool_(False), out, bout)   # not a literal: one joint_update
     joint_arm(st, bs, x_now, out)
 
 

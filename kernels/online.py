@@ -600,7 +600,7 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
     i_sp, i_sn, i_one = bs.lay[bt.L_ISP], bs.lay[bt.L_ISN], bs.lay[bt.L_IONE]
     fst = tr.fst
     st_ref_prev = sflt[Q_REF]
-    nticks = 0
+    nticks = np.int64(0)                      # not a literal 0: one compiled _tick
     updates0 = bs.cnt[bt.C_UPDATES]
     first = 0
     for j in range(start, n):
@@ -684,7 +684,8 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
                 nu = np.nan
                 if joint:
                     bt.regressor(form_force, i_sp, i_sn, i_one, cfg.omega, st.last_e[0], st.last_v_used[0], z)
-                    learned = bt.joint_update(tr, bs, z, vj, True, obuf, bout)
+                    # gate np.bool_(True), not the literal True: one compiled joint_update for every caller
+                    learned = bt.joint_update(tr, bs, z, vj, np.bool_(True), obuf, bout)
                     if learned:
                         nu = bout[bt.B_NU]
                         rows[R_F, j] = bout[bt.B_FILTERED] if apply else obuf[core.O_FILT]

@@ -143,6 +143,7 @@ def test_sweep_updates_and_multiplies_a_symmetric_matrix(n):
     (spindle_kernel(), _spindle(80, theta0=1e6)[0]),                                    # θ ~ 1e6 rad
 ])
 def test_phased_row_matches_the_kernel_formula(kernel, X):
+    X = np.ascontiguousarray(X)                                        # C order, as the tracker's
     kinds, params, cols = spec = kernel.spec()
     ph = np.zeros((len(X), 2 * len(kinds)))
     for i, xi in enumerate(X):
