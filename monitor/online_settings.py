@@ -37,15 +37,14 @@ from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel, LocallyPeriodic, Periodic, SquaredExponential, ZeroMeanLocallyPeriodic
 from kernels.disturbance_search import SIGMA1_RANGE, TrackerChoice
 from kernels.errors import ParameterError
+from kernels.flags import ADAPTATION_MODES
 from kernels.health import HealthConfig
-from kernels.online import MODES
 from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "TrackerKernel", "TRACKER_KERNELS",
            "SquaredExponentialKernel", "LocallyPeriodicKernel", "ZeroMeanLocallyPeriodicKernel", "PeriodicKernel",
            "SpindleKernel", "Adaptation", "Health", "OnlineSettings", "TrackerOverride", "AdaptationOverride",
-           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides",
-           "MODES"]
+           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
@@ -189,7 +188,7 @@ class Adaptation(msgspec.Struct, **_OPTS):
     #: covariance are estimated and reported (health, drift alarms), the disturbance uses the
     #: model file's β; apply: the disturbance uses β̂ (unbiased under drift, but β̂ may take up
     #: a disturbance that moves with the motion)
-    mode: Literal[MODES] = "track"
+    mode: Literal[ADAPTATION_MODES] = "track"
     #: T_β of the friction parameters (damping, Coulomb, offset), s of learning samples: a drift of ṙ
     #: per second lags by ≈ 1.5 ṙ·T_β; standard errors ∝ 1/√T_β
     memory: bounded_float(0.5, 3600.0, "s, β memory T_β of damping, Coulomb, offset (drift lag vs noise)") = 5.0
