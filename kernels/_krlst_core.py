@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit
 
 from ._krlst_dense import _refresh_inverse, materialize, refresh_inverse  # noqa: F401 (re-exported)
-from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep
+from ._krlst_simd import LANES, SWEEP_ROWS, Stream, fmuladd, sweep
 from ._krlst_state import (  # noqa: F401 (the state's names are the core's: core.I_N, core.state_of, …)
     A_G2,
     A_MEAN,
@@ -240,7 +240,7 @@ def _sweep_q(st, hw, kt, q, write):
     a = st.P[P_A]
     Q = st.Q
     Qd = st.Qd
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         if mode == 2:
             if write:
                 _Q2_W(j, hw8, Q, Qd, sc, p, nb, a, q, kt)
@@ -285,7 +285,7 @@ def _sweep_sigma(st, hw, c, q, h, kq, write):
     g = st.P[P_G]
     K = st.K
     Kd = st.Kd
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         if spend:
             if write:
                 _S1_W(j, hw8, D, Dd, ncs, g, h, q, K, Kd, kq, q)
@@ -306,7 +306,7 @@ def _sweep_qq(st, hw, m, r_, u, w):
     for i in range(hw8):
         u[i] = 0.0
         w[i] = 0.0
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         _QQ_R(j, hw8, st.Q, st.Qd, u, m, w, r_)
 
 

@@ -18,11 +18,6 @@ CONSTANT = re.compile(r"[A-Z][A-Z0-9_]*")
 #: work (an entry whose duplicate is gone is simply unused). Any other repeated name fails the test.
 KERNELS_PENDING = {
     "C_TRAINED": {"kernels/beta_layout.py", "kernels/online.py"},
-    "DENSE_LIMIT": {"kernels/pl_lssvm.py", "kernels/toeplitz.py"},
-    "MIN_GAIN": {"kernels/adequacy.py", "kernels/low_speed.py"},
-    "MIN_SAMPLES": {"kernels/adequacy.py", "kernels/noise.py"},
-    "N_VEC": {"kernels/_krlst_core.py", "kernels/beta_tracker.py"},
-    "ROWS": {"kernels/_krlst_simd.py", "kernels/online.py"},
 }
 
 #: names every module of a kind defines for itself by design, one meaning per module: a compiled state's
