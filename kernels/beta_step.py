@@ -28,9 +28,9 @@ from .beta_layout import (
     C_PROJECTED,
     C_QUIET,
     C_REJECTED,
+    C_SEEN,
     C_SINCE_FORGET,
     C_SINCE_REBASE,
-    C_TRAINED,
     C_UPDATES,
     C_VHAT_ARM,
     C_VSIM_ARM,
@@ -427,12 +427,12 @@ def _beta_step(bs, z, e, R, gate, bout):
     zeta = vec[V_ZETA]
     g = vec[V_G]
     row = vec[V_TMP]
-    cnt[C_TRAINED] += 1
+    cnt[C_SEEN] += 1
     omega = par[P_OMEGA]
     vk = z[1]
     d = 1 if vk > omega else (-1 if vk < -omega else 0)   # direction of motion (0: dead band)
     # learn only in motion, and not from the first sample of a run of motion (:mod:`kernels.beta_tracker`)
-    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
+    learn = gate and cnt[C_SEEN] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
     cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
     ztg = _gain_direction(C, zt, zeta, g, row)
