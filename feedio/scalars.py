@@ -169,11 +169,12 @@ def _build_records(text, n_fields, n, keys, key_offsets, channel_id, seq, log_ns
     p = 0
     for i in range(n):
         out[p] = 5
-        _put_le(out, p + 1, sizes[i] - 9, 8)              # record length: after opcode and length
-        _put_le(out, p + 9, channel_id, 2)
-        _put_le(out, p + 11, seq[i] & 0xFFFFFFFF, 4)
-        _put_le(out, p + 15, log_ns[i], 8)
-        _put_le(out, p + 23, log_ns[i], 8)
+        # widths as np.int64, not literals: one compiled _put_le, not one per width
+        _put_le(out, p + 1, sizes[i] - 9, np.int64(8))    # record length: after opcode and length
+        _put_le(out, p + 9, channel_id, np.int64(2))
+        _put_le(out, p + 11, seq[i] & 0xFFFFFFFF, np.int64(4))
+        _put_le(out, p + 15, log_ns[i], np.int64(8))
+        _put_le(out, p + 23, log_ns[i], np.int64(8))
         p += MESSAGE_HEADER
         for f in range(n_fields):
             a, b = start[f, i], stop[f, i]
@@ -356,8 +357,9 @@ class ScalarsPairer:
         pos = np.empty(L, dtype=np.int64)
         ns = np.empty(L, dtype=np.int64)
         vals = np.empty((len(VALUES), L))
-        r = _release(st.ints, st.floats, st.done, st.head, st.tail, st.truth_seq, st.truth_vals, truth_end,
-                     self._expects((machine, axis)), self.hold_samples, before_ns is not None, before, force,
+        # C order whatever slicing made truth_vals: one compiled _release, not one per layout
+        r = _release(st.ints, st.floats, st.done, st.head, st.tail, st.truth_seq, np.ascontiguousarray(st.truth_vals),
+                     truth_end, self._expects((machine, axis)), self.hold_samples, before_ns is not None, before, force,
                      st.last_ns, pos, ns, vals)
         if r == 0:
             return []

@@ -54,7 +54,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from feedio.limits import BLOCK_SAMPLES_MAX, NAME_MAX_LEN, NAME_PATTERN, NAME_RE, SEQ_MAX, T_MAX
-from kernels.flags import EstimateFlag
+from kernels.flags import ADAPTATION_MODES, EstimateFlag
 
 __all__ = [
     "SchemaError",
@@ -379,7 +379,7 @@ class Health(msgspec.Struct, forbid_unknown_fields=True):
     offset: _Value = None
     offset_se: _SE = None
     nu2: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
-    adaptation: Literal["off", "track", "apply"] = "track"
+    adaptation: Literal[ADAPTATION_MODES] = "track"
 
     def __post_init__(self) -> None:
         check_name(self.machine, "Health field 'machine'")

@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit
 
 from ._krlst_dense import _refresh_inverse, materialize, refresh_inverse  # noqa: F401 (re-exported)
-from ._krlst_simd import LANES, ROWS, Stream, fmuladd, sweep
+from ._krlst_simd import LANES, SWEEP_ROWS, Stream, fmuladd, sweep
 from ._krlst_state import (  # noqa: F401 (the state's names are the core's: core.I_N, core.state_of, …)
     A_G2,
     A_MEAN,
@@ -205,7 +205,8 @@ def _kernel_row(st, x, xph, hw, kt):
                     kernel_row_phased(st.kinds, st.params, st.cols, X, st.Ph, occ, i, i + 1, x, xph, kt)
         ktt = tab[0]
     else:
-        kernel_row_phased(st.kinds, st.params, st.cols, st.X, st.Ph, st.occ, 0, hw, x, xph, kt)
+        # lo = np.int64(0), not a literal 0: one compiled kernel_row_phased for both calls
+        kernel_row_phased(st.kinds, st.params, st.cols, st.X, st.Ph, st.occ, np.int64(0), hw, x, xph, kt)
         ktt = 1.0                                      # k(x, x): every kernel is normalised (Kernel.diag)
     for i in range(hw, hw8):
         kt[i] = 0.0
@@ -239,7 +240,7 @@ def _sweep_q(st, hw, kt, q, write):
     a = st.P[P_A]
     Q = st.Q
     Qd = st.Qd
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         if mode == 2:
             if write:
                 _Q2_W(j, hw8, Q, Qd, sc, p, nb, a, q, kt)
@@ -284,7 +285,7 @@ def _sweep_sigma(st, hw, c, q, h, kq, write):
     g = st.P[P_G]
     K = st.K
     Kd = st.Kd
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         if spend:
             if write:
                 _S1_W(j, hw8, D, Dd, ncs, g, h, q, K, Kd, kq, q)
@@ -305,7 +306,7 @@ def _sweep_qq(st, hw, m, r_, u, w):
     for i in range(hw8):
         u[i] = 0.0
         w[i] = 0.0
-    for j in range(0, hw, ROWS):
+    for j in range(0, hw, SWEEP_ROWS):
         _QQ_R(j, hw8, st.Q, st.Qd, u, m, w, r_)
 
 

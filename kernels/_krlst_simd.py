@@ -25,7 +25,7 @@ the same bits from every caller, and two CPUs agree to rounding.
 
 Blocking
 --------
-A call handles :data:`ROWS` = 8 consecutive rows ``j … j+7`` (``j % 8 == 0``, so they share the
+A call handles :data:`SWEEP_ROWS` = 8 consecutive rows ``j … j+7`` (``j % 8 == 0``, so they share the
 first column block, the only one that needs a mask). Per column block each row's entries are
 loaded, updated and stored once, the axpy target ``t`` is loaded and stored once for the eight
 rows, and each row keeps its own dot accumulator (independent dependency chains); the eight
@@ -44,13 +44,13 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 LANES = 8
-ROWS = 8
+SWEEP_ROWS = 8
 
 _DBL = ir.DoubleType()
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
 _VEC = ir.VectorType(_DBL, LANES)
-_VECR = ir.VectorType(_DBL, ROWS)
+_VECR = ir.VectorType(_DBL, SWEEP_ROWS)
 _IVEC = ir.VectorType(_I64, LANES)
 
 
@@ -85,7 +85,7 @@ def _lane_sums(builder, a, b, c, d):
 
 
 def _row_sums(builder, accs):
-    """The ``ROWS`` lane sums (:func:`_lane_sums`) as one ``<ROWS x double>``."""
+    """The ``SWEEP_ROWS`` lane sums (:func:`_lane_sums`) as one ``<SWEEP_ROWS x double>``."""
     quads = [_lane_sums(builder, *accs[k:k + 4]) for k in range(0, len(accs), 4)]
     if len(quads) == 1:
         return quads[0]
@@ -144,7 +144,7 @@ def sweep(*streams: Stream):
             lo = builder.and_(j, ir.Constant(_I64, ~(LANES - 1)))
             zero = ir.Constant(_VEC, [0.0] * LANES)
             lane_index = ir.Constant(_IVEC, list(range(LANES)))
-            rows = [builder.add(j, ir.Constant(_I64, r)) for r in range(ROWS)]
+            rows = [builder.add(j, ir.Constant(_I64, r)) for r in range(SWEEP_ROWS)]
             row_splat = [_splat(builder, r, _IVEC) for r in rows]
             plan = []
             for s in streams:
@@ -175,7 +175,7 @@ def sweep(*streams: Stream):
                 for s, U, _d, bases, terms, lam, vecs in plan:
                     xs = [load(x.data, c) for _, _, x in terms]
                     vals = []
-                    for r in range(ROWS):
+                    for r in range(SWEEP_ROWS):
                         p = ptr(U.data, builder.add(bases[r], c))
                         v = builder.load(p, align=8)
                         for (_, coefs, _), xv in zip(terms, xs):
@@ -191,11 +191,11 @@ def sweep(*streams: Stream):
                     for t, z, z_row, accs in vecs:
                         tp = ptr(t.data, c)
                         tv = builder.load(tp, align=8)
-                        for r in range(ROWS):
+                        for r in range(SWEEP_ROWS):
                             tv = _fma(builder, z_row[r], vals[r], tv)     # t += z_r v   (Uᵀ z)
                         builder.store(tv, tp, align=8)
                         zv = load(z.data, c)
-                        for r in range(ROWS):
+                        for r in range(SWEEP_ROWS):
                             builder.store(_fma(builder, vals[r], zv, builder.load(accs[r])), accs[r])  # U z
 
             block(lo, True)                               # (j < hi8: there is always a first block)

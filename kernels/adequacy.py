@@ -12,7 +12,7 @@ velocity at the motor rings against the load). The test regresses the residual o
     R² = 1 − RSS₁/RSS₀,   Δℓ = ½ n log(RSS₀/RSS₁)
 
 and calls the model inadequate when the lags explain at least :data:`EXPLAINED` of the residual's
-variance and ``Δℓ ≥`` :data:`MIN_GAIN`. Measured on 5 s windows: the adequate trials (simulated shaker
+variance and ``Δℓ ≥`` :data:`ADEQUACY_MIN_GAIN`. Measured on 5 s windows: the adequate trials (simulated shaker
 and milling with their disturbance models, the real EMPS drive) explain ≤ 0.35 (EMPS, whose velocity
 is a filtered position difference), the drives beyond the model ≥ 0.6 (docs/identification.md).
 
@@ -43,20 +43,20 @@ import numpy as np
 
 from .errors import ParameterError
 
-__all__ = ["Adequacy", "adequacy", "LAGS", "EXPLAINED", "MIN_GAIN", "SPREAD", "MIN_SAMPLES"]
+__all__ = ["Adequacy", "adequacy", "LAGS", "EXPLAINED", "ADEQUACY_MIN_GAIN", "SPREAD", "ADEQUACY_MIN_SAMPLES"]
 
 #: lags of the command and the velocity in (A1)
 LAGS = 3
 #: share of the residual variance the lags must explain for the model to be inadequate …
 EXPLAINED = 0.5
 #: … with at least this log-likelihood gain (a likelihood ratio of e²⁵)
-MIN_GAIN = 25.0
+ADEQUACY_MIN_GAIN = 25.0
 #: the command's effect is one-signed (a delay, not a resonance) when Σ|a_j| is at most this times Σa_j …
 SPREAD = 1.5
 #: … and late when its centroid is at least this many samples
 MIN_LATE = 0.2
 #: the fewest samples a window needs
-MIN_SAMPLES = 64
+ADEQUACY_MIN_SAMPLES = 64
 
 
 @dataclass(frozen=True)
@@ -98,8 +98,8 @@ def adequacy(residual, command, v_meas, Ts: float, *, gain: float, pole: float) 
     e = np.asarray(residual, dtype=np.float64)
     c = np.asarray(command, dtype=np.float64)
     v = np.asarray(v_meas, dtype=np.float64)
-    if e.ndim != 1 or e.size < MIN_SAMPLES:
-        raise ParameterError(f"residual must be a window of at least {MIN_SAMPLES} samples, got shape {e.shape}",
+    if e.ndim != 1 or e.size < ADEQUACY_MIN_SAMPLES:
+        raise ParameterError(f"residual must be a window of at least {ADEQUACY_MIN_SAMPLES} samples, got shape {e.shape}",
                              "residual")
     if c.shape != e.shape or v.shape != e.shape:
         raise ParameterError(f"command {c.shape} and v_meas {v.shape} must have the residual's shape {e.shape}",
@@ -122,7 +122,7 @@ def adequacy(residual, command, v_meas, Ts: float, *, gain: float, pole: float) 
     _, rss1 = _fit(y, X)
     explained = max(0.0, 1.0 - rss1 / rss0)
     gain_ll = 0.5 * n * math.log(rss0 / max(rss1, 1e-300 * rss0))
-    if explained < EXPLAINED or gain_ll < MIN_GAIN:
+    if explained < EXPLAINED or gain_ll < ADEQUACY_MIN_GAIN:
         return Adequacy(adequate=True, explained=explained, gain=gain_ll)
     # what it is: the timing of the command's effect, else a resonance in the residual
     r = y + gain * _lagged(c, 0)

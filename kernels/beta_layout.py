@@ -29,8 +29,9 @@ MIN_SPEED_MAX = 100.0
 #: slots of ``lay`` (integer settings: the column layout and the re-basing interval, 0 = never)
 (L_FORM, L_ISP, L_ISN, L_IONE, L_REBASE) = range(5)
 N_LAY = 5
-#: slots of ``cnt`` (counters and instrument bookkeeping: state)
-(C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_TRAINED, C_SINCE_REBASE,
+#: slots of ``cnt`` (counters and instrument bookkeeping: state; C_SEEN: samples the β step has seen, the
+#: warm-up count, reported as "trained")
+(C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_VHAT_ARM, C_SEEN, C_SINCE_REBASE,
  C_SINCE_FORGET, C_QUIET, C_REJECTED, C_DIR, C_VSIM_ARM) = range(13)
 N_CNT = 13
 #: slots of ``sst`` (float state): the scale of the stored shadow means, the stored velocity prediction,

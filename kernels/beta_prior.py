@@ -19,9 +19,9 @@ from .beta_layout import (
     C_PROJECTED,
     C_QUIET,
     C_REJECTED,
+    C_SEEN,
     C_SINCE_FORGET,
     C_SINCE_REBASE,
-    C_TRAINED,
     C_UPDATES,
     C_VHAT_ARM,
     C_VSIM_ARM,
@@ -328,7 +328,7 @@ def validate_beta_state(bs: BetaState, fresh: BetaState, occupied: np.ndarray) -
     if np.max(np.abs(bs.MZ), initial=0.0) * bs.sst[S_SCALE] > 1e9 or np.max(np.abs(bs.zhat), initial=0.0) > 1e9:
         raise ValueError("beta 'MZ'/'zhat': implausibly large shadow means")
     c = bs.cnt
-    if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_TRAINED, C_SINCE_REBASE, C_SINCE_FORGET,
+    if np.any(c[[C_UPDATES, C_GATED, C_PROJECTED, C_DOWNWEIGHTED, C_ARMS, C_SEEN, C_SINCE_REBASE, C_SINCE_FORGET,
                  C_QUIET, C_REJECTED]] < 0) or c[C_VHAT_ARM] < -1 or c[C_VHAT_ARM] > c[C_ARMS] + 1 \
             or c[C_VSIM_ARM] < -1 or c[C_VSIM_ARM] > c[C_ARMS] + 1:
         raise ValueError("beta 'cnt' holds impossible counters")

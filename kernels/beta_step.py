@@ -28,9 +28,9 @@ from .beta_layout import (
     C_PROJECTED,
     C_QUIET,
     C_REJECTED,
+    C_SEEN,
     C_SINCE_FORGET,
     C_SINCE_REBASE,
-    C_TRAINED,
     C_UPDATES,
     C_VHAT_ARM,
     C_VSIM_ARM,
@@ -393,7 +393,8 @@ def joint_update(st, bs, z, y, gate, out, bout):
         _beta_step(bs, z, e, R, gate, bout)
     if not form_force:                            # (8) the simulation's next step, with the model file's β₀
         zs = vec[V_SIM]                           # (stable by the validity rules; β̂ would feed back on itself)
-        regressor(False, bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE], par[P_OMEGA], z[0], vsim, zs)
+        # np.bool_, not a literal False: one compiled regressor
+        regressor(np.bool_(False), bs.lay[L_ISP], bs.lay[L_ISN], bs.lay[L_IONE], par[P_OMEGA], z[0], vsim, zs)
         acc = 0.0
         b0 = bs.beta0
         for j in range(p):
@@ -426,12 +427,12 @@ def _beta_step(bs, z, e, R, gate, bout):
     zeta = vec[V_ZETA]
     g = vec[V_G]
     row = vec[V_TMP]
-    cnt[C_TRAINED] += 1
+    cnt[C_SEEN] += 1
     omega = par[P_OMEGA]
     vk = z[1]
     d = 1 if vk > omega else (-1 if vk < -omega else 0)   # direction of motion (0: dead band)
     # learn only in motion, and not from the first sample of a run of motion (:mod:`kernels.beta_tracker`)
-    learn = gate and cnt[C_TRAINED] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
+    learn = gate and cnt[C_SEEN] > par[P_WARMUP] and d != 0 and d == cnt[C_DIR] and abs(vk) > par[P_MINSPEED]
     cnt[C_DIR] = d
     # ---- (3) gain direction and the normalised innovation ---------------------------------------
     ztg = _gain_direction(C, zt, zeta, g, row)
@@ -602,7 +603,7 @@ def replay_joint(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, x_now, out, bout, 
     for k in range(X.shape[0]):
         joint_arm(st, bs, X[k], out)
         regressor(form_force, i_sp, i_sn, i_one, omega, exo[k], v[k], zbuf)
-        joint_update(st, bs, zbuf, target[k], False, out, bout)
+        joint_update(st, bs, zbuf, target[k], np.bool_(False), out, bout)   # not a literal: one joint_update
     joint_arm(st, bs, x_now, out)
 
 

@@ -75,7 +75,7 @@ from .beta_layout import (  # noqa: F401, E402
     C_GATED,
     C_PROJECTED,
     C_REJECTED,
-    C_TRAINED,
+    C_SEEN,
     C_UPDATES,
     C_VHAT_ARM,
     FORGET_EVERY,
@@ -273,7 +273,7 @@ class OnlineBeta:
         c = self.state.cnt
         return {"updates": int(c[C_UPDATES]), "gated": int(c[C_GATED]), "projected": int(c[C_PROJECTED]),
                 "downweighted": int(c[C_DOWNWEIGHTED]), "rejected": int(c[C_REJECTED]),
-                "trained": int(c[C_TRAINED])}
+                "trained": int(c[C_SEEN])}
 
     def physical(self) -> dict[str, tuple[float, float]]:
         """``{name: (value, standard error)}`` per :data:`PHYSICAL` (delta method; NaN when the model

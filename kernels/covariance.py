@@ -490,7 +490,7 @@ def kernel_value(kinds, params, cols, x1, x2):
 
     :func:`kernel_value_at` on a one-row view of ``x1`` (same arithmetic, same bits).
     """
-    return kernel_value_at(kinds, params, cols, x1.reshape((1, x1.shape[0])), 0, x2)
+    return kernel_value_at(kinds, params, cols, x1.reshape((1, x1.shape[0])), np.int64(0), x2)
 
 
 _ALL_ROWS = np.zeros(0, dtype=np.int64)

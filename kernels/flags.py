@@ -1,4 +1,5 @@
-"""The bits of ``EstimateBlock.flags``: one definition for the numerics, the schema, the sinks and the README.
+"""The bits of ``EstimateBlock.flags`` and the adaptation modes: one definition for the numerics, the
+schema, the sinks and the README.
 
 :class:`EstimateFlag` is the definition. Numba cannot type an ``IntFlag`` member inside
 ``@njit`` code, so the plain ``int`` constants ``*_BIT`` below are derived from it here, once,
@@ -14,7 +15,11 @@ from __future__ import annotations
 import enum
 
 __all__ = ["EstimateFlag", "DESCRIPTIONS", "markdown_table",
-           "STALE_BIT", "GAP_BIT", "REJECTED_BIT", "WARMUP_BIT", "REDUCED_BIT"]
+           "STALE_BIT", "GAP_BIT", "REJECTED_BIT", "WARMUP_BIT", "REDUCED_BIT", "ADAPTATION_MODES"]
+
+#: the online β's adaptation modes (``[adaptation] mode``, ``Health.adaptation``), in code order: the
+#: compiled loop's ``OnlineConfig.mode`` is the index (:data:`kernels.online.MODE_OFF` …)
+ADAPTATION_MODES = ("off", "track", "apply")
 
 
 class EstimateFlag(enum.IntFlag):

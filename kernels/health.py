@@ -57,7 +57,7 @@ from numba import njit
 from ._snapshot import fill_views
 from .layout import Field, Layout
 
-__all__ = ["HealthConfig", "HealthState", "HealthMonitor", "Verdict", "new_health_buffers",
+__all__ = ["HealthConfig", "HEALTH_RANGES", "HealthState", "HealthMonitor", "Verdict", "new_health_buffers",
            "health_state_views", "health_state_of", "validate_health_state", "health_sample", "health_tick",
            "LEVELS", "REASONS", "PARAMS", "STATE_FIELDS", "describe"]
 
@@ -84,27 +84,50 @@ N_ACC = 9
 S_Z, S_REL, S_DET = range(3)
 
 
+#: each setting's range ``(lo, hi, open_low, what it is and trades)``, the one definition:
+#: :meth:`HealthConfig.validate` checks it and ``monitor.online_settings.Health`` (the model file's
+#: ``[health]``) declares its fields with it. Cross-field rules come on top (:meth:`HealthConfig.validate`).
+HEALTH_RANGES: dict[str, tuple[float, float, bool, str]] = {
+    "tau": (0.05, 10.0, False, "s, EWMA time constant of ν² (detection delay vs noise)"),
+    "clip": (2.0, 20.0, False, "|ν| clip, standard deviations (one outlier's weight)"),
+    "warn": (1.0, 400.0, False, "EWMA level of ν² for warn (false alarms vs detection)"),
+    "alarm": (1.0, 400.0, False, "EWMA level of ν² for alarm"),
+    "clear": (1.0, 400.0, False, "EWMA level below which warn clears (hysteresis)"),
+    "persist": (0.0, 10.0, False, "s above a level before it counts (bursts vs delay)"),
+    "hold": (0.0, 60.0, False, "s below before a level clears (flapping vs staying up)"),
+    "z_warn": (0.1, 1000.0, False, "drift: standard errors for warn"),
+    "z_alarm": (0.1, 1000.0, False, "drift: standard errors for alarm"),
+    "z_clear": (0.1, 1000.0, False, "drift: standard errors below which warn clears"),
+    "rel_warn": (0.0, 10.0, False, "drift: relative change for warn"),
+    "rel_alarm": (0.0, 10.0, False, "drift: relative change for alarm"),
+    "kappa": (0.0, 1.0, True, "determined: online s.e. ≤ kappa × prior s.e."),
+    "warmup": (0.0, 3600.0, False, "s of innovations ignored after the start"),
+}
+
+
 @dataclass(frozen=True)
 class HealthConfig:
-    """Health thresholds (see the module docstring for what each trades); SI units, seconds."""
+    """Health thresholds (see the module docstring for what each trades; ranges :data:`HEALTH_RANGES`);
+    SI units, seconds."""
 
-    tau: float = 0.5            # s, EWMA time constant of ν²            (0.05 … 10)
-    clip: float = 4.0           # |ν| clip (standard deviations)          (2 … 20)
+    tau: float = 0.5            # s, EWMA time constant of ν²
+    clip: float = 4.0           # |ν| clip (standard deviations)
     warn: float = 5.0           # EWMA level for warn                     (> clear)
     alarm: float = 8.0          # EWMA level for alarm                    (> warn, < clip²)
     clear: float = 3.0          # EWMA level below which warn clears      (> 1)
-    persist: float = 0.25       # s above a level before it counts        (0 … 10)
-    hold: float = 2.0           # s below before a level clears           (0 … 60)
+    persist: float = 0.25       # s above a level before it counts
+    hold: float = 2.0           # s below before a level clears
     z_warn: float = 6.0         # drift: standard errors for warn         (> z_clear)
     z_alarm: float = 8.0        # drift: standard errors for alarm        (≥ z_warn)
-    z_clear: float = 4.0        # drift: warn clears below this           (> 0)
-    rel_warn: float = 0.03      # drift: relative change for warn         (0 … 10)
+    z_clear: float = 4.0        # drift: warn clears below this
+    rel_warn: float = 0.03      # drift: relative change for warn
     rel_alarm: float = 0.15     # drift: relative change for alarm        (≥ rel_warn)
-    kappa: float = 0.5          # determined: online s.e. ≤ κ · prior s.e. (0 … 1]
-    warmup: float = 2.0         # s of innovations ignored at the start   (0 … 3600)
+    kappa: float = 0.5          # determined: online s.e. ≤ κ · prior s.e.
+    warmup: float = 2.0         # s of innovations ignored at the start
 
     def validate(self) -> HealthConfig:
-        """Raise ``ValueError`` naming the first setting outside its documented range."""
+        """Raise ``ValueError`` naming the first setting outside its range (:data:`HEALTH_RANGES`) or
+        breaking a cross-field rule."""
         def need(ok, name, rule):
             if not ok:
                 raise ValueError(f"health setting {name} = {getattr(self, name)!r} is out of range: {rule}")
@@ -112,15 +135,12 @@ class HealthConfig:
             v = getattr(self, f.name)
             need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v), f.name,
                  "must be a finite number")
-        need(0.05 <= self.tau <= 10.0, "tau", "0.05 … 10 s")
-        need(2.0 <= self.clip <= 20.0, "clip", "2 … 20")
+            lo, hi, open_low, _ = HEALTH_RANGES[f.name]
+            need((lo < v if open_low else lo <= v) and v <= hi, f.name,
+                 f"{lo:g} < {f.name} ≤ {hi:g}" if open_low else f"{lo:g} … {hi:g}")
         need(1.0 < self.clear < self.warn < self.alarm < self.clip ** 2, "clear", "1 < clear < warn < alarm < clip²")
-        need(0.0 <= self.persist <= 10.0, "persist", "0 … 10 s")
-        need(0.0 <= self.hold <= 60.0, "hold", "0 … 60 s")
-        need(0.0 < self.z_clear < self.z_warn <= self.z_alarm, "z_clear", "0 < z_clear < z_warn ≤ z_alarm")
-        need(0.0 <= self.rel_warn <= self.rel_alarm <= 10.0, "rel_warn", "0 ≤ rel_warn ≤ rel_alarm ≤ 10")
-        need(0.0 < self.kappa <= 1.0, "kappa", "0 < kappa ≤ 1")
-        need(0.0 <= self.warmup <= 3600.0, "warmup", "0 … 3600 s")
+        need(self.z_clear < self.z_warn <= self.z_alarm, "z_clear", "z_clear < z_warn ≤ z_alarm")
+        need(self.rel_warn <= self.rel_alarm, "rel_warn", "rel_warn ≤ rel_alarm")
         return self
 
 

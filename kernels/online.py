@@ -97,10 +97,10 @@ from . import _krlst_core as core
 from . import beta_tracker as bt
 from . import health as hl
 from ._krlst_simd import view
-from .flags import GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
+from .flags import ADAPTATION_MODES, GAP_BIT, REDUCED_BIT, REJECTED_BIT, STALE_BIT, WARMUP_BIT
 from .layout import Field, Layout, Record
 
-__all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REORDER_WINDOW", "MODES", "OnlineConfig",
+__all__ = ["COUNTERS", "ROWS", "EXTRA_ROWS", "IROWS", "TICK", "SEQ_LIMIT", "REORDER_WINDOW", "OnlineConfig",
            "ConfigBuffers", "config_of", "new_config", "set_tracker_input", "new_search", "OnlineState", "StateBuffers", "state_of", "new_state", "new_rows",
            "new_scratch", "new_ticks", "track_block"]
 
@@ -115,9 +115,8 @@ COUNTERS = ("duplicate", "out_of_order", "rejected_non_finite", "rejected_out_of
 #: model's, or a controller that skipped cycles without skipping sequence numbers)
 INTERVAL_TOLERANCE = 0.25
 
-#: adaptation modes (:attr:`OnlineConfig.mode`), in code order
-MODES = ("off", "track", "apply")
-MODE_OFF, MODE_TRACK, MODE_APPLY = range(3)
+#: :attr:`OnlineConfig.mode`: the index in :data:`kernels.flags.ADAPTATION_MODES`
+MODE_OFF, MODE_TRACK, MODE_APPLY = range(len(ADAPTATION_MODES))
 #: longest gap (s of controller time) across which θ is integrated from the spindle speed
 THETA_GAP_MAX = 60.0
 
@@ -144,7 +143,7 @@ CONFIG_SPEC = (
     Field("stale_detection", "bool", (), "setting", "detect repeated measured velocities"),
     Field("warmup", "i8", (), "setting", "rows flagged WARMUP while the tracker has learned ≤ this many samples"),
     Field("reorder_window", "i8", (), "setting", "W ≥ 1 (samples), see the module docstring"),
-    Field("mode", "i8", (), "setting", "adaptation: MODE_OFF, MODE_TRACK, MODE_APPLY (MODES)"),
+    Field("mode", "i8", (), "setting", "adaptation: MODE_OFF, MODE_TRACK, MODE_APPLY (ADAPTATION_MODES)"),
     Field("spindle", "bool", (), "setting", "tracker input x = (t, θ) (spindle-phase kernel), else x = t"),
     Field("tick_min", "i8", (), "setting", "samples at least between two health reports"),
     Field("theta_period", "f8", (), "setting", "P (rad): period of the kernel in θ (2π or 2π/teeth)"),
@@ -170,9 +169,9 @@ def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: fl
                t_max: float, stale_detection: bool, warmup: int, reorder_window: int, mode: str = "off",
                spindle: bool = False, theta_period: float = 2.0 * math.pi, rpm_nominal: float = 0.0,
                rpm_max: float = 1e5, tick_period: float = 1.0) -> ConfigBuffers:
-    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`; ``mode`` one of :data:`MODES`)."""
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+    """:class:`ConfigBuffers` from named values (see :class:`OnlineConfig`; ``mode`` one of :data:`ADAPTATION_MODES`)."""
+    if mode not in ADAPTATION_MODES:
+        raise ValueError(f"mode must be one of {', '.join(ADAPTATION_MODES)}, got {mode!r}")
     if spindle and not (math.isfinite(rpm_nominal) and 0.0 < rpm_nominal <= rpm_max):
         raise ValueError(f"the spindle-phase kernel needs a nominal speed in (0, {rpm_max:g}] rpm, got {rpm_nominal!r}")
     if not (math.isfinite(theta_period) and theta_period > 0.0):
@@ -182,7 +181,7 @@ def new_config(*, beta, coulomb: bool, intercept: bool, omega: float, inv_ts: fl
     tick_min = max(1, int(round(0.5 * tick_period * inv_ts)))
     ints, floats = CONFIG.pack(coulomb=coulomb, intercept=intercept, omega=omega, inv_ts=inv_ts, v_max=v_max,
                                e_max=e_max, t_max=t_max, stale_detection=stale_detection, warmup=warmup,
-                               reorder_window=reorder_window, mode=MODES.index(mode), spindle=spindle,
+                               reorder_window=reorder_window, mode=ADAPTATION_MODES.index(mode), spindle=spindle,
                                tick_min=tick_min, theta_period=theta_period, rpm_nominal=rpm_nominal,
                                rpm_max=rpm_max, tick_period=tick_period)
     return ConfigBuffers(np.ascontiguousarray(beta, dtype=np.float64), ints, floats)
@@ -600,7 +599,7 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
     i_sp, i_sn, i_one = bs.lay[bt.L_ISP], bs.lay[bt.L_ISN], bs.lay[bt.L_IONE]
     fst = tr.fst
     st_ref_prev = sflt[Q_REF]
-    nticks = 0
+    nticks = np.int64(0)                      # not a literal 0: one compiled _tick
     updates0 = bs.cnt[bt.C_UPDATES]
     first = 0
     for j in range(start, n):
@@ -684,7 +683,8 @@ def track_block(fbuf, ibuf, bfbuf, bibuf, hfbuf, hibuf, beta, cfg_ints, cfg_floa
                 nu = np.nan
                 if joint:
                     bt.regressor(form_force, i_sp, i_sn, i_one, cfg.omega, st.last_e[0], st.last_v_used[0], z)
-                    learned = bt.joint_update(tr, bs, z, vj, True, obuf, bout)
+                    # gate np.bool_(True), not the literal True: one compiled joint_update for every caller
+                    learned = bt.joint_update(tr, bs, z, vj, np.bool_(True), obuf, bout)
                     if learned:
                         nu = bout[bt.B_NU]
                         rows[R_F, j] = bout[bt.B_FILTERED] if apply else obuf[core.O_FILT]

@@ -60,11 +60,11 @@ from .spindle_phase import PhaseSegments
 from .toeplitz import DENSE_LIMIT as TOEPLITZ_DENSE_LIMIT
 from .toeplitz import WARN_FACTOR, ToeplitzSolver
 
-__all__ = ["PLLSSVMResult", "pl_lssvm", "DENSE_LIMIT", "LEVINSON_LIMIT", "GRID_RTOL", "time_grid",
+__all__ = ["PLLSSVMResult", "pl_lssvm", "PL_DENSE_LIMIT", "LEVINSON_LIMIT", "GRID_RTOL", "time_grid",
            "constant_column", "prepare_regression", "gls_solve"]
 
 #: Largest N for the dense path (vector inputs): the N×N matrix takes 8 N² bytes (0.5 GB at 8000).
-DENSE_LIMIT = 8000
+PL_DENSE_LIMIT = 8000
 #: Largest N for the Levinson path (``O(N²)``: ~4 s at 25 000 samples, ~25 s at 60 000).
 LEVINSON_LIMIT = 60000
 #: PCG iterations tried by ``solver="auto"`` before it falls back to Levinson.
@@ -334,7 +334,7 @@ def gls_solve(solver, Zt: np.ndarray, y: np.ndarray):
 
 
 def pl_lssvm(Z, y, kernel: Kernel, gamma: float, *, x=None, Ts: float | None = None, names=None,
-             tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = DENSE_LIMIT,
+             tol: float = 1e-12, max_iter: int | None = None, dense_limit: int = PL_DENSE_LIMIT,
              toeplitz_dense_limit: int = TOEPLITZ_DENSE_LIMIT, solver: str = "auto",
              phase: PhaseSegments | None = None, order: int | None = None, gate=None,
              keep=None) -> PLLSSVMResult:

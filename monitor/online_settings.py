@@ -37,15 +37,14 @@ from kernels.beta_tracker import MIN_SPEED_MAX
 from kernels.covariance import Kernel, LocallyPeriodic, Periodic, SquaredExponential, ZeroMeanLocallyPeriodic
 from kernels.disturbance_search import SIGMA1_RANGE, TrackerChoice
 from kernels.errors import ParameterError
-from kernels.health import HealthConfig
-from kernels.online import MODES
+from kernels.flags import ADAPTATION_MODES
+from kernels.health import HEALTH_RANGES, HealthConfig
 from kernels.spindle_phase import spindle_phase_kernel
 
 __all__ = ["TRACKER_DEFAULTS", "BUDGET_RANGE", "JITTER_RANGE", "SPINDLE", "PER", "TrackerKernel", "TRACKER_KERNELS",
            "SquaredExponentialKernel", "LocallyPeriodicKernel", "ZeroMeanLocallyPeriodicKernel", "PeriodicKernel",
            "SpindleKernel", "Adaptation", "Health", "OnlineSettings", "TrackerOverride", "AdaptationOverride",
-           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides",
-           "MODES"]
+           "HealthOverride", "tracker_table", "choice_of", "parse_model_tables", "model_tables", "apply_overrides"]
 
 #: online KRLS-T defaults: thesis Table 4.5 kernel (σ1 s, σ2, γ) with the measured λ and M
 TRACKER_DEFAULTS = {"sigma1": 1.2, "sigma2": 0.495, "gamma": 5.85, "forgetting": 0.998, "budget": 100,
@@ -189,7 +188,7 @@ class Adaptation(msgspec.Struct, **_OPTS):
     #: covariance are estimated and reported (health, drift alarms), the disturbance uses the
     #: model file's β; apply: the disturbance uses β̂ (unbiased under drift, but β̂ may take up
     #: a disturbance that moves with the motion)
-    mode: Literal[MODES] = "track"
+    mode: Literal[ADAPTATION_MODES] = "track"
     #: T_β of the friction parameters (damping, Coulomb, offset), s of learning samples: a drift of ṙ
     #: per second lags by ≈ 1.5 ṙ·T_β; standard errors ∝ 1/√T_β
     memory: bounded_float(0.5, 3600.0, "s, β memory T_β of damping, Coulomb, offset (drift lag vs noise)") = 5.0
@@ -219,24 +218,30 @@ class Adaptation(msgspec.Struct, **_OPTS):
 _H = HealthConfig()
 
 
+def _health_field(name: str) -> Any:
+    """The msgspec field type of a ``[health]`` setting, from its range in :data:`kernels.health.HEALTH_RANGES`."""
+    lo, hi, open_low, doc = HEALTH_RANGES[name]
+    return bounded_float(lo, hi, doc, open_low=open_low)
+
+
 class Health(msgspec.Struct, **_OPTS):
     """``[health]``: the health verdict (:mod:`kernels.health`; what each trades is documented there)."""
 
     period: bounded_float(0.1, 60.0, "s of data time between two health reports") = 1.0
-    tau: bounded_float(0.05, 10.0, "s, EWMA time constant of ν² (detection delay vs noise)") = _H.tau
-    clip: bounded_float(2.0, 20.0, "|ν| clip, standard deviations (one outlier's weight)") = _H.clip
-    warn: bounded_float(1.0, 400.0, "EWMA level of ν² for warn (false alarms vs detection)") = _H.warn
-    alarm: bounded_float(1.0, 400.0, "EWMA level of ν² for alarm") = _H.alarm
-    clear: bounded_float(1.0, 400.0, "EWMA level below which warn clears (hysteresis)") = _H.clear
-    persist: bounded_float(0.0, 10.0, "s above a level before it counts (bursts vs delay)") = _H.persist
-    hold: bounded_float(0.0, 60.0, "s below before a level clears (flapping vs staying up)") = _H.hold
-    z_warn: bounded_float(0.1, 1000.0, "drift: standard errors for warn") = _H.z_warn
-    z_alarm: bounded_float(0.1, 1000.0, "drift: standard errors for alarm") = _H.z_alarm
-    z_clear: bounded_float(0.1, 1000.0, "drift: standard errors below which warn clears") = _H.z_clear
-    rel_warn: bounded_float(0.0, 10.0, "drift: relative change for warn") = _H.rel_warn
-    rel_alarm: bounded_float(0.0, 10.0, "drift: relative change for alarm") = _H.rel_alarm
-    kappa: bounded_float(0.0, 1.0, "determined: online s.e. ≤ kappa × prior s.e.", open_low=True) = _H.kappa
-    warmup: bounded_float(0.0, 3600.0, "s of innovations ignored after the start") = _H.warmup
+    tau: _health_field("tau") = _H.tau
+    clip: _health_field("clip") = _H.clip
+    warn: _health_field("warn") = _H.warn
+    alarm: _health_field("alarm") = _H.alarm
+    clear: _health_field("clear") = _H.clear
+    persist: _health_field("persist") = _H.persist
+    hold: _health_field("hold") = _H.hold
+    z_warn: _health_field("z_warn") = _H.z_warn
+    z_alarm: _health_field("z_alarm") = _H.z_alarm
+    z_clear: _health_field("z_clear") = _H.z_clear
+    rel_warn: _health_field("rel_warn") = _H.rel_warn
+    rel_alarm: _health_field("rel_alarm") = _H.rel_alarm
+    kappa: _health_field("kappa") = _H.kappa
+    warmup: _health_field("warmup") = _H.warmup
 
     def __post_init__(self) -> None:
         try:

@@ -212,7 +212,7 @@ def _feed_force(t0, dt, feed, engage, kt, kn, kth, rpm_max, teeth, a, Ktc, Krc, 
         m = 1
     pitch = two_pi / teeth
     last = kt.size - 1
-    seg = 0
+    seg = np.int64(0)                           # not a literal 0: one compiled _spindle_at
     for k in range(n):
         if engage[k] == 0.0:
             continue

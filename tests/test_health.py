@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from kernels.health import PARAMS, HealthConfig, HealthMonitor
+from kernels.health import HEALTH_RANGES, PARAMS, HealthConfig, HealthMonitor
 
 TS = 1 / 333
 THETA = {"inertia": 300.0, "damping": 300.0, "coulomb_pos": 9.0, "coulomb_neg": 10.0}
@@ -137,6 +137,26 @@ def test_settings_out_of_range_are_refused_by_name():
         HealthConfig(warmup=float("nan")).validate()
     with pytest.raises(ValueError, match="entries"):
         HealthMonitor(TS, [1.0, 2.0])
+
+
+def test_the_model_file_and_the_kernel_check_the_same_ranges():
+    """One range per setting (HEALTH_RANGES): the ``[health]`` Struct declares it, HealthConfig checks it;
+    just beyond either end both refuse, naming the setting."""
+    import dataclasses
+
+    import msgspec
+
+    from feedio.limits import field_range
+    from monitor.online_settings import Health
+
+    assert set(HEALTH_RANGES) == {f.name for f in dataclasses.fields(HealthConfig)}
+    for name, (lo, hi, open_low, _) in HEALTH_RANGES.items():
+        assert field_range(Health, name) == (lo, hi)
+        for bad in (hi + 1e-9 * max(1.0, hi), lo if open_low else lo - 1e-9):
+            with pytest.raises(ValueError, match=name):
+                dataclasses.replace(HealthConfig(), **{name: bad}).validate()
+            with pytest.raises(msgspec.ValidationError, match=name):
+                msgspec.convert({name: bad}, Health)
 
 
 def test_snapshot_restore_round_trip():

@@ -11,7 +11,7 @@ from numba import literal_unroll, njit
 
 from kernels import KRLST, LocallyPeriodic, Periodic, Product, SquaredExponential
 from kernels import _krlst_core as core
-from kernels._krlst_simd import ROWS, Stream, sweep
+from kernels._krlst_simd import SWEEP_ROWS, Stream, sweep
 from kernels.covariance import KERNEL_FLOOR, ZeroMeanLocallyPeriodic, kernel_phases, kernel_row_phased
 from kernels.krlst_numpy import NumpyKRLST
 
@@ -96,13 +96,13 @@ _SWEEP_R = sweep(Stream(vecs=1))
 @njit
 def _run_sweeps(U, d, c1, x1, c2, x2, lam, t1, z1, t2, z2, n):
     n8 = U.shape[1]
-    for j in range(0, n, ROWS):
+    for j in range(0, n, SWEEP_ROWS):
         _SWEEP_W(j, n8, U, d, c1, x1, c2, x2, lam, t1, z1, t2, z2)
 
 
 @njit
 def _run_read(U, d, t, z, n):
-    for j in range(0, n, ROWS):
+    for j in range(0, n, SWEEP_ROWS):
         _SWEEP_R(j, U.shape[1], U, d, t, z)
 
 
@@ -143,6 +143,7 @@ def test_sweep_updates_and_multiplies_a_symmetric_matrix(n):
     (spindle_kernel(), _spindle(80, theta0=1e6)[0]),                                    # θ ~ 1e6 rad
 ])
 def test_phased_row_matches_the_kernel_formula(kernel, X):
+    X = np.ascontiguousarray(X)                                        # C order, as the tracker's
     kinds, params, cols = spec = kernel.spec()
     ph = np.zeros((len(X), 2 * len(kinds)))
     for i, xi in enumerate(X):

@@ -117,7 +117,7 @@ def test_online_state_and_config_are_their_field_lists():
     cfg = online.new_config(beta=BETA0, **values)
     named = online.config_of(*cfg)
     assert named._fields == ("beta",) + tuple(f.name for f in online.CONFIG_SPEC)
-    values["mode"] = online.MODES.index("apply")
+    values["mode"] = online.ADAPTATION_MODES.index("apply")
     values["tick_min"] = max(1, round(0.5 / TS))
     for name, v in values.items():
         assert getattr(named, name) == v, name

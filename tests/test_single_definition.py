@@ -14,17 +14,6 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("feedio", "monitor", "feedmon", "replay", "bridge", "kernels")
 CONSTANT = re.compile(r"[A-Z][A-Z0-9_]*")
 
-#: names still assigned in two kernels/ modules, each pair with its own meaning; left to the kernels/
-#: work (an entry whose duplicate is gone is simply unused). Any other repeated name fails the test.
-KERNELS_PENDING = {
-    "C_TRAINED": {"kernels/beta_layout.py", "kernels/online.py"},
-    "DENSE_LIMIT": {"kernels/pl_lssvm.py", "kernels/toeplitz.py"},
-    "MIN_GAIN": {"kernels/adequacy.py", "kernels/low_speed.py"},
-    "MIN_SAMPLES": {"kernels/adequacy.py", "kernels/noise.py"},
-    "N_VEC": {"kernels/_krlst_core.py", "kernels/beta_tracker.py"},
-    "ROWS": {"kernels/_krlst_simd.py", "kernels/online.py"},
-}
-
 #: names every module of a kind defines for itself by design, one meaning per module: a compiled state's
 #: field list, its layout and the fields its snapshot saves (:mod:`kernels.layout`), a message's fields
 PER_MODULE = {"FIELDS", "LAYOUT", "STATE_FIELDS"}
@@ -56,8 +45,7 @@ def duplicates(root: Path) -> dict[str, list[str]]:
 
 
 def test_no_constant_is_assigned_in_two_modules():
-    found = {name: places for name, places in duplicates(REPO).items()
-             if name not in PER_MODULE and {p.split(":")[0] for p in places} != KERNELS_PENDING.get(name)}
+    found = {name: places for name, places in duplicates(REPO).items() if name not in PER_MODULE}
     assert not found, ("constants assigned in more than one module (define each once and import it): "
                        + "; ".join(f"{name} at {', '.join(places)}" for name, places in sorted(found.items())))
 
