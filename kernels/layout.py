@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import ast
 import collections
+import functools
 import math
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -30,6 +32,19 @@ from ._krlst_simd import unowned_array, view
 #: roles of a field: the dims header, settings fixed for a model, state (snapshots), scratch, outputs
 ROLES = ("layout", "setting", "state", "scratch", "output")
 _KINDS = {"f8": "f", "i8": "i"}
+
+
+#: CPython 3.11's parser keeps one recursion count per interpreter, not per thread: two threads parsing at
+#: once can raise "SystemError: AST constructor recursion depth mismatch" (python/cpython#106905). The
+#: disturbance search builds trackers on a worker thread while the estimator builds its own.
+_PARSE_LOCK = threading.Lock()
+
+
+@functools.cache
+def _parsed(expr: str) -> ast.expr:
+    """A shape expression's syntax tree, parsed once (the trees are only read)."""
+    with _PARSE_LOCK:
+        return ast.parse(expr, mode="eval").body
 
 
 def _dimension(expr: str, env: dict) -> int:
@@ -44,7 +59,7 @@ def _dimension(expr: str, env: dict) -> int:
             a, b = value(node.left), value(node.right)
             return a + b if isinstance(node.op, ast.Add) else a - b if isinstance(node.op, ast.Sub) else a * b
         raise ValueError(f"shape expression {expr!r}: only names of dimensions, integers, +, - and * are allowed")
-    return value(ast.parse(expr, mode="eval").body)
+    return value(_parsed(expr))
 
 class Field(NamedTuple):
     """One field: ``dtype`` ``"f8"`` (the float buffer) or ``"i8"`` (the integer buffer); ``shape`` a
@@ -163,7 +178,8 @@ class Layout:
         ns = {"_T": self.tuple, "_view": view, "_u": unowned_array, **self.consts, **extra}
         # the file of the module that owns the layout: numba's cache is keyed on it (and on the
         # bytecode), so a changed field list invalidates the cached callers with it
-        code = compile(src, filename, "exec")
+        with _PARSE_LOCK:
+            code = compile(src, filename, "exec")
         exec(code, ns)
         fn = ns[fname]
         fn.__module__ = self.tuple.__module__
@@ -237,7 +253,9 @@ class Record:
     def accessor(self, fname: str, filename: str):
         """``fname(*head, ints, floats)``: the named values; works in Python and inside compiled code."""
         ns = {"_T": self.tuple}
-        exec(compile(self.accessor_source(fname), filename, "exec"), ns)
+        with _PARSE_LOCK:
+            code = compile(self.accessor_source(fname), filename, "exec")
+        exec(code, ns)
         fn = ns[fname]
         fn.__module__ = self.tuple.__module__
         return register_jitable(fn)

@@ -159,3 +159,31 @@ def test_a_spec_that_contradicts_itself_is_refused():
     rec = Record("Rec", __name__, (Field("a", "f8", (), "setting"), Field("b", "bool", (), "setting")))
     with pytest.raises(ValueError, match="no value for"):
         rec.pack(a=1.0)
+
+
+def test_shape_expressions_parse_once_and_from_several_threads():
+    """The disturbance search builds trackers (and their layouts) on a worker thread while the estimator
+    builds its own: CPython 3.11's parser is not safe for that (python/cpython#106905), so each expression
+    is parsed once, under a lock, and every thread gets the right values."""
+    import threading
+
+    from kernels import layout as L
+
+    exprs = [f"p * {k} + cap - {k % 7}" for k in range(300)]
+    errors, results = [], {}
+
+    def work(offset: int) -> None:
+        try:
+            for k in range(offset, offset + 300):
+                e = exprs[k % 300]
+                results[(offset, k)] = L._dimension(e, {"p": 3, "cap": 100}) == 3 * (k % 300) + 100 - (k % 300) % 7
+        except Exception as exc:  # noqa: BLE001 - the test reports whatever a thread raised
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(37 * i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and len(results) == 2400 and all(results.values())
+    assert L._parsed(exprs[5]) is L._parsed(exprs[5])
