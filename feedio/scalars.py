@@ -2,8 +2,8 @@
 
 The monitor's :class:`~feedio.schema.EstimateBlock` rows are columnar and, by
 construction, one row late for the filtered values: row j's ``f``, ``f_var``,
-``force``, ``force_var`` describe sample j−1 (CONTRACTS.md "What a value describes,
-in time"). :class:`ScalarsPairer` turns the rows (and the truth blocks, when recorded)
+``force``, ``force_var`` describe sample j−1 (docs/estimates.md, "What a value
+describes, in time"). :class:`ScalarsPairer` turns the rows (and the truth blocks, when recorded)
 into one :class:`~feedio.schema.DisturbanceScalars` per sample k, combining
 
 * row k: ``t``, ``seq``, ``v_meas``, ``flags``, ``f_next``, ``force_next`` (the

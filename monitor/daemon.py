@@ -79,7 +79,7 @@ from .axes import AxisRuntime
 from .input_health import InputHealthSettings
 from .pipeline import Pipeline
 from .sinks.frames import Tag
-from .sinks.protocols import ClosingSink, EncodedSink, HealthSink, ProcessViewSink, Sink, TruthSink
+from .sinks.protocols import AlarmSink, ClosingSink, EncodedSink, HealthSink, ProcessViewSink, Sink, TruthSink
 from .state import StateStore
 from .status import StageRing
 from .status_doc import InputInfo, Latency, MonitorInfo, Percentiles, Served, StatusDoc, to_builtins
@@ -216,7 +216,7 @@ class Monitor:
         self._health_pubs: dict[tuple[str, str], Any] = {}
         # process alarms (monitor.process_monitor): publishers, the sinks that take them
         self._alarm_pubs: dict[tuple[str, str], Any] = {}
-        self._alarm_offers = [s.offer_alarm for s in self.sinks if hasattr(s, "offer_alarm")]
+        self._alarm_offers = [s.offer_alarm for s in self.sinks if isinstance(s, AlarmSink)]
         # the process monitors' views for the dashboard: made only when a sink takes them and monitors run
         self._view_offers = [s.offer_process_view for s in self.sinks if isinstance(s, ProcessViewSink)]
         self._queryable = None

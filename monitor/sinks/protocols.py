@@ -8,7 +8,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from .frames import Tag
 
-__all__ = ["Sink", "EncodedSink", "HealthSink", "TruthSink", "ProcessViewSink", "ClosingSink"]
+__all__ = ["Sink", "EncodedSink", "HealthSink", "TruthSink", "AlarmSink", "ProcessViewSink", "ClosingSink"]
 
 
 @runtime_checkable
@@ -46,6 +46,13 @@ class TruthSink(Protocol):
     them as ``Tag.TRUTH``)."""
 
     def offer_truth(self, machine: str, axis: str, block: Any) -> bool: ...
+
+
+@runtime_checkable
+class AlarmSink(Protocol):
+    """Takes the process monitors' alarms (:class:`~feedio.schema.AlarmEvent`)."""
+
+    def offer_alarm(self, event: Any, received_ns: int | None = None) -> bool: ...
 
 
 @runtime_checkable

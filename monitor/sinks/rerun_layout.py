@@ -26,7 +26,7 @@ placed at, for a value from EstimateBlock row j.
 Entity names sort so that the estimate is drawn over the truth (Rerun draws in path order).
 
 Row j of an EstimateBlock is emitted when sample j arrives; its filtered values describe sample
-j−1 and its prediction sample j (CONTRACTS.md, "what a value describes, in time"), so each value
+j−1 and its prediction sample j (docs/estimates.md, "What a value describes, in time"), so each value
 is placed on the ``sample`` (sequence) and ``time`` (controller time, s) timelines at the sample
 it describes and lines up with the truth of that sample.
 """
