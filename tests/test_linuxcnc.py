@@ -175,7 +175,9 @@ def test_the_1khz_plant_through_the_bridge_is_its_exact_model(work):
     """v(k+1) = p v(k) + b (u(k) − Fc τ(v(k)) − F(k)) with the truth's p, b, Fc, Ω and the force sampled by
     sampler.1 beside it: the plant file, the counter and the bridge's alignment of the columns, at once."""
     Ts = 0.001
-    force = _force(work, "milling-inc", seed=3, scale=1.0, duration=4, Ts=Ts)
+    # 14 s of force for a 2.5 s recording: the streamer runs from the plant's start, and the bridge may take
+    # seconds to start recording on a loaded host (4 s once left it nothing but the force after the file)
+    force = _force(work, "milling-inc", seed=3, scale=1.0, duration=14, Ts=Ts)
     cfg = L.bridge_config(HAL_DIR / "bridge-1000.toml", work)
     trial, truth_file = work / "plant-1000.mcap", work / "truth-1000.txt"
     with L.HalPlant(HAL_DIR / "plant-1000.hal", work) as plant:
