@@ -86,7 +86,6 @@ class AxisProcessMonitor:
         self._row: tuple | None = None  # (seq, t, σ, section key) of the last row judged
         self._view_t = -math.inf  # time of the last view
         self.sections: list[dict] = []  # per finished section: key, occurrence, rows, mean force (N), energy (J)
-        self.last_row: tuple[int, float] | None = None  # (seq, t) of the last row judged
         self._acc = [0, 0.0, 0.0]
         #: revolutions ending before this time are not judged per tooth: an impulse distorts their fit
         self._tooth_quiet_until = -math.inf
@@ -117,7 +116,6 @@ class AxisProcessMonitor:
         if est is None or est.force is None or len(est) == 0:
             return []
         n = len(est)
-        self.last_row = (int(est.seq + n - 1), float(est.t[-1]))
         force = est.force[0]
         sd = np.sqrt(np.maximum(est.force[1], 0.0))
         raw = self._raw_force(est)
@@ -141,6 +139,11 @@ class AxisProcessMonitor:
             self.counts[a.kind] = self.counts.get(a.kind, 0) + 1
             self.last = a
         return out
+
+    @property
+    def last_row(self) -> tuple[int, float] | None:
+        """(seq, t) of the last row judged (where an end-of-run alarm is stamped)."""
+        return None if self._row is None else self._row[:2]
 
     def _raw_force(self, est) -> np.ndarray:
         """The measured force of each row (N): the one-step residual ``v(j−1) = v_m(j) − βᵀz(j−1)`` scaled like
@@ -215,7 +218,6 @@ class AxisProcessMonitor:
         row's, is at or below :attr:`v_min`. There the Coulomb column of the regression switches while the
         real friction does not (stiction, the stop and the breakaway), so the one-step residual is the
         friction model's error, not a process force: a stop at the end of a part read as a 90 N impulse."""
-        raw = self._raw_force(est)
         v = np.abs(np.asarray(est.v_meas, dtype=float))
         prev = np.concatenate(([abs(self._v_last)], v[:-1]))
         self._v_last = float(v[-1]) if v.size else self._v_last
