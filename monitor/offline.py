@@ -240,9 +240,9 @@ def run_offline(trial: str | os.PathLike, output: str | os.PathLike,
     names = [f"{m}/{a}" for (m, a) in metas]
     jobs = min(os.cpu_count() or 1, len(names)) if jobs is None else min(jobs, max(1, len(names)))
     if jobs > 1 and threading.active_count() > 1 and not all(_fresh(axes[key]) for key in metas):
-        jobs = 1
+        jobs = 1  # a spawned child builds its estimators from the model files: only when that is what they are
     if getattr(monitors, "enabled", False) and monitors.wear.history is not None:
-        jobs = 1  # the wear history is one file, updated by the process that judged every axis  # a spawned child builds its estimators from the model files: only when that is what they are
+        jobs = 1  # the wear history is one file, updated by the process that judged every axis
     start = min((s for s in starts if s is not None), default=0)  # files without one: log times as they were
     t0 = time.perf_counter()
     wear: dict[str, Any] = {"report": [], "error": None}
