@@ -296,7 +296,11 @@ def _horizon(choice: TrackerChoice, budget: int, Ts: float) -> tuple[int, int]:
     """Samples of warm-up and of scoring a candidate needs: the dictionary filled and one period seen
     before scoring (a periodic kernel predicts a cycle from the one before), one period (at least 256
     samples) scored."""
-    one = int(choice.period / Ts) if choice.kind == "periodic" else 0
+    return _window(int(choice.period / Ts) if choice.kind == "periodic" else 0, budget)
+
+
+def _window(one: int, budget: int) -> tuple[int, int]:
+    """Warm-up and scoring samples for a candidate whose period spans ``one`` samples (0: none)."""
     return max(budget, one, 256), max(256, one)
 
 
@@ -544,13 +548,20 @@ class DisturbanceSearch:
         if short > 0:                             # too little seen yet: come back when there is enough
             self.next_tick = self.next_retry = count + short
             return verdict
+        cap = float(self._n(self.s.replay_burst))
+        least = min(2.0 * min(len(ring), sum(_window(0, self.budget))), cap)   # a control and one candidate
+        if least > self._credit:                  # not even the shortest weighing is paid for: skip the spectra
+            self._postpone(count, poor, least)
+            return verdict
         self.searches += 1
         cands = [(c, True) for c in self._structural(ring, poor)]
+        local = None                              # the next local-search step (taken off its queue once weighed)
         if not poor:
             if not self._queue:
                 self._queue = perturbations(self.choice)
             if self._queue:
-                cands.append((self._queue.pop(0), False))
+                local = self._queue[0]
+                cands.append((local, False))
         X = ring.X
         plan = []                                 # (candidate, warm-up, replay length), within the budget
         for cand, structural in cands:
@@ -563,7 +574,13 @@ class DisturbanceSearch:
         # candidate is weighed against the same start (a tracker fed only recent samples predicts better
         # after a change of the process than one that remembers the time before it, whatever its kernel)
         L_ctl = max((L for *_, L in plan), default=0)
-        if plan and L_ctl <= self._credit:
+        need = min(L_ctl + (plan[0][3] if plan else 0), cap)   # the control and the first candidate at least
+        if need > self._credit:
+            self._postpone(count, poor, need)
+            return verdict
+        if local is not None:
+            self._queue.pop(0)
+        if plan:
             self._credit -= L_ctl
             own, _ = prequential(self.choice, X[-L_ctl:], ring.y[-L_ctl:], budget=self.budget, jitter=self.jitter,
                                  Ts=self.Ts)
@@ -584,6 +601,14 @@ class DisturbanceSearch:
             self.choice = verdict.adopt
             self._queue = []                      # the neighbours of the new choice
         return verdict
+
+    def _postpone(self, count: int, poor: bool, need: float) -> None:
+        """The budget does not yet pay for ``need`` replayed samples: the next search comes when it does,
+        not before (a search that cannot weigh would spend its spectra, and a control weighed alone
+        would spend the credit that its candidates wait for)."""
+        self._schedule(count, poor, False, False)
+        due = count + math.ceil((need - self._credit) / self.s.replay_rate)
+        self.next_tick, self.next_retry = max(self.next_tick, due), max(self.next_retry, due)
 
     def _schedule(self, count: int, poor: bool, adopted: bool, weighed: bool) -> None:
         """The next searches: sooner after an adoption, rarer after searches that weighed candidates
