@@ -32,9 +32,9 @@ Where candidates come from (:meth:`DisturbanceSearch.tick`):
 
 A search runs every few seconds (sooner after an adoption, rarer while nothing improves) and at
 once when the primary predicts poorly (a short EWMA of its normalised innovations ν² or of its
-innovations over the noise floor); the replay work is bounded by a budget of replayed samples per
-learned sample (a token bucket), so the per-sample cost stays within a fixed factor of the
-tracker's. Everything depends on sample counts only, never on wall-clock time: the live monitor
+innovations over the noise floor); the replay work and the spectra are bounded by a budget of
+replayed samples per learned sample (a token bucket), so the per-sample cost stays within a fixed
+factor of the tracker's. Everything depends on sample counts only, never on wall-clock time: the live monitor
 and ``feedmon run --from`` choose the same models.
 """
 
@@ -364,7 +364,8 @@ class SearchSettings:
     cooldown: float = 20.0        #: s before a structure that lost is tried again
     settle: float = 0.5           #: s after an adoption before the validity test uses the innovations
     grace: float = 1.0            #: s a poor prediction is left to the search before the validity test sees it
-    replay_rate: float = 1.0      #: replayed samples allowed per learned sample (cost bound)
+    replay_rate: float = 0.5      #: replayed samples allowed per learned sample (cost bound)
+    look: float = 0.15            #: a search's spectra, charged as replayed samples per ring entry (measured)
     replay_burst: float = 16.0    #: s of replayed samples the budget may save up
     short_tau: float = 0.1        #: s, EWMA of the innovations for the "predicts poorly" test
     poor: float = 9.0             #: that EWMA of ν² (or of e² over the noise variance) means "poorly"
@@ -549,10 +550,12 @@ class DisturbanceSearch:
             self.next_tick = self.next_retry = count + short
             return verdict
         cap = float(self._n(self.s.replay_burst))
-        least = min(2.0 * min(len(ring), sum(_window(0, self.budget))), cap)   # a control and one candidate
+        look = self.s.look * len(ring)
+        least = min(2.0 * min(len(ring), sum(_window(0, self.budget))) + look, cap)   # spectra, a control, a candidate
         if least > self._credit:                  # not even the shortest weighing is paid for: skip the spectra
             self._postpone(count, poor, least)
             return verdict
+        self._credit -= look
         self.searches += 1
         cands = [(c, True) for c in self._structural(ring, poor)]
         local = None                              # the next local-search step (taken off its queue once weighed)
@@ -574,7 +577,7 @@ class DisturbanceSearch:
         # candidate is weighed against the same start (a tracker fed only recent samples predicts better
         # after a change of the process than one that remembers the time before it, whatever its kernel)
         L_ctl = max((L for *_, L in plan), default=0)
-        need = min(L_ctl + (plan[0][3] if plan else 0), cap)   # the control and the first candidate at least
+        need = min(L_ctl + (plan[0][3] if plan else 0), cap - look)   # the control and the first candidate at least
         if need > self._credit:
             self._postpone(count, poor, need)
             return verdict

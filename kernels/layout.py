@@ -98,6 +98,7 @@ class Layout:
             raise ValueError(f"{typename}: the placement must list every field once")
         self.tuple = collections.namedtuple(typename, names, module=module)
         self.tuple.__doc__ = doc or self.tuple.__doc__
+        self._plans: dict[tuple, tuple[dict, int, int, tuple]] = {}
 
     # ---- Python side -------------------------------------------------------------------------------
     def names(self, *roles: str) -> tuple[str, ...]:
@@ -113,16 +114,29 @@ class Layout:
         return (n + a - 1) // a * a
 
     def offsets(self, **dims) -> tuple[dict, int, int]:
-        """``({name: offset}, float length, int length)`` for the given dims."""
-        by_name = {f.name: f for f in self.fields}
-        at = {"f": 0, "i": 0}
-        out = {}
-        for name in self.placement:
-            f = by_name[name]
-            kind = _KINDS[f.dtype]
-            out[name] = at[kind]
-            at[kind] += self._pad(math.prod(self.shape(f, dims)), kind)
-        return out, at["f"], at["i"]
+        """``({name: offset}, float length, int length)`` for the given dims (the dict is shared: read it only)."""
+        return self._plan(dims)[:3]
+
+    def _plan(self, dims: dict) -> tuple[dict, int, int, tuple]:
+        """Offsets, buffer lengths and the fields' shapes for ``dims``, worked out once per distinct dims:
+        the disturbance search builds a tracker per candidate, and the shape expressions took a third of
+        that."""
+        key = tuple(sorted(dims.items()))
+        plan = self._plans.get(key)
+        if plan is None:
+            by_name = {f.name: f for f in self.fields}
+            shapes = {f.name: self.shape(f, dims) for f in self.fields}
+            at = {"f": 0, "i": 0}
+            out = {}
+            for name in self.placement:
+                kind = _KINDS[by_name[name].dtype]
+                out[name] = at[kind]
+                at[kind] += self._pad(math.prod(shapes[name]), kind)
+            plan = (out, at["f"], at["i"], tuple(shapes[f.name] for f in self.fields))
+            if len(self._plans) >= 64:            # a few budgets and input widths per process; bounded all the same
+                self._plans.clear()
+            self._plans[key] = plan
+        return plan
 
     def new_buffers(self, aligned_zeros=np.zeros, **dims) -> tuple[np.ndarray, np.ndarray]:
         """Zeroed base buffers ``(float64, int64)`` for the dims, the dims written into the header."""
@@ -135,10 +149,9 @@ class Layout:
     def views(self, fbuf: np.ndarray, ibuf: np.ndarray):
         """The named NumPy views of the two base buffers (dims read from ``ibuf``'s header)."""
         dims = {d: int(ibuf[k]) for k, d in enumerate(self.dims)}
-        at, _, _ = self.offsets(**dims)
+        at, _, _, shapes = self._plan(dims)
         out = []
-        for f in self.fields:
-            shape = self.shape(f, dims)
+        for f, shape in zip(self.fields, shapes):
             buf = fbuf if _KINDS[f.dtype] == "f" else ibuf
             out.append(buf[at[f.name]:at[f.name] + math.prod(shape)].reshape(shape))
         return self.tuple(*out)
