@@ -346,6 +346,8 @@ class ToothAccumulator:
 
 #: cutting revolutions whose median A1 is the step test's baseline Ã1 (M4)
 STEP_WINDOW = 10
+#: cutting revolutions in a row whose mean A1 the runout test judges (M5)
+RUNOUT_WINDOW = 4
 
 
 class ToothDetector:
@@ -368,10 +370,10 @@ class ToothDetector:
         self._a1: list[float] = []
         self.mean1 = math.nan
         self.sd1 = math.nan
-        self._recent: list[float] = []
+        self._run = 0  # judged (learned) cutting revolutions in a row: the runout window needs RUNOUT_WINDOW
         self._over = 0
         #: A1 of the last cutting revolutions (not cleared by a pause: the same tool), the step baseline (M4)
-        self._history: deque[float] = deque(maxlen=STEP_WINDOW + 4)
+        self._history: deque[float] = deque(maxlen=STEP_WINDOW + RUNOUT_WINDOW)
         self._step_base = math.nan  # Ã1, frozen at the first revolution over the limit
         self.latched: set[str] = set()
 
@@ -389,7 +391,7 @@ class ToothDetector:
     def update(self, a0: float, a1: float) -> list[tuple[str, float, float]]:
         """One revolution; returns the alarms ``(kind, measured excess ΔA1 (N), limit (N))`` it raised."""
         if not (math.isfinite(a0) and math.isfinite(a1)) or a0 <= self.cut_min:
-            self._recent.clear()
+            self._run = 0
             self._over = 0
             self._cutting = 0
             return []
@@ -413,13 +415,12 @@ class ToothDetector:
         if self._over >= 2 and "broken_tooth" not in self.latched:
             self.latched.add("broken_tooth")
             out.append(("broken_tooth", step, lim_b))
-        self._recent.append(a1)
-        if len(self._recent) > 4:
-            self._recent.pop(0)
-        if len(self._recent) == 4:
-            dm = sum(self._recent) / 4.0 - self.mean1
+        self._run += 1
+        if self._run >= RUNOUT_WINDOW:            # the window: this revolution and the last ones of the history
+            recent = [*list(self._history)[len(self._history) - (RUNOUT_WINDOW - 1):], a1]
+            dm = sum(recent) / RUNOUT_WINDOW - self.mean1
             # a step above the broken-tooth limit within the window is a breakage on its way, not runout
-            steady = max(self._recent) - self._baseline(skip=3) <= lim_b
+            steady = max(recent) - self._baseline(skip=RUNOUT_WINDOW - 1) <= lim_b
             if dm > lim_r and steady and "runout" not in self.latched and "broken_tooth" not in self.latched:
                 self.latched.add("runout")
                 out.append(("runout", dm, lim_r))
