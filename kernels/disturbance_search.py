@@ -552,10 +552,14 @@ class DisturbanceSearch:
         cap = float(self._n(self.s.replay_burst))
         look = self.s.look * len(ring)
         least = min(2.0 * min(len(ring), sum(_window(0, self.budget))) + look, cap)   # spectra, a control, a candidate
-        if least > self._credit:                  # not even the shortest weighing is paid for: skip the spectra
+        # a primary that predicts poorly may borrow up to one burst: that search is urgent (the validity test
+        # waits for it), and rare; the searches of a primary that predicts well only spend what is saved
+        spendable = self._credit + (cap if poor else 0.0)
+        if least > spendable:                     # not even the shortest weighing is paid for: skip the spectra
             self._postpone(count, poor, least)
             return verdict
         self._credit -= look
+        spendable -= look
         self.searches += 1
         cands = [(c, True) for c in self._structural(ring, poor)]
         local = None                              # the next local-search step (taken off its queue once weighed)
@@ -578,19 +582,21 @@ class DisturbanceSearch:
         # after a change of the process than one that remembers the time before it, whatever its kernel)
         L_ctl = max((L for *_, L in plan), default=0)
         need = min(L_ctl + (plan[0][3] if plan else 0), cap - look)   # the control and the first candidate at least
-        if need > self._credit:
+        if need > spendable:
             self._postpone(count, poor, need)
             return verdict
         if local is not None:
             self._queue.pop(0)
         if plan:
             self._credit -= L_ctl
+            spendable -= L_ctl
             own, _ = prequential(self.choice, X[-L_ctl:], ring.y[-L_ctl:], budget=self.budget, jitter=self.jitter,
                                  Ts=self.Ts)
             for cand, structural, warm, L in plan:
-                if L > self._credit:              # saved up for this one: nothing cheaper goes first
+                if L > spendable:                 # saved up for this one: nothing cheaper goes first
                     break
                 self._credit -= L
+                spendable -= L
                 if structural:
                     self._tried[self._key(cand)] = count
                 ll, trk = prequential(cand, X[-L:], ring.y[-L:], budget=self.budget, jitter=self.jitter, Ts=self.Ts)
@@ -610,8 +616,9 @@ class DisturbanceSearch:
         not before (a search that cannot weigh would spend its spectra, and a control weighed alone
         would spend the credit that its candidates wait for)."""
         self._schedule(count, poor, False, False)
-        due = count + math.ceil((need - self._credit) / self.s.replay_rate)
-        self.next_tick, self.next_retry = max(self.next_tick, due), max(self.next_retry, due)
+        rate, cap = self.s.replay_rate, float(self._n(self.s.replay_burst))
+        self.next_tick = max(self.next_tick, count + math.ceil((need - self._credit) / rate))
+        self.next_retry = max(self.next_retry, count + math.ceil((need - self._credit - cap) / rate))   # may borrow
 
     def _schedule(self, count: int, poor: bool, adopted: bool, weighed: bool) -> None:
         """The next searches: sooner after an adoption, rarer after searches that weighed candidates

@@ -159,8 +159,8 @@ def test_the_replay_budget_bounds_the_work():
 def test_a_search_the_budget_cannot_pay_for_comes_back_when_it_can():
     """Right after a search spent the budget, the next one neither computes spectra nor weighs a control
     alone: it is put off to the learned sample at which the budget pays for its spectra, a control and
-    one candidate — and then it weighs. (The ring holds its last 2000 entries, as the monitor's holds a
-    fixed number.)"""
+    one candidate — and then it weighs. A primary that predicts poorly may borrow one burst: its search
+    runs at once. (The ring holds its last 2000 entries, as the monitor's holds a fixed number.)"""
     rng = np.random.default_rng(8)
     t = np.arange(8000) * TS
     y = 2e-4 * np.sin(2 * np.pi * 61 * t) + 2e-6 * rng.normal(size=t.size)
@@ -183,14 +183,16 @@ def test_a_search_the_budget_cannot_pay_for_comes_back_when_it_can():
 
     ds.DisturbanceSearch._structural = counting
     try:
-        again = s.tick(ring(2001), poor=True)
+        again = s.tick(ring(2001), poor=False)
         assert not again.weighed and looked == [] and s.searches == 1     # put off: no spectra, no control
-        due = s.next_retry
-        assert due > 2001
-        s.tick(ring(due - 1), poor=True)                                    # one sample early: still put off
+        due = s.next_tick
+        assert due > 2001 and s.next_retry < due                          # a poor prediction would not wait
+        s.tick(ring(due - 1), poor=False)                                   # one sample early: still put off
         assert looked == [] and s.searches == 1
-        late = s.tick(ring(due), poor=True)
+        late = s.tick(ring(due), poor=False)
         assert looked == [due] and s.searches == 2 and late.weighed
+        urgent = s.tick(ring(due + 1), poor=True)                           # nothing saved, but it predicts poorly
+        assert looked == [due, due + 1] and urgent.weighed
     finally:
         ds.DisturbanceSearch._structural = orig
 
