@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from operator import itemgetter
 from numbers import Integral, Real
+from operator import itemgetter
 
 import numpy as np
 

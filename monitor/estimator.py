@@ -84,7 +84,7 @@ from .online_settings import OnlineSettings, SpindleKernel, choice_of
 from .state_check import CHOICE as _CHOICE
 from .state_check import StateError, check_snapshot, choice_array, choice_of_array
 
-__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
+__all__ = ["AxisEstimator", "LIMITS", "StateError", "TrackerBreakdown"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``): the samples learned,
