@@ -49,6 +49,7 @@ the JSON Schema it was written with.
 from __future__ import annotations
 
 import math
+from operator import attrgetter
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -144,7 +145,19 @@ def check_name(value: str, what: str) -> str:
     return value
 
 
-def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
+class _Columns:
+    """Names of per-sample columns and a getter of all of them at once (one C call per block:
+    :func:`_check_columns` runs on every message, the estimates of one sample included)."""
+
+    __slots__ = ("names", "get")
+
+    def __init__(self, *names: str) -> None:
+        self.names = names
+        get = attrgetter(*names)
+        self.get = get if len(names) > 1 else lambda obj: (get(obj),)
+
+
+def _check_columns(obj: msgspec.Struct, columns: _Columns) -> None:
     """Common block checks: 1 … BLOCK_SAMPLES_MAX samples, every column as long as ``t``, times in
     [0, T_MAX], sequence numbers within [0, SEQ_MAX], valid names. Runs on every decoded message:
     kept to a few C-level calls on the good path (``sum`` is NaN/inf for any non-finite time,
@@ -153,8 +166,7 @@ def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
     n = len(t)
     if not 0 < n <= BLOCK_SAMPLES_MAX:
         raise ValueError(f"{type(obj).__name__} has {n} samples in 't'; a block holds 1 to {BLOCK_SAMPLES_MAX}")
-    for name in columns:
-        col = getattr(obj, name)
+    for name, col in zip(columns.names, columns.get(obj)):
         if col is not None and len(col) != n:
             raise ValueError(f"{type(obj).__name__} field '{name}' has {len(col)} values but 't' has {n}; "
                              "every column must have one value per sample")
@@ -176,6 +188,13 @@ def _check_columns(obj: msgspec.Struct, columns: tuple[str, ...]) -> None:
 
 #: names already seen to match NAME_PATTERN (a set lookup instead of a regex per message)
 _GOOD_NAMES: set[str] = set()
+#: the columns each block checks against ``t``, in the order the errors name them
+_SAMPLE_COLUMNS = _Columns("v_ref", "v_meas", "u", "current", "position", "spindle_rpm")
+_SAMPLE_COLUMNS_2 = _Columns("spindle_angle", "program_line", "tool")
+_TRUTH_COLUMNS = _Columns("force", "f", "dynamometer", "v_true", "glitch")
+_TRUTH_COLUMNS_2 = _Columns("inertia", "damping", "coulomb_pos", "coulomb_neg")
+_ESTIMATE_COLUMNS = _Columns("v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var", "dict_size",
+                             "removed", "flags", "force", "force_var", "force_next", "program_line", "tool")
 
 
 class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
@@ -203,8 +222,8 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
     tool: Context | None = None
 
     def __post_init__(self) -> None:
-        _check_columns(self, ("v_ref", "v_meas", "u", "current", "position", "spindle_rpm"))
-        _check_columns(self, ("spindle_angle", "program_line", "tool"))
+        _check_columns(self, _SAMPLE_COLUMNS)
+        _check_columns(self, _SAMPLE_COLUMNS_2)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -248,8 +267,8 @@ class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
     coulomb_neg: Column | None = None  # N, true Coulomb friction magnitude for v < −Ω
 
     def __post_init__(self) -> None:
-        _check_columns(self, ("force", "f", "dynamometer", "v_true", "glitch"))
-        _check_columns(self, ("inertia", "damping", "coulomb_pos", "coulomb_neg"))
+        _check_columns(self, _TRUTH_COLUMNS)
+        _check_columns(self, _TRUTH_COLUMNS_2)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -289,13 +308,7 @@ class EstimateBlock(msgspec.Struct, **_STRUCT_OPTS):
     tool: Context | None = None
 
     def __post_init__(self) -> None:
-        _check_columns(
-            self,
-            (
-                "v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var",
-                "dict_size", "removed", "flags", "force", "force_var", "force_next", "program_line", "tool",
-            ),
-        )
+        _check_columns(self, _ESTIMATE_COLUMNS)
 
     def __len__(self) -> int:
         return len(self.t)

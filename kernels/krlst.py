@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from numbers import Integral, Real
+from operator import itemgetter
 
 import numpy as np
 
@@ -67,6 +68,8 @@ _NEXT_FIELDS = (("next_mean", core.A_MEAN), ("next_sigma_f2", core.A_SF2), ("nex
                 ("next_gamma2", core.A_G2))
 #: version of the snapshot layout (1: full Q, Σ, K matrices; 2: core.State fields)
 SNAPSHOT_LAYOUT = 2
+#: what :meth:`KRLST.breakdown` reads of the float state: s0², ŷ, σ_f², k_tt (one list, one C call)
+_BREAKDOWN_SCALARS = itemgetter(core.F_S02, core.F_YM, core.F_SF2, core.F_KTT)
 
 
 @dataclass(frozen=True, slots=True)
@@ -332,8 +335,7 @@ class KRLST:
         never recovers by itself."""
         if self._st is None:
             return None
-        f = self._st.fst
-        s02, y_mean, sf2, ktt = (float(f[i]) for i in (core.F_S02, core.F_YM, core.F_SF2, core.F_KTT))
+        s02, y_mean, sf2, ktt = _BREAKDOWN_SCALARS(self._st.fst.tolist())
         if not (math.isfinite(s02) and math.isfinite(y_mean) and math.isfinite(sf2)):
             return f"non-finite state (s0² = {s02:.3g}, ŷ = {y_mean:.3g}, σ_f² = {sf2:.3g})"
         if sf2 > 2.0 * ktt:

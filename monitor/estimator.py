@@ -63,9 +63,9 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from itertools import compress
 from numbers import Integral
 
-import msgspec
 import numpy as np
 
 from feedio.limits import LIMITS, SAMPLE_LIMITS, SEQ_MAX  # magnitudes beyond which a sample is physically absurd (SI)
@@ -78,12 +78,13 @@ from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
 from .background_search import PendingSearch, caught_up, submit
+from .estimate_rows import EstimateRows
 from .model_file import AxisModel
 from .online_settings import OnlineSettings, SpindleKernel, choice_of
 from .state_check import CHOICE as _CHOICE
 from .state_check import StateError, check_snapshot, choice_array, choice_of_array
 
-__all__ = ["AxisEstimator", "EstimateRows", "LIMITS", "StateError", "TrackerBreakdown"]
+__all__ = ["AxisEstimator", "LIMITS", "StateError", "TrackerBreakdown"]
 
 
 #: the estimator's own entries of a snapshot (the tracker's are ``tracker.<name>``): the samples learned,
@@ -92,81 +93,14 @@ _TRAINED = "estimator.trained"
 _C_SEQ_RANGE = online.COUNTERS.index("rejected_seq_range")
 
 
+#: the float rows of :data:`kernels.online.ROWS` (the compiled loop's buffer has more below them)
+_N_ROWS = len(online.ROWS)
+
+
 def _as_column(values) -> np.ndarray:
     """A measured column (``None`` = missing) as float64 with NaN (one C call: NumPy turns
     ``None`` into NaN for a float64 array)."""
     return np.array(values, dtype=np.float64)
-
-
-_json = msgspec.json.Encoder()
-#: JSON keys of the columns of an EstimateBlock after machine, axis and seq, in field order
-_COLUMN_KEYS = [f',"{name}":'.encode() for name in EstimateBlock.__struct_fields__[3:]]
-
-
-class EstimateRows:
-    """The estimate rows of one block as the compiled loop wrote them (columns, no per-sample
-    Python objects): ``seq`` of the first row, ``t`` (s), ``v_meas`` (m/s), ``rows``
-    (:data:`kernels.online.ROWS`, float64), ``irows`` (:data:`kernels.online.IROWS`, int64) and
-    ``force`` (``force``, ``force_var``, ``force_next`` in N, or None when the model cannot scale) and
-    ``context`` (the context columns of the rows' samples, :data:`~feedio.schema.CONTEXT_COLUMNS`, as given).
-    :meth:`block` makes the :class:`~feedio.schema.EstimateBlock` (once), :meth:`scalar_columns`
-    the per-sample columns of :meth:`feedio.scalars.ScalarsPairer.add_rows`."""
-
-    __slots__ = ("machine", "axis", "seq", "t", "v_meas", "rows", "irows", "force", "context", "_cols", "_block",
-                 "_json")
-
-    def __init__(self, machine: str, axis: str, seq: int, t: np.ndarray, v_meas: np.ndarray, rows: np.ndarray,
-                 irows: np.ndarray, force: np.ndarray | None, context: dict[str, list] | None = None) -> None:
-        self.machine, self.axis, self.seq = machine, axis, seq
-        self.t, self.v_meas, self.rows, self.irows, self.force = t, v_meas, rows, irows, force
-        self.context = context or {}
-        self._cols: list[list] | None = None
-        self._block: EstimateBlock | None = None
-        self._json: bytes | None = None
-
-    def __len__(self) -> int:
-        return int(self.t.size)
-
-    def _columns(self) -> list[list]:
-        """The columns after machine, axis and seq as lists, in EstimateBlock field order (made once,
-        shared by :meth:`block` and :meth:`json`)."""
-        if self._cols is None:
-            cols = [self.t.tolist(), self.v_meas.tolist(), *self.rows.tolist(), *self.irows.tolist()]
-            if self.force is not None:
-                cols += self.force.tolist()
-            self._cols = cols
-        return self._cols
-
-    def block(self) -> EstimateBlock:
-        """The :class:`~feedio.schema.EstimateBlock` (made on the first call; the columns of
-        :data:`~kernels.online.ROWS` and :data:`~kernels.online.IROWS` are its fields in that order)."""
-        if self._block is None:
-            self._block = EstimateBlock(self.machine, self.axis, self.seq, *self._columns(), **self.context)
-        return self._block
-
-    def json(self) -> bytes:
-        """The JSON of :meth:`block` — the bytes ``feedio.schema.encode(self.block())`` gives — made
-        from the columns with one ``msgspec`` call, without the schema object (the live monitor
-        publishes it before anything else). Names match ``NAME_PATTERN`` (no character to escape)."""
-        if self._json is None:
-            parts = _json.encode(self._columns())[2:-2].split(b"],[")  # "[[c0],[c1],…]" -> c0, c1, …
-            body = [f'{{"machine":"{self.machine}","axis":"{self.axis}","seq":{self.seq}'.encode()]
-            for key, part in zip(_COLUMN_KEYS, parts):
-                body += (key, b"[", part, b"]")
-            for name, col in self.context.items():  # after the force columns, in field order
-                body += (f',"{name}":'.encode(), _json.encode(col))
-            body.append(b"}")
-            self._json = b"".join(body)
-        return self._json
-
-    def scalar_columns(self) -> dict[str, np.ndarray | None]:
-        """The columns :meth:`feedio.scalars.ScalarsPairer.add_rows` takes (views, no copies):
-        ``v_meas, f, f_var, f_next``, ``force, force_var, force_next`` (None without a force scale) and
-        ``flags``."""
-        r, fc = self.rows, self.force
-        return {"v_meas": self.v_meas, "f": r[online.R_F], "f_var": r[online.R_FVAR], "f_next": r[online.R_FNEXT],
-                "force": None if fc is None else fc[0], "force_var": None if fc is None else fc[1],
-                "force_next": None if fc is None else fc[2], "flags": self.irows[online.R_FLAGS]}
 
 
 class TrackerBreakdown(ArithmeticError):
@@ -276,6 +210,9 @@ class AxisEstimator:
         hp = self.health.state.par  # fewest samples between two changes of the validity level
         self._change_min = int(max(1.0, min(hp[hl.Q_NPERS], hp[hl.Q_NHOLD])))
         self._tick_min = int(online.config_of(*self._cfg).tick_min)  # fewest samples between two periodic reports
+        self._ticks_n, self._ticks = -1, None  # the health-report buffer of the last block size (_ticks_for)
+        # what the model's form decides per block, looked up once
+        self._force_input, self._velocity_loop = model.form == "force-input", model.form == "velocity-loop"
         self._templates: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
 
     def _new_tracker(self, choice: ds.TrackerChoice | None = None) -> KRLST:
@@ -380,7 +317,7 @@ class AxisEstimator:
         """:meth:`process` returning the rows as columns (:class:`EstimateRows`): the schema object
         and its JSON are made only when asked for; the health reports wait in :meth:`take_health`."""
         n = len(block.t)
-        exo = block.u if self.model.form == "force-input" else block.v_ref
+        exo = block.u if self._force_input else block.v_ref
         if exo is None:
             self.counters["rejected_missing_field"] += n
             raise ValueError(
@@ -412,8 +349,8 @@ class AxisEstimator:
                 self._spindle_seen = True
                 self._spindle_appeared(sp[1])
         rows, irows, counts = online.new_rows(n)
-        ticks = online.new_ticks(n, self._tick_min, self._change_min)
-        vref = e if self.model.form == "velocity-loop" else (
+        ticks = self._ticks_for(n)
+        vref = e if self._velocity_loop else (
             _as_column(block.v_ref) if block.v_ref is not None else self._no_ref)
         if self.delay:
             e = self._delayed_command(seq0, e, v)
@@ -449,10 +386,10 @@ class AxisEstimator:
             if why_beta is not None:
                 self._restart_beta(why_beta)
         self.block_counts = counts
-        for name, k in zip(online.COUNTERS, counts.tolist()):
-            if k:
-                c[name] += k
-        nt = int(counts[online.C_TICKS])
+        counted = counts.tolist()
+        for name, k in compress(zip(online.COUNTERS, counted), counted):  # the counts not zero, in order
+            c[name] += k
+        nt = counted[online.C_TICKS]
         if nt:
             self._health_out.extend(self._health(block.machine, block.axis, ticks[i]) for i in range(nt))
         if first == n:
@@ -461,9 +398,21 @@ class AxisEstimator:
         if first:
             t, v, rows, irows = t[first:], v[first:], rows[:, first:], irows[:, first:]
         # the context of row i is that of sample first + i (the dropped samples are a prefix)
-        context = {k: getattr(block, k)[first:] for k in CONTEXT_COLUMNS if getattr(block, k) is not None}
-        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:len(online.ROWS)], irows,
+        context = {}
+        for k in CONTEXT_COLUMNS:
+            col = getattr(block, k)
+            if col is not None:
+                context[k] = col[first:]
+        return EstimateRows(block.machine, block.axis, seq0 + first, t, v, rows[:_N_ROWS], irows,
                             self._force(rows), context)
+
+    def _ticks_for(self, n: int) -> np.ndarray:
+        """The buffer the compiled loop writes a block's health reports to (:func:`kernels.online.new_ticks`),
+        kept while the blocks keep their size: it never leaves the estimator (:meth:`_health` reads the rows
+        a block wrote before the next block), and the live monitor sends one sample per block."""
+        if n != self._ticks_n:
+            self._ticks_n, self._ticks = n, online.new_ticks(n, self._tick_min, self._change_min)
+        return self._ticks
 
     def _delayed_command(self, seq0: int, e: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The first regressor of a model whose force acts ``d`` samples late (``[model] delay``, as

@@ -16,7 +16,7 @@ Counts land on the axis the key (or the block) names when it has a model, else i
 monitor-wide counters.
 
 What :meth:`Pipeline.estimate` returns (:class:`Estimated`) is what the live daemon publishes
-and both paths log: the axis, its estimate rows of the block (:class:`~monitor.estimator.EstimateRows`,
+and both paths log: the axis, its estimate rows of the block (:class:`~monitor.estimate_rows.EstimateRows`,
 columns; the schema object and its JSON are made once, by whoever needs them first) and
 ``health``: the :class:`~feedio.schema.Health` reports the block produced (about one per second
 of data per axis), which the daemon publishes on
@@ -43,7 +43,7 @@ from feedio.limits import DEFAULT, NAME_RE, InputLimits
 from kernels.online import COUNTERS
 
 from .axes import AxisRuntime
-from .estimator import EstimateRows
+from .estimate_rows import EstimateRows
 from .input_health import LEVELS, REPORT_PERIOD, InputHealth, InputHealthSettings
 from .status import BoundedCounter, BurstLog
 

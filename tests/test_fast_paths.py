@@ -26,7 +26,7 @@ from feedio import schema as S
 from feedio.mcapio import TrialWriter, iter_blocks, read_trial
 from monitor.axes import live_meta, load_axes, warm_up
 from monitor.daemon import INLINE_BYTES
-from monitor.estimator import EstimateRows
+from monitor.estimate_rows import EstimateRows
 from monitor.offline import run_offline
 from monitor.pipeline import Pipeline
 from monitor.sinks.mcap_sink import McapProcessSink, McapSink

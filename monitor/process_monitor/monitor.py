@@ -112,7 +112,7 @@ class AxisProcessMonitor:
 
     # ---- rows ------------------------------------------------------------------------------------------
     def update(self, est, block: S.SampleBlock) -> list[S.AlarmEvent]:
-        """Judge the estimate rows ``est`` (:class:`~monitor.estimator.EstimateRows`) of ``block``."""
+        """Judge the estimate rows ``est`` (:class:`~monitor.estimate_rows.EstimateRows`) of ``block``."""
         if est is None or est.force is None or len(est) == 0:
             return []
         n = len(est)
