@@ -32,9 +32,9 @@ Where candidates come from (:meth:`DisturbanceSearch.tick`):
 
 A search runs every few seconds (sooner after an adoption, rarer while nothing improves) and at
 once when the primary predicts poorly (a short EWMA of its normalised innovations ν² or of its
-innovations over the noise floor); the replay work and the spectra are bounded by a budget of
-replayed samples per learned sample (a token bucket), so the per-sample cost stays within a fixed
-factor of the tracker's. Everything depends on sample counts only, never on wall-clock time: the live monitor
+innovations over the noise floor); the replay work is bounded by a budget of replayed samples per
+learned sample (a token bucket), so the per-sample cost stays within a fixed factor of the
+tracker's. Everything depends on sample counts only, never on wall-clock time: the live monitor
 and ``feedmon run --from`` choose the same models.
 """
 
@@ -296,11 +296,7 @@ def _horizon(choice: TrackerChoice, budget: int, Ts: float) -> tuple[int, int]:
     """Samples of warm-up and of scoring a candidate needs: the dictionary filled and one period seen
     before scoring (a periodic kernel predicts a cycle from the one before), one period (at least 256
     samples) scored."""
-    return _window(int(choice.period / Ts) if choice.kind == "periodic" else 0, budget)
-
-
-def _window(one: int, budget: int) -> tuple[int, int]:
-    """Warm-up and scoring samples for a candidate whose period spans ``one`` samples (0: none)."""
+    one = int(choice.period / Ts) if choice.kind == "periodic" else 0
     return max(budget, one, 256), max(256, one)
 
 
@@ -364,8 +360,7 @@ class SearchSettings:
     cooldown: float = 20.0        #: s before a structure that lost is tried again
     settle: float = 0.5           #: s after an adoption before the validity test uses the innovations
     grace: float = 1.0            #: s a poor prediction is left to the search before the validity test sees it
-    replay_rate: float = 0.5      #: replayed samples allowed per learned sample (cost bound)
-    look: float = 0.15            #: a search's spectra, charged as replayed samples per ring entry (measured)
+    replay_rate: float = 1.0      #: replayed samples allowed per learned sample (cost bound)
     replay_burst: float = 16.0    #: s of replayed samples the budget may save up
     short_tau: float = 0.1        #: s, EWMA of the innovations for the "predicts poorly" test
     poor: float = 9.0             #: that EWMA of ν² (or of e² over the noise variance) means "poorly"
@@ -549,26 +544,13 @@ class DisturbanceSearch:
         if short > 0:                             # too little seen yet: come back when there is enough
             self.next_tick = self.next_retry = count + short
             return verdict
-        cap = float(self._n(self.s.replay_burst))
-        look = self.s.look * len(ring)
-        least = min(2.0 * min(len(ring), sum(_window(0, self.budget))) + look, cap)   # spectra, a control, a candidate
-        # a primary that predicts poorly may borrow up to one burst: that search is urgent (the validity test
-        # waits for it), and rare; the searches of a primary that predicts well only spend what is saved
-        spendable = self._credit + (cap if poor else 0.0)
-        if least > spendable:                     # not even the shortest weighing is paid for: skip the spectra
-            self._postpone(count, poor, least)
-            return verdict
-        self._credit -= look
-        spendable -= look
         self.searches += 1
         cands = [(c, True) for c in self._structural(ring, poor)]
-        local = None                              # the next local-search step (taken off its queue once weighed)
         if not poor:
             if not self._queue:
                 self._queue = perturbations(self.choice)
             if self._queue:
-                local = self._queue[0]
-                cands.append((local, False))
+                cands.append((self._queue.pop(0), False))
         X = ring.X
         plan = []                                 # (candidate, warm-up, replay length), within the budget
         for cand, structural in cands:
@@ -581,22 +563,14 @@ class DisturbanceSearch:
         # candidate is weighed against the same start (a tracker fed only recent samples predicts better
         # after a change of the process than one that remembers the time before it, whatever its kernel)
         L_ctl = max((L for *_, L in plan), default=0)
-        need = min(L_ctl + (plan[0][3] if plan else 0), cap - look)   # the control and the first candidate at least
-        if need > spendable:
-            self._postpone(count, poor, need)
-            return verdict
-        if local is not None:
-            self._queue.pop(0)
-        if plan:
+        if plan and L_ctl <= self._credit:
             self._credit -= L_ctl
-            spendable -= L_ctl
             own, _ = prequential(self.choice, X[-L_ctl:], ring.y[-L_ctl:], budget=self.budget, jitter=self.jitter,
                                  Ts=self.Ts)
             for cand, structural, warm, L in plan:
-                if L > spendable:                 # saved up for this one: nothing cheaper goes first
+                if L > self._credit:              # saved up for this one: nothing cheaper goes first
                     break
                 self._credit -= L
-                spendable -= L
                 if structural:
                     self._tried[self._key(cand)] = count
                 ll, trk = prequential(cand, X[-L:], ring.y[-L:], budget=self.budget, jitter=self.jitter, Ts=self.Ts)
@@ -610,15 +584,6 @@ class DisturbanceSearch:
             self.choice = verdict.adopt
             self._queue = []                      # the neighbours of the new choice
         return verdict
-
-    def _postpone(self, count: int, poor: bool, need: float) -> None:
-        """The budget does not yet pay for ``need`` replayed samples: the next search comes when it does,
-        not before (a search that cannot weigh would spend its spectra, and a control weighed alone
-        would spend the credit that its candidates wait for)."""
-        self._schedule(count, poor, False, False)
-        rate, cap = self.s.replay_rate, float(self._n(self.s.replay_burst))
-        self.next_tick = max(self.next_tick, count + math.ceil((need - self._credit) / rate))
-        self.next_retry = max(self.next_retry, count + math.ceil((need - self._credit - cap) / rate))   # may borrow
 
     def _schedule(self, count: int, poor: bool, adopted: bool, weighed: bool) -> None:
         """The next searches: sooner after an adoption, rarer after searches that weighed candidates

@@ -156,47 +156,6 @@ def test_the_replay_budget_bounds_the_work():
     assert calls, "nothing was weighed"
 
 
-def test_a_search_the_budget_cannot_pay_for_comes_back_when_it_can():
-    """Right after a search spent the budget, the next one neither computes spectra nor weighs a control
-    alone: it is put off to the learned sample at which the budget pays for its spectra, a control and
-    one candidate — and then it weighs. A primary that predicts poorly may borrow one burst: its search
-    runs at once. (The ring holds its last 2000 entries, as the monitor's holds a fixed number.)"""
-    rng = np.random.default_rng(8)
-    t = np.arange(8000) * TS
-    y = 2e-4 * np.sin(2 * np.pi * 61 * t) + 2e-6 * rng.normal(size=t.size)
-
-    def ring(count):
-        r = _ring(t[count - 2000:count], y[count - 2000:count])
-        r.count = count
-        return r
-
-    settings = ds.SearchSettings(replay_rate=0.5, replay_burst=8.0)
-    s = ds.DisturbanceSearch(ds.TrackerChoice("time", sigma1=1.2, gamma=5.85, forgetting=0.998), Ts=TS, budget=40,
-                             jitter=1e-6, noise2=4e-12, settings=settings)
-    assert s.tick(ring(2000), poor=False).weighed and s.searches == 1
-    looked = []
-    orig = ds.DisturbanceSearch._structural
-
-    def counting(self, r, poor):
-        looked.append(r.count)
-        return orig(self, r, poor)
-
-    ds.DisturbanceSearch._structural = counting
-    try:
-        again = s.tick(ring(2001), poor=False)
-        assert not again.weighed and looked == [] and s.searches == 1     # put off: no spectra, no control
-        due = s.next_tick
-        assert due > 2001 and s.next_retry < due                          # a poor prediction would not wait
-        s.tick(ring(due - 1), poor=False)                                   # one sample early: still put off
-        assert looked == [] and s.searches == 1
-        late = s.tick(ring(due), poor=False)
-        assert looked == [due] and s.searches == 2 and late.weighed
-        urgent = s.tick(ring(due + 1), poor=True)                           # nothing saved, but it predicts poorly
-        assert looked == [due, due + 1] and urgent.weighed
-    finally:
-        ds.DisturbanceSearch._structural = orig
-
-
 def test_online_beta_learns_with_the_files_tracker_unless_the_process_brings_what_it_cannot_follow():
     """β keeps the file's tracker for a weak searched model or the file's own structure; a spindle brings its
     phase kernel (at the file's σ1, γ, λ); a strong disturbance of another structure (γ ≥ STRONG_GAMMA × the
