@@ -189,10 +189,10 @@ def _check_columns(obj: msgspec.Struct, columns: _Columns) -> None:
 #: names already seen to match NAME_PATTERN (a set lookup instead of a regex per message)
 _GOOD_NAMES: set[str] = set()
 #: the columns each block checks against ``t``, in the order the errors name them
-_SAMPLE_COLUMNS = _Columns("v_ref", "v_meas", "u", "current", "position", "spindle_rpm")
-_SAMPLE_COLUMNS_2 = _Columns("spindle_angle", "program_line", "tool")
-_TRUTH_COLUMNS = _Columns("force", "f", "dynamometer", "v_true", "glitch")
-_TRUTH_COLUMNS_2 = _Columns("inertia", "damping", "coulomb_pos", "coulomb_neg")
+_SAMPLE_COLUMNS = _Columns("v_ref", "v_meas", "u", "current", "position", "spindle_rpm", "spindle_angle",
+                           "program_line", "tool")
+_TRUTH_COLUMNS = _Columns("force", "f", "dynamometer", "v_true", "glitch", "inertia", "damping", "coulomb_pos",
+                          "coulomb_neg")
 _ESTIMATE_COLUMNS = _Columns("v_meas", "v_pred", "residual", "f", "f_var", "f_next", "f_next_var", "dict_size",
                              "removed", "flags", "force", "force_var", "force_next", "program_line", "tool")
 
@@ -223,7 +223,6 @@ class SampleBlock(msgspec.Struct, **_STRUCT_OPTS):
 
     def __post_init__(self) -> None:
         _check_columns(self, _SAMPLE_COLUMNS)
-        _check_columns(self, _SAMPLE_COLUMNS_2)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -268,7 +267,6 @@ class TruthBlock(msgspec.Struct, **_STRUCT_OPTS):
 
     def __post_init__(self) -> None:
         _check_columns(self, _TRUTH_COLUMNS)
-        _check_columns(self, _TRUTH_COLUMNS_2)
 
     def __len__(self) -> int:
         return len(self.t)
