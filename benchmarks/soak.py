@@ -27,7 +27,7 @@ What runs
   STALE rows), isolated non-finite readings (NaN v_meas: REJECTED rows), sequence gaps (the head
   of a block lost: GAP, chain restart) and re-sent blocks (duplicates: no rows).
 * **The monitor path**: the model file (true β, thesis tracker hyperparameters) is written with
-  ``save_model`` and loaded with ``monitor.axes.load_axes``; ``warm_up`` compiles first. Every
+  ``save_model`` and loaded with ``monitor.axes.load_axes``; ``monitor.warm.warm_up`` compiles first. Every
   SampleBlock is encoded to JSON and decoded by :meth:`Pipeline.receive` (the wire path of
   ``feedmon run``; ``--no-wire`` skips it), estimated by :meth:`Pipeline.estimate` (the
   :class:`~monitor.estimator.AxisEstimator` of ``feedmon run`` and ``feedmon run --from``) and the
@@ -316,8 +316,9 @@ def _fmt_row(r: Row) -> str:
 
 
 def run_soak(opts: argparse.Namespace, out=sys.stdout) -> SoakResult:
-    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.axes import live_meta, load_axes
     from monitor.pipeline import Pipeline
+    from monitor.warm import warm_up
 
     def say(msg: str = "") -> None:
         print(msg, file=out, flush=True)

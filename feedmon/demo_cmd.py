@@ -91,11 +91,12 @@ def run(args) -> int:
 
 def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, console, teeth=None) -> int:
     from feedio.transport import free_tcp_port, open_session
-    from monitor.axes import live_meta, load_axes, warm_up
+    from monitor.axes import live_meta, load_axes
     from monitor.daemon import Monitor
     from monitor.sinks.mcap_sink import McapSink
     from monitor.sinks.rerun_layout import describe_model
     from monitor.sinks.rerun_process import RerunProcessSink
+    from monitor.warm import warm_up
     from replay.player import replay
 
     from .replay_cmd import ProgressBar

@@ -239,9 +239,10 @@ def _zenoh_args(cfg: RunConfig) -> argparse.Namespace:
 
 def _run_live(cfg: RunConfig, args: argparse.Namespace | None = None) -> int:
     from feedio.transport import config_from_args, describe_config, limit_message_size, open_session
-    from monitor.axes import load_axes, warm_up
+    from monitor.axes import load_axes
     from monitor.daemon import Monitor
     from monitor.state import StateStore
+    from monitor.warm import warm_up
 
     # the estimator thread competes with the sink threads for the GIL: a shorter switch interval
     # bounds how long it waits for a sink that is busy in Python (default 5 ms) -> better p99 latency
@@ -259,7 +260,7 @@ def _run_live(cfg: RunConfig, args: argparse.Namespace | None = None) -> int:
     store = StateStore(cfg.state_dir)
     if cfg.state_dir is not None:
         _check_output_dir(Path(cfg.state_dir), "--state-dir", cfg, need_space=False)
-    warm_up(axes)  # JIT before "ready": the first real sample must not wait for a compiler
+    warm_up(axes, process)  # JIT before "ready": no real sample, search or alarm waits for a compiler
     for ax in axes.values():
         how = store.load(ax, fresh=cfg.fresh).detail  # restored (when saved, samples learned) / why not
         _say(f"axis {ax.status.name}: model {ax.status.model_path} (sha256 {ax.status.model_sha256[:12]}…), "

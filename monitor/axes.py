@@ -1,5 +1,5 @@
-"""The monitored axes: model file → :class:`AxisRuntime` (model, estimator, status), warm-up,
-and the MCAP metadata of a monitored axis."""
+"""The monitored axes: model file → :class:`AxisRuntime` (model, estimator, status), and the MCAP
+metadata of a monitored axis (the warm-up before "ready": :mod:`monitor.warm`)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from .model_file import AxisModel, file_sha256, load_model
 from .online_settings import apply_overrides
 from .status import AxisStatus
 
-__all__ = ["AxisRuntime", "load_axes", "warm_up", "live_meta"]
+__all__ = ["AxisRuntime", "load_axes", "live_meta"]
 
 
 @dataclass
@@ -60,21 +60,6 @@ def load_axes(model_paths: Sequence[str | os.PathLike], config=None) -> dict[tup
         st = AxisStatus(model.machine, model.axis, str(path), file_sha256(path))
         axes[key] = AxisRuntime(model, AxisEstimator(model), st)
     return axes
-
-
-def warm_up(axes: dict[tuple[str, str], AxisRuntime]) -> None:
-    """Run each axis' code path once on throw-away estimators, so that Numba compilation (or loading
-    its cache) happens before the monitor says it is ready, not on the first real sample."""
-    for ax in axes.values():
-        m = ax.model
-        n = 8
-        t = [i * m.Ts for i in range(n)]
-        v = [1e-3 * i for i in range(n)]
-        block = S.SampleBlock(machine=m.machine, axis=m.axis, seq=0, t=t, v_ref=v, v_meas=v,
-                              u=v if m.form == "force-input" else None)
-        est = AxisEstimator(m).process(block)
-        if est is not None:
-            S.encode(est)
 
 
 def live_meta(ax: AxisRuntime, source: str = "live") -> S.TrialMeta:

@@ -37,10 +37,11 @@ from feedio import transport as T
 from feedio.limits import InputLimits
 from feedio.mcapio import iter_blocks, read_trial
 from feedio.transport import query_status
-from monitor.axes import load_axes, warm_up
+from monitor.axes import load_axes
 from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator
 from monitor.model_file import load_model
+from monitor.warm import warm_up
 from replay.player import replay
 
 PREFIX = "feedmon-bad"

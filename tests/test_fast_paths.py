@@ -24,7 +24,7 @@ from truth_models import model_from_truth, truth_workdir
 
 from feedio import schema as S
 from feedio.mcapio import TrialWriter, iter_blocks, read_trial
-from monitor.axes import live_meta, load_axes, warm_up
+from monitor.axes import live_meta, load_axes
 from monitor.daemon import INLINE_BYTES
 from monitor.estimate_rows import EstimateRows
 from monitor.offline import run_offline
@@ -32,6 +32,7 @@ from monitor.pipeline import Pipeline
 from monitor.sinks.mcap_sink import McapProcessSink, McapSink
 from monitor.status import STAGES, StageRing, format_status
 from monitor.status_doc import AxisReport, StatusDoc
+from monitor.warm import warm_up
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 

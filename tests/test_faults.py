@@ -20,9 +20,10 @@ from truth_models import truth_workdir
 from feedio import schema as S
 from feedio import transport as T
 from feedio.mcapio import iter_blocks, read_trial
-from monitor.axes import live_meta, load_axes, warm_up
+from monitor.axes import live_meta, load_axes
 from monitor.daemon import Monitor
 from monitor.sinks.mcap_sink import McapSink
+from monitor.warm import warm_up
 from replay.player import replay
 
 

@@ -33,9 +33,10 @@ from truth_models import model_from_truth
 from feedio import schema as S
 from feedio import transport as T
 from feedio.limits import NAME_RE, SEQ_MAX, T_MAX
-from monitor.axes import load_axes, warm_up
+from monitor.axes import load_axes
 from monitor.daemon import Monitor
 from monitor.estimator import AxisEstimator
+from monitor.warm import warm_up
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 

@@ -21,10 +21,11 @@ from feedio import schema as S
 from feedio import transport as T
 from feedio.limits import InputLimits
 from feedio.mcapio import read_trial
-from monitor.axes import live_meta, load_axes, warm_up
+from monitor.axes import live_meta, load_axes
 from monitor.daemon import Monitor
 from monitor.sinks.mcap_sink import McapSink
 from monitor.state import StateStore
+from monitor.warm import warm_up
 from replay.scenarios import load_scenario
 from replay.simulator import simulate, write_trial
 
