@@ -591,10 +591,18 @@ def track_joint(fbuf, ibuf, bfbuf, bibuf, X, e, v, gate, resume, out, bout, zbuf
 
 @njit(cache=True, nogil=True)
 def replay_joint(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, x_now, out, bout, zbuf):
-    """Rebuild a fresh tracker and its shadow means from recorded samples: for each ``k``, arm at
-    ``X[k]`` and learn ``(z(exo[k], v[k]), target[k])`` without learning β (the caller has switched
-    β's learning off), then arm at ``x_now``. The samples need not be consecutive: each carries its
-    own regressor and target (``target[k] = v_m`` of the sample after ``k``)."""
+    """Rebuild a fresh tracker and its shadow means from recorded samples (:func:`replay_joint_rows`),
+    then arm at ``x_now``."""
+    replay_joint_rows(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, out, bout, zbuf)
+    joint_arm(core.unowned(core.state_of(fbuf, ibuf)), beta_state_of(bfbuf, bibuf), x_now, out)
+
+
+@njit(cache=True, nogil=True)
+def replay_joint_rows(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, out, bout, zbuf):
+    """For each recorded sample ``k``, arm at ``X[k]`` and learn ``(z(exo[k], v[k]), target[k])``
+    without learning β (the caller has switched β's learning off). The samples need not be
+    consecutive: each carries its own regressor and target (``target[k] = v_m`` of the sample after
+    ``k``). Two calls on consecutive parts of a record do what one call on all of it does."""
     st = core.unowned(core.state_of(fbuf, ibuf))
     bs = beta_state_of(bfbuf, bibuf)
     form_force = bs.lay[L_FORM] == 1
@@ -604,7 +612,6 @@ def replay_joint(fbuf, ibuf, bfbuf, bibuf, X, exo, v, target, x_now, out, bout, 
         joint_arm(st, bs, X[k], out)
         regressor(form_force, i_sp, i_sn, i_one, omega, exo[k], v[k], zbuf)
         joint_update(st, bs, zbuf, target[k], np.bool_(False), out, bout)   # not a literal: one joint_update
-    joint_arm(st, bs, x_now, out)
 
 
 @njit(cache=True, nogil=True)

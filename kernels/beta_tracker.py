@@ -53,6 +53,7 @@ of :data:`STATE_FIELDS`), and re-exports the names callers use.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -119,6 +120,7 @@ from .beta_step import (
     rebase_buffers,
     regressor,
     replay_joint,
+    replay_joint_rows,
     track_joint,
 )
 
@@ -137,6 +139,7 @@ __all__ = [
     "prior_covariance",
     "physical_of",
     "OnlineBeta",
+    "Rebuilt",
     "JointStep",
     "PHYSICAL",
     "BOUT",
@@ -195,6 +198,24 @@ class JointStep(NamedTuple):
     filtered: float
     removed: int
     reduced: bool
+
+
+#: what :meth:`OnlineBeta.reseated` keeps of a replay begun: the new tracker and β state, their scratch
+_OWN = ("tracker", "_buf", "state", "_out", "_bout", "_z")
+
+
+@dataclass(frozen=True)
+class Rebuilt:
+    """A replay begun by :meth:`OnlineBeta.rebuilt`: the new estimate (tracker and shadow means fed the
+    record, not armed), β's learning switch of its fresh buffers, and the ``β_trk`` it replayed with."""
+
+    new: OnlineBeta
+    enabled: float
+    beta_trk: np.ndarray
+
+    def fits(self, online: OnlineBeta) -> bool:
+        """``online`` still has the ``β_trk`` of the replay (*apply* mode rebases it as β is learned)."""
+        return bool(np.array_equal(self.beta_trk, online.state.beta_trk))
 
 
 class OnlineBeta:
@@ -412,25 +433,27 @@ class OnlineBeta:
             return "the covariance of β lost its positive diagonal"
         return None
 
-    def reseated(self, tracker, X, exo, v, target, x_now) -> OnlineBeta:
+    def reseated(self, tracker, X, exo, v, target, x_now, *, begun: Rebuilt | None = None) -> OnlineBeta:
         """This β estimate joined to another (fresh) tracker — a new disturbance model: the tracker and
         its shadow means are rebuilt from recorded samples (:func:`replay_joint`, β not learning), then
         β̂, its covariance, the instrument's prediction and the counters are carried over. In *apply*
-        mode the tracker learns the residual of the current ``β_trk``."""
-        if tracker.size:
-            raise ValueError("reseated needs a fresh tracker")
-        new = OnlineBeta.__new__(OnlineBeta)
-        new.__dict__.update(self.__dict__)
-        new.tracker = tracker
-        new._buf = new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget, **self._kw)
-        new.state = beta_state_views(*new._buf)
-        new._out = np.zeros(core.N_OUT)
-        new._bout = np.zeros(N_BOUT)
-        new._z = np.zeros(len(self.names))
+        mode the tracker learns the residual of the current ``β_trk``.
+
+        ``begun``: the first part of the record already replayed (:meth:`rebuilt`, e.g. on another
+        thread); ``X, exo, v, target`` are then the samples recorded after it. The result is the same as
+        one call on the whole record, provided ``β_trk`` is still the one it replayed with
+        (:meth:`Rebuilt.fits`)."""
+        if begun is None:
+            if tracker.size:
+                raise ValueError("reseated needs a fresh tracker")
+            begun = self.rebuilt(tracker, X[:0], exo[:0], v[:0], target[:0])
+        elif begun.new.tracker is not tracker or not begun.fits(self):
+            raise ValueError("reseated: the replay begun is of another tracker or another β_trk")
+        new = begun.new
+        own = {k: new.__dict__[k] for k in _OWN}
+        new.__dict__.update(self.__dict__)        # what this estimate is now, but for the replayed parts
+        new.__dict__.update(own)
         bs, old = new.state, self.state
-        bs.beta_trk[:] = old.beta_trk
-        enabled = bs.par[P_ENABLED]
-        bs.par[P_ENABLED] = 0.0
         if x_now is None:                         # nothing accepted yet: nothing to replay or arm at
             new._x = None
         else:
@@ -440,7 +463,7 @@ class OnlineBeta:
                          np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(target, dtype=np.float64),
                          xn, new._out, new._bout, new._z)
             new._x = xn
-        bs.par[P_ENABLED] = enabled
+        bs.par[P_ENABLED] = begun.enabled
         for name in ("beta", "cov", "psi"):
             getattr(bs, name)[:] = getattr(old, name)
         bs.sst[S_FJN:S_FJW + 1] = old.sst[S_FJN:S_FJW + 1]   # the fast inertia estimate goes on
@@ -448,6 +471,36 @@ class OnlineBeta:
         bs.cnt[:] = old.cnt
         bs.cnt[C_ARMS], bs.cnt[C_VHAT_ARM] = arms, vhat_arm   # the instrument's v̂: the new tracker's
         return new
+
+    def rebuilt(self, tracker, X, exo, v, target) -> Rebuilt:
+        """The first part of :meth:`reseated`: a fresh ``tracker`` and its shadow means fed the recorded
+        samples (:func:`replay_joint_rows`, β not learning, the residual of this estimate's ``β_trk``),
+        not armed, nothing carried over. It reads only ``β_trk`` and the settings of this estimate, so it
+        may run on another thread while the estimate goes on (the replay of a long record is tens of
+        milliseconds that no sample should wait for)."""
+        if tracker.size:
+            raise ValueError("rebuilt needs a fresh tracker")
+        new = OnlineBeta.__new__(OnlineBeta)
+        new.__dict__.update(self.__dict__)
+        new.tracker = tracker
+        new._buf = new_beta_buffers(self._beta0, self.names, self.Ts, tracker.budget, **self._kw)
+        new.state = beta_state_views(*new._buf)
+        new._out = np.zeros(core.N_OUT)
+        new._bout = np.zeros(N_BOUT)
+        new._z = np.zeros(len(self.names))
+        bs = new.state
+        beta_trk = self.state.beta_trk.copy()     # (the replay may rebase the new one)
+        bs.beta_trk[:] = beta_trk
+        enabled = float(bs.par[P_ENABLED])
+        bs.par[P_ENABLED] = 0.0
+        n = len(target)
+        if n:
+            X = np.asarray(X, dtype=np.float64).reshape(n, -1)
+            Xa = np.ascontiguousarray(X)
+            replay_joint_rows(*tracker.core_buffers(np.ascontiguousarray(Xa[0])), *new._buf, Xa,
+                              np.ascontiguousarray(exo, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
+                              np.ascontiguousarray(target, dtype=np.float64), new._out, new._bout, new._z)
+        return Rebuilt(new, enabled, beta_trk)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, np.ndarray]:

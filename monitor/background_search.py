@@ -48,7 +48,7 @@ class PendingSearch:
         self.future, self.ring, self.count, self.due = future, ring, count, due
 
     def wait(self):
-        """The search's verdict (or the exception it raised), waiting for it if need be."""
+        """What the search returned (or the exception it raised), waiting for it if need be."""
         return self.future.result()
 
 

@@ -513,8 +513,13 @@ class AxisEstimator:
         self.counters["tracker_searches"] += 1
         if not self.noise2:  # without the model file's noise level, the tracker's own: s0²/γ
             self.search.noise2 = self.tracker.s02 * self.tracker.sn2
-        search = self.search
-        self._pending = submit(lambda: search.tick(ring, poor), R, count, self._lag)
+        search, beta_now, online_now = self.search, self.beta_choice, self.online
+
+        def work():
+            verdict = search.tick(ring, poor)
+            return verdict, self._rebuild_ahead(verdict, R, beta_now, online_now)
+
+        self._pending = submit(work, R, count, self._lag)
         sint[online.S_NEXT_TICK] = sint[online.S_NEXT_RETRY] = self._pending.due
         if poor:
             sint[online.S_FREEZE] = max(int(sint[online.S_FREEZE]), self._pending.due)
@@ -525,12 +530,17 @@ class AxisEstimator:
         began. A search that failed is counted and the trackers kept."""
         pending, self._pending = self._pending, None
         try:
-            verdict = pending.wait()
+            verdict, ahead = pending.wait()
             if verdict.adopt is not None:
                 R = self._ring()
                 since = int(self._search_bufs[1][online.S_COUNT]) - pending.count
                 tracker = caught_up(verdict.tracker, verdict.adopt.spindle, pending.ring, R, since)
-                self._adopt(verdict.adopt, tracker, R[-(verdict.window + since):] if verdict.window else R)
+                old = pending.ring
+                if not (0 <= since and verdict.window + since <= R.shape[0] and old.shape[0]
+                        and R[-since - 1, online.G_T] == old[-1, online.G_T]):
+                    ahead = None                  # the ring did not go on from the one the search saw
+                self._adopt(verdict.adopt, tracker, R[-(verdict.window + since):] if verdict.window else R,
+                            ahead, since)
                 self.counters["tracker_adoptions"] += 1
         except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             self.counters["tracker_search_errors"] += 1
@@ -558,13 +568,16 @@ class AxisEstimator:
         theta = float(self._search_bufs[2][online.Q_THETA])
         return np.array([t, theta if math.isfinite(theta) else float(self._scratch[1] if self._xdim == 2 else 0.0)])
 
-    def _adopt(self, choice: ds.TrackerChoice, tracker: KRLST | None, R: np.ndarray) -> None:
+    def _adopt(self, choice: ds.TrackerChoice, tracker: KRLST | None, R: np.ndarray, ahead=None,
+               since: int = 0) -> None:
         """Publish the disturbance with ``choice``; online β learns with
         :func:`kernels.disturbance_search.for_beta` of it (the same tracker when they agree). ``tracker``:
-        ``choice``'s tracker replayed over ``R`` (armed at its newest entry), or None (a fresh one)."""
-        beta_choice = ds.for_beta(choice, self._file_choice) if self.mode != "off" else choice
+        ``choice``'s tracker replayed over ``R`` (armed at its newest entry), or None (a fresh one).
+        ``ahead``: online β's replay begun on the search's worker (:meth:`_rebuild_ahead`) over ``R`` but
+        its newest ``since`` entries."""
+        beta_choice = self._beta_choice_for(choice)
         if beta_choice != self.beta_choice:
-            self._reseat_beta(beta_choice, R)
+            self._reseat_beta(beta_choice, R, ahead, since)
         self.choice = choice
         if choice == self.beta_choice:
             self._set_dual(None)
@@ -578,13 +591,39 @@ class AxisEstimator:
             tracker.predict_next(x)
         self._set_dual(tracker)
 
-    def _reseat_beta(self, choice: ds.TrackerChoice, R: np.ndarray) -> None:
+    def _beta_choice_for(self, choice: ds.TrackerChoice) -> ds.TrackerChoice:
+        """The tracker online β learns with while ``choice`` publishes the disturbance."""
+        return ds.for_beta(choice, self._file_choice) if self.mode != "off" else choice
+
+    def _rebuild_ahead(self, verdict: ds.Verdict, R: np.ndarray, beta_now: ds.TrackerChoice | None,
+                       online_now: OnlineBeta):
+        """On the search's worker, after its verdict: when adopting it will give online β another
+        tracker, that tracker and its shadow means replayed over the search's window of the ring
+        (:meth:`kernels.beta_tracker.OnlineBeta.rebuilt`) — tens of milliseconds that the per-sample path
+        would otherwise wait for. ``(choice, online β it was begun from, the replay)`` or None."""
+        if verdict.adopt is None or not verdict.window:
+            return None
+        choice = self._beta_choice_for(verdict.adopt)
+        if choice == beta_now:
+            return None
+        old = R[-verdict.window:]
+        X = old[:, [online.G_T, online.G_THETA]] if choice.spindle else old[:, [online.G_T]]
+        return choice, online_now, online_now.rebuilt(self._new_tracker(choice), np.nan_to_num(X),
+                                                      old[:, online.G_EXO], old[:, online.G_V], old[:, online.G_TARGET])
+
+    def _reseat_beta(self, choice: ds.TrackerChoice, R: np.ndarray, ahead=None, since: int = 0) -> None:
         """Online β's tracker becomes ``choice``: a fresh one rebuilt from the ring entries ``R`` (with its
-        shadow means; β keeps what it learned) and armed at the current sample."""
-        tracker = self._new_tracker(choice)
+        shadow means; β keeps what it learned) and armed at the current sample. With ``ahead``
+        (:meth:`_rebuild_ahead`) still valid, only ``R``'s newest ``since`` entries are replayed here."""
+        begun = None
+        if ahead is not None:
+            a_choice, a_online, rebuilt = ahead
+            if a_choice == choice and a_online is self.online and rebuilt.fits(self.online):
+                begun, R = rebuilt, R[R.shape[0] - since:]
+        tracker = begun.new.tracker if begun is not None else self._new_tracker(choice)
         X = R[:, [online.G_T, online.G_THETA]] if choice.spindle else R[:, [online.G_T]]
         self.online = self.online.reseated(tracker, np.nan_to_num(X), R[:, online.G_EXO], R[:, online.G_V],
-                                           R[:, online.G_TARGET], self._x_now(choice.spindle))
+                                           R[:, online.G_TARGET], self._x_now(choice.spindle), begun=begun)
         self.tracker = tracker
         self.beta_choice = choice
         online.set_tracker_input(self._cfg, choice.spindle, 2.0 * math.pi / choice.teeth)

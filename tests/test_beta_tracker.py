@@ -390,6 +390,30 @@ def test_snapshot_restore_continues_bit_identically():
         assert isinstance(snap_b[k], np.ndarray)
 
 
+def test_a_reseat_begun_on_part_of_the_record_ends_where_one_reseat_on_all_of_it_does():
+    """The rebase onto a new tracker may be begun on another thread (``rebuilt``) and finished with the
+    samples recorded since: the same estimate as one ``reseated`` over the whole record."""
+    n = 2400
+    t, vr, vm, _ = _drive(n, seed=17)
+    a = _online(_beta(inertia=330.0))
+    a.track(t[:1200], vr[:1200], vm[:1200])
+    X, exo, v, target = t[200:1199, None], vr[200:1199], vm[200:1199], vm[201:1200]
+    whole = a.reseated(_tracker(gamma=3.0), X, exo, v, target, t[1199:1200])
+    begun = a.rebuilt(_tracker(gamma=3.0), X[:960], exo[:960], v[:960], target[:960])
+    split = a.reseated(begun.new.tracker, X[960:], exo[960:], v[960:], target[960:], t[1199:1200], begun=begun)
+    for k, w in whole.snapshot().items():
+        np.testing.assert_allclose(split.snapshot()[k], w, rtol=1e-12, atol=1e-300, err_msg=k)
+    rest_w = whole.track(t[1199:], vr[1199:], vm[1199:])
+    rest_s = split.track(t[1199:], vr[1199:], vm[1199:])
+    np.testing.assert_allclose(rest_s["f_next"], rest_w["f_next"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(split.beta, whole.beta, rtol=1e-9)
+    # a replay begun with another β_trk (apply mode rebased meanwhile) is refused, not used
+    stale = a.rebuilt(_tracker(gamma=3.0), X[:960], exo[:960], v[:960], target[:960])
+    a.state.beta_trk[0] *= 1.001
+    with pytest.raises(ValueError, match="β_trk"):
+        a.reseated(stale.new.tracker, X[960:], exo[960:], v[960:], target[960:], t[1199:1200], begun=stale)
+
+
 def test_restore_refuses_a_snapshot_of_another_shape():
     a = _online(_beta())
     snap = a.snapshot()
