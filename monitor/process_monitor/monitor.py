@@ -153,12 +153,14 @@ class AxisProcessMonitor:
         from kernels.online import R_F, R_RESID
 
         f = est.rows[R_F]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            scale = est.force[0] / f
-        good = np.isfinite(scale) & (np.abs(f) > 0)
-        if not good.any():
+        good = np.abs(f) > 0
+        with np.errstate(over="ignore", invalid="ignore"):
+            scale = est.force[0][good] / f[good]
+        scale = scale[np.isfinite(scale)]
+        if not scale.size:
             return np.full(len(est), np.nan)
-        return est.rows[R_RESID] * float(np.median(scale[good]))
+        # one row per message is the live case: np.median of one value costs ~25 µs for nothing
+        return est.rows[R_RESID] * float(scale[0] if scale.size == 1 else np.median(scale))
 
     def _angles(self, est, block: S.SampleBlock) -> np.ndarray:
         """Spindle angle (rad) of the sample each row's force describes (row j: sample j − 1)."""
