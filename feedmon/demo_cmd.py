@@ -122,13 +122,12 @@ def _monitor_and_replay(model_path, trial_path, mcap_path, rrd_path, rate, conso
         deadline = time.monotonic() + 30.0
         while ax.estimator.counters["samples_in"] < stats.samples and time.monotonic() < deadline:
             time.sleep(0.05)
-        received = int(ax.estimator.counters["estimates_out"])
     finally:
-        monitor.stop()
+        monitor.stop()  # drains the queue: the block being estimated is counted too
         if client is not None:
             client.close()
         server.close()
-    return received
+    return int(ax.estimator.counters["estimates_out"])
 
 
 def _score(mcap_path, trial) -> dict:
