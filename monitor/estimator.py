@@ -536,8 +536,8 @@ class AxisEstimator:
                 since = int(self._search_bufs[1][online.S_COUNT]) - pending.count
                 tracker = caught_up(verdict.tracker, verdict.adopt.spindle, pending.ring, R, since)
                 old = pending.ring
-                if not (0 <= since and verdict.window + since <= R.shape[0] and old.shape[0]
-                        and R[-since - 1, online.G_T] == old[-1, online.G_T]):
+                if ahead is not None and not (0 <= since < R.shape[0] and verdict.window + since <= R.shape[0]
+                                              and old.shape[0] and R[-since - 1, online.G_T] == old[-1, online.G_T]):
                     ahead = None                  # the ring did not go on from the one the search saw
                 self._adopt(verdict.adopt, tracker, R[-(verdict.window + since):] if verdict.window else R,
                             ahead, since)
