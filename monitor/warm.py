@@ -46,8 +46,9 @@ def compile_all() -> None:
     from .process_monitor.settings import MonitorSettings
     from .status import AxisStatus
 
+    # a loop gain (N·s/m), so that the force is in newtons and the process monitors judge it
     model = AxisModel(machine="warm", axis="x", form="velocity-loop", Ts=0.003, beta=[0.8, 0.16], omega=0.0,
-                      coulomb=False, tracker=TrackerConfig())
+                      coulomb=False, loop_gain=1.0e4, tracker=TrackerConfig())
     axes = {("warm", "x"): AxisRuntime(model, AxisEstimator(model), AxisStatus("warm", "x", "<warm-up>", ""))}
     warm_up(axes, build_monitors(axes, MonitorSettings(enabled=True)))
 

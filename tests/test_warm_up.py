@@ -89,3 +89,33 @@ def test_warm_up_leaves_nothing_to_compile(tmp_path):
     assert doc["functions"] > 30, doc                        # the kernels' compiled functions were seen
     assert all(n > 0 for n in doc["adoptions"].values()), doc  # the search adopted on both axes
     assert doc["new"] == [], f"compiled after the warm-up: {doc['new']}"
+
+
+COMPILE_ALL = r"""
+import json, sys
+from numba.core.dispatcher import Dispatcher
+from monitor.warm import compile_all
+compile_all()
+seen = {}
+for name, mod in list(sys.modules.items()):
+    if name.startswith("kernels"):
+        for obj in vars(mod).values():
+            if isinstance(obj, Dispatcher):
+                seen[f"{obj.py_func.__module__}.{obj.py_func.__qualname__}"] = len(obj.overloads)
+print(json.dumps(seen))
+"""
+
+
+def test_the_image_build_step_loads_what_the_first_search_and_alarm_need(tmp_path):
+    """``compile_all`` (the Dockerfile's build step, no model file) leaves in a fresh interpreter the
+    compiled versions the live path meets late: the search's replays, online β's rebase, the tracker API an adoption calls, the monitors' cores."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", COMPILE_ALL], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    seen = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name in ("kernels._krlst_core.track", "kernels.beta_step.replay_joint", "kernels._krlst_core.update_buffers",
+                 "kernels._krlst_core.arm_buffers", "kernels._krlst_core.learn_buffers",
+                 "kernels.online.track_block", "kernels.force_monitors.impulse_step",
+                 "kernels.force_monitors.tooth_block", "kernels.period._harmonic_sum"):
+        assert seen.get(name, 0) >= 1, name
