@@ -206,6 +206,25 @@ def test_drifting_friction_is_followed_within_5_percent(shaker, simulated):
     assert late[-1].damping / late[0].damping > 1.0 + 0.7 * (truth["damping"][-1] / truth["damping"][0] - 1)
 
 
+def test_a_symmetric_coulomb_drop_is_drift_tested(simulated, tmp_path):
+    """Out of sample, no flags: a model from the shaker's control run (no disturbance), then a shaker trial
+    whose Coulomb friction drops 36 % in both directions half-way (the shaker on from 15 s to 45 s). The
+    symmetric Coulomb level, the one a trial with reversals determines, is tested for drift: a report
+    after the drop names it, with its sign; none before the drop does."""
+    model = _identify(simulated("shaker-control", seed=1), tmp_path / "control.model.toml")
+    step = _config(tmp_path / "step.toml", "duration = 60.0\n[drive_step]\nat = 0.5\n"
+                   "coulomb_pos = -0.36\ncoulomb_neg = -0.36\n")
+    trial = tmp_path / "step.mcap"
+    assert main(["simulate", "shaker-constant", "-o", str(trial), "--seed", "2", "--config", str(step)]) == 0
+    reports = _health(_run(trial, model, tmp_path / "step-out.mcap"))
+    drift = [h for h in reports if any(r.startswith("coulomb drift") for r in h.reasons)]
+    assert drift, [h.reasons for h in reports[-3:]]
+    assert min(h.t for h in drift) > 30.0                  # nothing before the drop
+    assert all(h.state != "ok" for h in drift)
+    assert all("coulomb drift −" in r for h in drift for r in h.reasons if r.startswith("coulomb drift"))
+    assert drift[-1].coulomb < 0.8 * reports[0].coulomb    # the estimate followed the drop
+
+
 def test_applied_beta_keeps_the_disturbance_at_least_as_good_as_a_fixed_beta(shaker, simulated):
     d, model = shaker
     trial = simulated("shaker-drift", seed=3)
