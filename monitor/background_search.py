@@ -24,7 +24,7 @@ import numpy as np
 from kernels import online
 from kernels.krlst import KRLST
 
-__all__ = ["PendingSearch", "caught_up", "submit"]
+__all__ = ["PendingSearch", "caught_up", "submit", "went_on"]
 
 _lock = threading.Lock()
 _pool: tuple[int, ThreadPoolExecutor] | None = None
@@ -57,6 +57,12 @@ def submit(fn, ring: np.ndarray, count: int, lag: int) -> PendingSearch:
     return PendingSearch(_executor().submit(fn), ring, count, count + max(1, int(lag)))
 
 
+def went_on(old: np.ndarray, R: np.ndarray, since: int) -> bool:
+    """The ring ``R`` is the ring ``old`` a search saw, gone on by ``since`` learned entries (not cleared
+    by a restart meanwhile): its entry ``since`` before the newest is ``old``'s newest."""
+    return bool(old.shape[0]) and 0 <= since < R.shape[0] and R[-since - 1, online.G_T] == old[-1, online.G_T]
+
+
 def caught_up(tracker: KRLST | None, spindle: bool, old: np.ndarray, R: np.ndarray, since: int) -> KRLST | None:
     """The search's ``tracker`` — armed at the newest entry of the ring ``old`` it saw, that entry not
     learned — fed the ``since`` entries learned after it (ring ``R`` now, :data:`kernels.online.RING`
@@ -64,7 +70,7 @@ def caught_up(tracker: KRLST | None, spindle: bool, old: np.ndarray, R: np.ndarr
     ``old`` gone on (a restart cleared the ring)."""
     if tracker is None or not old.shape[0] or since <= 0:
         return tracker
-    if since >= R.shape[0] or R[-since - 1, online.G_T] != old[-1, online.G_T]:
+    if not went_on(old, R, since):
         return None
     new = R[-since:]
     X = np.column_stack((new[:, online.G_T], np.nan_to_num(new[:, online.G_THETA])))

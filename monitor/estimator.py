@@ -77,7 +77,7 @@ from kernels.beta_tracker import PHYSICAL as PHYSICAL_PARAMS  # the order of the
 from kernels.beta_tracker import REBASE_EVERY, OnlineBeta, physical_of
 from kernels.health import HealthMonitor, describe, physical_vector
 
-from .background_search import PendingSearch, caught_up, submit
+from .background_search import PendingSearch, caught_up, submit, went_on
 from .estimate_rows import EstimateRows
 from .model_file import AxisModel
 from .online_settings import OnlineSettings, SpindleKernel, choice_of
@@ -535,9 +535,7 @@ class AxisEstimator:
                 R = self._ring()
                 since = int(self._search_bufs[1][online.S_COUNT]) - pending.count
                 tracker = caught_up(verdict.tracker, verdict.adopt.spindle, pending.ring, R, since)
-                old = pending.ring
-                if ahead is not None and not (0 <= since < R.shape[0] and verdict.window + since <= R.shape[0]
-                                              and old.shape[0] and R[-since - 1, online.G_T] == old[-1, online.G_T]):
+                if ahead is not None and not (went_on(pending.ring, R, since) and verdict.window + since <= R.shape[0]):
                     ahead = None                  # the ring did not go on from the one the search saw
                 self._adopt(verdict.adopt, tracker, R[-(verdict.window + since):] if verdict.window else R,
                             ahead, since)
